@@ -1,0 +1,69 @@
+"""The one typed configuration of MEDeA; every default is the paper's value.
+
+Paper: Artemyev et al., "MEDeA: Multi-view Efficient Depth Adjustment", ICIP 2024,
+section "Implementation details". Fields that the paper does not fix (numerical
+epsilons, the short-sequence fallback, the device) are documented where they live.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+
+@dataclass
+class StageConfig:
+    """Optimiser schedule of one stage (Adam with exponential learning-rate decay)."""
+
+    epochs: int
+    gamma: float
+    patience: int
+    lr: float = 0.1
+    # Early stop when the epoch loss has not dropped by at least this fraction of the
+    # best loss so far for `patience` consecutive epochs ("1% throughout 40 epochs").
+    min_rel_improvement: float = 0.01
+
+
+@dataclass
+class MedeaConfig:
+    """All MEDeA options. Defaults reproduce the paper (MEDeA-S with feature loss S)."""
+
+    # Depth deformation model: log-scale grid (h, w) for landscape frames; portrait
+    # frames use the transpose (10, 8).
+    grid_size: tuple[int, int] = (8, 10)
+    # Images, priors and features are optimised at this fraction of the input size.
+    image_scale: float = 0.25
+    batch_pairs: int = 128
+    stage1: StageConfig = field(default_factory=lambda: StageConfig(epochs=600, gamma=0.996, patience=40))
+    stage2: StageConfig = field(default_factory=lambda: StageConfig(epochs=60, gamma=0.96, patience=4))
+    # Pairs(a, b) levels: Stage I on keyframe pairs Pairs(3, 6), Stage II on Pairs(0, 2).
+    stage1_levels: tuple[int, int] = (3, 6)
+    stage2_levels: tuple[int, int] = (0, 2)
+    run_stage1: bool = True
+    run_stage2: bool = True
+    # Initialise non-keyframe grids from the nearest keyframe before Stage II.
+    propagate_scale: bool = True
+    use_photometric: bool = True
+    use_depth: bool = True
+    # The feature term is used only when features are given.
+    use_features: bool = True
+    # "S": |Fi - Fj->i| / |Fi + Fj->i| (MEDeA-S); "M": negative mean dot product (MEDeA-M).
+    feature_loss: Literal["S", "M"] = "S"
+    # Weights of the loss terms; the paper sums them unweighted.
+    photometric_weight: float = 1.0
+    depth_weight: float = 1.0
+    feature_weight: float = 1.0
+    seed: int = 0
+    device: str = "cpu"
+    # Guards the S-form ratio where both features are zero (ReLU outputs).
+    feature_eps: float = 1e-6
+    # A warped pixel counts only if its bilinear footprint lies on valid depth in frame j.
+    min_sample_validity: float = 0.999
+
+    def grid_for(self, height: int, width: int) -> tuple[int, int]:
+        """Grid (h, w) for a frame of this size: (8, 10) landscape, (10, 8) portrait."""
+        h, w = sorted(self.grid_size)
+        return (w, h) if height > width else (h, w)
+
+    def to_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,176 @@
+"""Pinhole geometry over batched tensors: intrinsics, back-projection, projection, and
+the reprojection of frame j into view i that every MEDeA loss is built on.
+
+Conventions: camera-to-world 4x4 poses, OpenCV camera axes (x right, y down, z forward),
+z-depth in metres, intrinsics (fx, fy, cx, cy) in pixels with pixel centres at integer
+coordinates (pixel (0, 0) covers [-0.5, 0.5]^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+
+def intrinsics_matrix(intrinsics: torch.Tensor) -> torch.Tensor:
+    """(..., 4) fx, fy, cx, cy -> (..., 3, 3) K."""
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    rows = [fx, zero, cx, zero, fy, cy, zero, zero, one]
+    return torch.stack(rows, dim=-1).reshape(*intrinsics.shape[:-1], 3, 3)
+
+
+def scale_intrinsics(intrinsics: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
+    """Intrinsics (..., 4) of an image resized by (sx, sy), keeping pixel centres aligned."""
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    return torch.stack([fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5], dim=-1)
+
+
+def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(H, W, 2) pixel-centre coordinates (u, v)."""
+    v, u = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
+    )
+    return torch.stack([u, v], dim=-1)
+
+
+def camera_rays(intrinsics: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Rays with unit z through every pixel centre: (B, H, W, 3) from intrinsics (B, 4)."""
+    uv = pixel_grid(height, width, intrinsics.device, intrinsics.dtype)
+    fx, fy, cx, cy = (x[:, None, None] for x in intrinsics.unbind(-1))
+    x = (uv[..., 0] - cx) / fx
+    y = (uv[..., 1] - cy) / fy
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+
+
+def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply (B, 4, 4) rigid transforms to points (B, ..., 3)."""
+    batch = points.shape[0]
+    flat = points.reshape(batch, -1, 3)
+    out = flat @ transform[:, :3, :3].transpose(1, 2) + transform[:, None, :3, 3]
+    return out.reshape(points.shape)
+
+
+def relative_pose(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tensor:
+    """(B, 4, 4) transform taking camera `from` coordinates to camera `to` coordinates.
+
+    Both inputs are camera-to-world; the result is inv(pose_to) @ pose_from.
+    """
+    return torch.linalg.solve(pose_to, pose_from)
+
+
+def project(points: torch.Tensor, intrinsics: torch.Tensor, eps: float = 1e-6):
+    """Project camera-frame points (B, H, W, 3) with intrinsics (B, 4).
+
+    Returns:
+        uv (B, H, W, 2) pixel coordinates and z (B, H, W). Points with z <= eps get
+        uv computed with a clamped z and must be masked by the caller using z.
+    """
+    fx, fy, cx, cy = (x[:, None, None] for x in intrinsics.unbind(-1))
+    z = points[..., 2]
+    safe_z = z.clamp(min=eps)
+    u = fx * points[..., 0] / safe_z + cx
+    v = fy * points[..., 1] / safe_z + cy
+    return torch.stack([u, v], dim=-1), z
+
+
+def pixels_to_normalized(uv: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Pixel coordinates (..., 2) -> grid_sample coordinates (align_corners=False)."""
+    scale = uv.new_tensor([2.0 / width, 2.0 / height])
+    return (uv + 0.5) * scale - 1.0
+
+
+def sample(maps: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample maps (B, C, H, W) at pixel coordinates uv (B, H', W', 2).
+
+    Returns (B, C, H', W'); outside the image the result is 0.
+    """
+    grid = pixels_to_normalized(uv, maps.shape[-2], maps.shape[-1])
+    return F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+def inside_image(uv: torch.Tensor, height: int, width: int, tolerance: float = 1e-3) -> torch.Tensor:
+    """(B, H', W') bool: the bilinear footprint of uv lies inside the image.
+
+    The tolerance keeps border pixels that round-off moves a hair outside.
+    """
+    u, v = uv[..., 0], uv[..., 1]
+    lo = -tolerance
+    return (u >= lo) & (u <= width - 1 + tolerance) & (v >= lo) & (v <= height - 1 + tolerance)
+
+
+@dataclass
+class Reprojection:
+    """Where the pixels of view i land in view j.
+
+    uv_j: (B, H, W, 2) pixel coordinates in frame j.
+    valid: (B, H, W) bool: positive depth in i, in front of j, inside j.
+    """
+
+    uv_j: torch.Tensor
+    valid: torch.Tensor
+
+
+def pair_transforms(poses: torch.Tensor, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera-i-to-camera-j and camera-j-to-camera-i transforms for pairs (P, 2) of (i, j).
+
+    Computed in float64 so that large world coordinates do not cost precision, and
+    returned as float32. `poses` is (N, 4, 4) camera-to-world.
+    """
+    world = poses.double()
+    pose_i, pose_j = world[pairs[:, 0]], world[pairs[:, 1]]
+    i_to_j = relative_pose(pose_i, pose_j)
+    j_to_i = relative_pose(pose_j, pose_i)
+    return i_to_j.float(), j_to_i.float()
+
+
+def reproject(
+    depth_i: torch.Tensor,
+    intrinsics_i: torch.Tensor,
+    intrinsics_j: torch.Tensor,
+    i_to_j: torch.Tensor,
+    size_j: tuple[int, int],
+) -> Reprojection:
+    """Reproject every pixel of view i (with its depth) into view j.
+
+    Args:
+        depth_i: (B, H, W) z-depth of view i in metres (<= 0 is invalid).
+        intrinsics_i, intrinsics_j: (B, 4) at the resolution of depth_i / of frame j.
+        i_to_j: (B, 4, 4) camera-i to camera-j transform (see pair_transforms).
+        size_j: (H_j, W_j) of the maps that will be sampled in frame j.
+    """
+    height, width = depth_i.shape[-2:]
+    points_i = camera_rays(intrinsics_i, height, width) * depth_i[..., None]
+    uv_j, z_j = project(transform_points(i_to_j, points_i), intrinsics_j)
+    valid = (depth_i > 0) & (z_j > 1e-3) & inside_image(uv_j, *size_j)
+    return Reprojection(uv_j=uv_j, valid=valid)
+
+
+def depth_in_view_i(
+    sampled_depth_j: torch.Tensor,
+    uv_j: torch.Tensor,
+    intrinsics_j: torch.Tensor,
+    j_to_i: torch.Tensor,
+) -> torch.Tensor:
+    """The pseudo depth D_{j->i}: z, in camera i, of frame j's surface point seen at uv_j.
+
+    Args:
+        sampled_depth_j: (B, H, W) D_j sampled at uv_j.
+        uv_j: (B, H, W, 2) pixel coordinates in frame j.
+        intrinsics_j: (B, 4).
+        j_to_i: (B, 4, 4) camera-j to camera-i transform.
+    Returns:
+        (B, H, W) depth along camera i's z axis.
+    """
+    fx, fy, cx, cy = (x[:, None, None] for x in intrinsics_j.unbind(-1))
+    rays_j = torch.stack(
+        [(uv_j[..., 0] - cx) / fx, (uv_j[..., 1] - cy) / fy, torch.ones_like(sampled_depth_j)], dim=-1
+    )
+    # Only the z row of j_to_i is needed: z_i = r3 . (D_j * ray_j) + t3.
+    r3 = j_to_i[:, 2, :3]
+    t3 = j_to_i[:, 2, 3]
+    return sampled_depth_j * torch.einsum("bhwc,bc->bhw", rays_j, r3) + t3[:, None, None]

@@ -1,0 +1,38 @@
+"""The MEDeA loss terms for a batch of frame pairs (i, j), each a per-pair mean over the
+pixels where the reprojection of j into i is valid (the paper's |I_{j->i}|).
+
+Every function takes per-pixel maps (B, C, H, W) or (B, H, W) and a mask (B, H, W) and
+returns (B,) per-pair losses.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of per_pixel (B, H, W) over mask (B, H, W) per pair -> (B,); 0 where empty."""
+    mask = mask.to(per_pixel.dtype)
+    count = mask.flatten(1).sum(1)
+    return (per_pixel * mask).flatten(1).sum(1) / count.clamp(min=1.0)
+
+
+def photometric_loss(image_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """L_photo = mean over valid pixels and the 3 channels of |I_i - I_{j->i}|."""
+    return masked_mean((image_i - warped_j).abs().mean(dim=1), mask)
+
+
+def depth_loss(depth_i: torch.Tensor, depth_j_in_i: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """L_depth = mean over valid pixels of |D_i - D_{j->i}| (metres)."""
+    return masked_mean((depth_i - depth_j_in_i).abs(), mask)
+
+
+def feature_loss_s(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / |Fi + Fj->i|."""
+    ratio = (feat_i - warped_j).abs() / ((feat_i + warped_j).abs() + eps)
+    return masked_mean(ratio.mean(dim=1), mask)
+
+
+def feature_loss_m(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """MEDeA-M: negative mean over valid pixels of the dot product Fi . Fj->i."""
+    return -masked_mean((feat_i * warped_j).sum(dim=1), mask)

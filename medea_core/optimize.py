@@ -1,0 +1,210 @@
+"""MEDeA's two-stage test-time optimisation (paper, "Test-time Optimization" and
+"Implementation details"): Stage I on keyframe pairs, scale propagation, Stage II on
+short-range pairs with keyframe grids frozen.
+
+The optimiser is Adam applied lazily per frame (torch's SparseAdam over an embedding
+table of grids): a frame's grid and moments change only in steps whose batch contains
+it. With one batch per epoch (Stage I on typical lengths) this is exactly Adam; with
+several it avoids moving frames on stale momentum from other batches.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+
+from .config import MedeaConfig, StageConfig
+from .frames import FrameData, prepare_frames
+from .geometry import pair_transforms
+from .grid import adjust_depth
+from .objective import PairBatch, pair_losses
+from .pairs import nearest_keyframe, stage_pairs
+from .propagate import propagate_scales
+
+# progress(stage_name, epoch, epoch_losses) is called after every epoch.
+ProgressCallback = Callable[[str, int, dict], None]
+
+
+@dataclass
+class StageHistory:
+    """Per-epoch mean loss of each term over the stage's pairs."""
+
+    losses: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    epochs: int = 0
+    stopped_early: bool = False
+    seconds: float = 0.0
+
+
+@dataclass
+class MedeaResult:
+    """depth: (N, H, W) adjusted depth at the prior's resolution (0 where the prior was
+    invalid); log_scales: (N, h, w); keyframes: (K,); history per stage; seconds per step."""
+
+    depth: torch.Tensor
+    log_scales: torch.Tensor
+    keyframes: torch.Tensor
+    history: dict[str, StageHistory]
+    seconds: dict[str, float]
+
+
+def _grids(table: torch.Tensor, frozen: torch.Tensor, trainable: torch.Tensor, frames: torch.Tensor, grid):
+    """Grids (B, h, w) of `frames`: trainable rows via a sparse-gradient lookup."""
+    rows = F.embedding(frames, table, sparse=True)
+    rows = torch.where(trainable[frames, None], rows, frozen[frames])
+    return rows.view(-1, *grid)
+
+
+def optimise_stage(
+    data: FrameData,
+    log_scales: torch.Tensor,
+    trainable: torch.Tensor,
+    pairs: torch.Tensor,
+    stage: StageConfig,
+    config: MedeaConfig,
+    generator: torch.Generator,
+    name: str = "stage",
+    progress: ProgressCallback | None = None,
+) -> tuple[torch.Tensor, StageHistory]:
+    """Optimise the grids of `trainable` frames on `pairs`.
+
+    Args:
+        log_scales: (N, h, w) starting grids (left untouched; a new tensor is returned).
+        trainable: (N,) bool.
+        pairs: (P, 2) frame pairs (i, j) on the CPU.
+    Returns:
+        (N, h, w) optimised grids and the stage history.
+    """
+    history = StageHistory()
+    start = time.perf_counter()
+    device = log_scales.device
+    num, grid = log_scales.shape[0], tuple(log_scales.shape[1:])
+    if pairs.numel() == 0 or not bool(trainable.any()) or stage.epochs <= 0:
+        return log_scales.clone(), history
+    pairs_dev = pairs.to(device)
+    i_to_j, j_to_i = pair_transforms(data.poses, pairs_dev)
+    frozen = log_scales.detach().reshape(num, -1).clone()
+    table = frozen.clone().requires_grad_(True)
+    trainable = trainable.to(device)
+    optimiser = torch.optim.SparseAdam([table], lr=stage.lr)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=stage.gamma)
+    best, stall = float("inf"), 0
+    for epoch in range(stage.epochs):
+        sums: dict[str, float] = defaultdict(float)
+        counted = 0
+        for chunk in torch.randperm(pairs.shape[0], generator=generator).split(config.batch_pairs):
+            chunk = chunk.to(device)
+            batch = PairBatch(pairs_dev[chunk, 0], pairs_dev[chunk, 1], i_to_j[chunk], j_to_i[chunk])
+            terms = pair_losses(
+                data,
+                batch,
+                _grids(table, frozen, trainable, batch.i, grid),
+                _grids(table, frozen, trainable, batch.j, grid),
+                config,
+            )
+            overlapping = terms["valid_fraction"] > 0
+            if not bool(overlapping.any()):
+                continue
+            loss = terms["total"][overlapping].mean()
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            counted += int(overlapping.sum())
+            for key, value in terms.items():
+                sums[key] += float(value.detach()[overlapping].sum())
+        scheduler.step()
+        if counted == 0:
+            break
+        epoch_losses = {key: value / counted for key, value in sums.items()}
+        for key, value in epoch_losses.items():
+            history.losses[key].append(value)
+        history.epochs = epoch + 1
+        if progress is not None:
+            progress(name, epoch, epoch_losses)
+        current = epoch_losses["total"]
+        if current < best - stage.min_rel_improvement * abs(best):
+            best, stall = current, 0
+        else:
+            stall += 1
+            if stall >= stage.patience:
+                history.stopped_early = True
+                break
+    result = torch.where(trainable[:, None], table.detach(), frozen).view(num, *grid)
+    history.losses = dict(history.losses)
+    history.seconds = time.perf_counter() - start
+    return result, history
+
+
+def run_medea(
+    images: torch.Tensor,
+    prior: torch.Tensor,
+    poses: torch.Tensor,
+    intrinsics: torch.Tensor,
+    features: torch.Tensor | None = None,
+    config: MedeaConfig | None = None,
+    progress: ProgressCallback | None = None,
+) -> MedeaResult:
+    """Adjust prior depth maps to be consistent across views.
+
+    Args:
+        images: (N, 3, H', W') RGB in [0, 1]; any resolution with the prior's aspect
+            (passing them already at the working resolution saves memory).
+        prior: (N, H, W) prior depth in metres; 0 or NaN where invalid.
+        poses: (N, 4, 4) camera-to-world, metres.
+        intrinsics: (N, 4) or (4,) fx, fy, cx, cy in pixels of the prior's resolution.
+        features: optional (N, C, h, w) dense features for the feature-metric term.
+        config: options; the defaults are the paper's.
+        progress: optional per-epoch callback.
+    Returns:
+        MedeaResult with depth at the prior's resolution, on the prior's device.
+    """
+    config = config or MedeaConfig()
+    num = prior.shape[0]
+    if num == 0:
+        raise ValueError("run_medea: no frames")
+    if images.shape[0] != num or poses.shape[0] != num or (features is not None and features.shape[0] != num):
+        raise ValueError("run_medea: images, prior, poses and features must have the same number of frames")
+    device = torch.device(config.device)
+    generator = torch.Generator().manual_seed(config.seed)
+    seconds: dict[str, float] = {}
+
+    start = time.perf_counter()
+    data = prepare_frames(images, prior, poses, intrinsics, features, config.image_scale, device)
+    grid = config.grid_for(*prior.shape[-2:])
+    log_scales = torch.zeros((num, *grid), device=device)
+    pairs1, keyframes, pairs2 = stage_pairs(num, config.stage1_levels, config.stage2_levels)
+    is_key = torch.zeros(num, dtype=torch.bool)
+    is_key[keyframes] = True
+    seconds["prepare"] = time.perf_counter() - start
+
+    history: dict[str, StageHistory] = {}
+    if config.run_stage1:
+        log_scales, history["stage1"] = optimise_stage(
+            data, log_scales, is_key, pairs1, config.stage1, config, generator, "stage1", progress
+        )
+    seconds["stage1"] = history["stage1"].seconds if "stage1" in history else 0.0
+
+    start = time.perf_counter()
+    others = torch.nonzero(~is_key).flatten()
+    if config.run_stage1 and config.propagate_scale and others.numel() > 0:
+        sources = nearest_keyframe(num, keyframes)[others]
+        log_scales[others.to(device)] = propagate_scales(
+            data, log_scales, others, sources, config.batch_pairs, config.min_sample_validity
+        )
+    seconds["propagate"] = time.perf_counter() - start
+
+    if config.run_stage2:
+        # Without Stage I there is nothing to freeze: every frame is optimised.
+        trainable = ~is_key if config.run_stage1 else torch.ones(num, dtype=torch.bool)
+        log_scales, history["stage2"] = optimise_stage(
+            data, log_scales, trainable, pairs2, config.stage2, config, generator, "stage2", progress
+        )
+    seconds["stage2"] = history["stage2"].seconds if "stage2" in history else 0.0
+
+    out_device = prior.device
+    depth = adjust_depth(torch.nan_to_num(prior.float(), nan=0.0).clamp(min=0), log_scales.to(out_device))
+    return MedeaResult(depth=depth, log_scales=log_scales.to(out_device), keyframes=keyframes, history=history, seconds=seconds)

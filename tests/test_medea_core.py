@@ -1,0 +1,158 @@
+"""Unit tests of the MEDeA core: geometry, pair sampling, losses, freezing, propagation."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from medea_core import MedeaConfig, StageConfig, hierarchical_pairs, optimise_stage, stage_pairs
+from medea_core.frames import prepare_frames
+from medea_core.geometry import depth_in_view_i, pair_transforms, pixel_grid, reproject, sample
+from medea_core.grid import median_pool_to_grid, scale_field
+from medea_core.losses import feature_loss_m, feature_loss_s, photometric_loss
+from medea_core.propagate import propagate_scales
+
+from conftest import look_at, plane_depth
+
+H, W = 96, 128
+INTR = (110.0, 110.0, 63.5, 47.5)
+
+
+def _tensor_pair(pose_i, pose_j, depth_i):
+    poses = torch.as_tensor(np.stack([pose_i, pose_j]))
+    i_to_j, j_to_i = pair_transforms(poses, torch.tensor([[0, 1]]))
+    intr = torch.tensor([INTR])
+    return torch.as_tensor(depth_i)[None], intr, i_to_j, j_to_i
+
+
+def test_reprojection_onto_itself_is_identity():
+    pose = look_at([0.3, -0.2, 0.1], [0.5, 0.4, 3.0])
+    depth = plane_depth(pose, INTR, H, W, normal=[0.1, 0.2, 1.0], offset=3.0)
+    depth_i, intr, i_to_j, j_to_i = _tensor_pair(pose, pose, depth)
+    rep = reproject(depth_i, intr, intr, i_to_j, (H, W))
+    assert torch.allclose(rep.uv_j[0], pixel_grid(H, W), atol=1e-3)
+    assert bool(rep.valid.all())
+    sampled = sample(depth_i[:, None], rep.uv_j)[:, 0]
+    back = depth_in_view_i(sampled, rep.uv_j, intr, j_to_i)
+    assert torch.allclose(back, depth_i, rtol=1e-4)
+
+
+def test_reprojection_matches_analytic_shift_under_translation():
+    z, tx, ty = 2.0, 0.1, -0.05
+    pose_i = np.eye(4)
+    pose_j = np.eye(4)
+    pose_j[:3, 3] = [tx, ty, 0.0]
+    depth = np.full((H, W), z, np.float32)
+    depth_i, intr, i_to_j, j_to_i = _tensor_pair(pose_i, pose_j, depth)
+    rep = reproject(depth_i, intr, intr, i_to_j, (H, W))
+    expected = pixel_grid(H, W).clone()
+    expected[..., 0] -= INTR[0] * tx / z
+    expected[..., 1] -= INTR[1] * ty / z
+    assert torch.allclose(rep.uv_j[0], expected, atol=1e-3)
+    # Pixels whose footprint leaves frame j are invalid: the right-most 6 columns here.
+    shift = INTR[0] * tx / z
+    assert not bool(rep.valid[0, :, : int(np.ceil(shift)) - 1].any())
+    assert bool(rep.valid[0, 5:-5, int(np.ceil(shift)) + 1 :].all())
+    sampled = sample(torch.as_tensor(depth)[None, None], rep.uv_j)[:, 0]
+    back = depth_in_view_i(sampled, rep.uv_j, intr, j_to_i)
+    assert torch.allclose(back[rep.valid], depth_i[rep.valid], rtol=1e-4)
+
+
+def _brute_force_pairs(n, a, b):
+    out = set()
+    for i, j in itertools.product(range(n), repeat=2):
+        for level in range(a, b + 1):
+            if abs(i - j) == 2**level and i % 2**level == 0:
+                out.add((i, j))
+    return out
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 9, 17, 33, 100, 257])
+@pytest.mark.parametrize("levels", [(0, 2), (3, 6), (1, 1)])
+def test_pairs_match_formula(n, levels):
+    pairs = hierarchical_pairs(n, *levels)
+    as_set = {tuple(p) for p in pairs.tolist()}
+    assert len(as_set) == len(pairs)
+    assert as_set == _brute_force_pairs(n, *levels)
+
+
+def test_short_sequence_fallback_makes_every_frame_a_keyframe():
+    p1, keyframes, p2 = stage_pairs(5, (3, 6), (0, 2))
+    assert keyframes.tolist() == [0, 1, 2, 3, 4]
+    assert {tuple(p) for p in p1.tolist()} == _brute_force_pairs(5, 0, 2)
+    assert p2.numel() == 0
+    p1, keyframes, p2 = stage_pairs(40, (3, 6), (0, 2))
+    assert keyframes.tolist() == [0, 8, 16, 24, 32]
+    assert len(p2) == len(_brute_force_pairs(40, 0, 2))
+
+
+def test_loss_values_on_known_inputs():
+    mask = torch.ones(1, 4, 5, dtype=torch.bool)
+    mask[0, 0] = False
+    image = torch.rand(1, 3, 4, 5)
+    assert float(photometric_loss(image, image, mask)) == 0.0
+    assert float(photometric_loss(image, image + 0.1, mask)) == pytest.approx(0.1, abs=1e-6)
+    feat_i = torch.ones(1, 2, 4, 5)
+    feat_j = 3 * torch.ones(1, 2, 4, 5)
+    assert float(feature_loss_s(feat_i, feat_j, mask)) == pytest.approx(0.5, abs=1e-5)
+    assert float(feature_loss_s(feat_i, feat_i, mask)) == 0.0
+    assert float(feature_loss_m(feat_i, feat_j, mask)) == pytest.approx(-6.0)
+
+
+def _plane_sequence(num_frames=3, seed=0):
+    """Textured-by-noise frames of a wall seen from a short sideways path."""
+    rng = np.random.default_rng(seed)
+    poses = [look_at([0.15 * k, 0.0, 0.0], [0.15 * k + 0.2, 0.1, 3.0]) for k in range(num_frames)]
+    depth = np.stack([plane_depth(p, INTR, H, W, [0.0, 0.1, 1.0], 3.0) for p in poses])
+    images = torch.as_tensor(rng.random((num_frames, 3, H, W)), dtype=torch.float32)
+    return images, torch.as_tensor(depth), torch.as_tensor(np.stack(poses)), torch.tensor(INTR)
+
+
+def test_frozen_grids_get_no_updates():
+    images, depth, poses, intr = _plane_sequence(3)
+    prior = depth * torch.tensor([1.2, 0.8, 1.1])[:, None, None]
+    config = MedeaConfig(image_scale=0.5)
+    data = prepare_frames(images, prior, poses, intr, None, config.image_scale, "cpu")
+    start = torch.randn(3, 8, 10) * 0.05
+    trainable = torch.tensor([False, True, False])
+    pairs = torch.tensor([[0, 1], [1, 0], [1, 2], [2, 1], [0, 2], [2, 0]])
+    stage = StageConfig(epochs=5, gamma=0.96, patience=100)
+    result, history = optimise_stage(data, start, trainable, pairs, stage, config, torch.Generator().manual_seed(0))
+    assert history.epochs == 5
+    assert torch.equal(result[0], start[0]) and torch.equal(result[2], start[2])
+    assert not torch.allclose(result[1], start[1])
+
+
+def _smooth_log_grid(generator, amplitude=0.15):
+    """A smooth (8, 10) log-scale grid: a random 3x3 field interpolated onto the grid."""
+    coarse = torch.randn(1, 1, 3, 3, generator=generator) * amplitude
+    return torch.nn.functional.interpolate(coarse, size=(8, 10), mode="bicubic", align_corners=True)[0, 0]
+
+
+def test_median_pool_recovers_smooth_grid():
+    generator = torch.Generator().manual_seed(1)
+    log_true = torch.stack([_smooth_log_grid(generator, 0.2) for _ in range(2)])
+    field = scale_field(log_true, (120, 160))
+    pooled = median_pool_to_grid(field, torch.ones_like(field, dtype=torch.bool), (8, 10)).log()
+    # Border cells are one-sided, so their median sits a quarter cell inwards.
+    assert (pooled - log_true).abs().max() < 0.06
+    assert (pooled - log_true)[:, 1:-1, 1:-1].abs().max() < 0.02
+
+
+def test_propagation_recovers_known_scale_field():
+    pose_key = look_at([0.0, 0.0, -0.8], [0.1, 0.1, 3.0])
+    pose_other = look_at([0.2, -0.1, 0.0], [0.3, 0.0, 3.0])
+    gt = [plane_depth(p, INTR, H, W, [0.05, 0.1, 1.0], 3.0) for p in (pose_key, pose_other)]
+    gt = torch.as_tensor(np.stack(gt))
+    generator = torch.Generator().manual_seed(3)
+    log_true = _smooth_log_grid(generator)
+    prior = gt.clone()
+    prior[1] = gt[1] / scale_field(log_true[None], (H, W))[0]
+    images = torch.zeros(2, 3, H, W)
+    data = prepare_frames(images, prior, torch.as_tensor(np.stack([pose_key, pose_other])), torch.tensor(INTR), None, 1.0, "cpu")
+    recovered = propagate_scales(data, torch.zeros(2, 8, 10), torch.tensor([1]), torch.tensor([0]))[0]
+    assert (recovered - log_true).abs().max() < 0.03
+    assert (recovered - log_true).abs().mean() < 0.01
