@@ -34,6 +34,12 @@ class MedeaConfig:
     # Images, priors and features are optimised at this fraction of the input size.
     image_scale: float = 0.25
     batch_pairs: int = 128
+    # Score every k-th pixel of view i per step, at a random phase (1: every pixel, as
+    # in the paper). Frame j is still sampled at full resolution. A speed knob: the
+    # 8x10 grid is estimated from far more pixels than it needs.
+    pixel_stride: int = 1
+    # The same for the feature term, on the features' own grid.
+    feature_stride: int = 1
     stage1: StageConfig = field(default_factory=lambda: StageConfig(epochs=600, gamma=0.996, patience=40))
     stage2: StageConfig = field(default_factory=lambda: StageConfig(epochs=60, gamma=0.96, patience=4))
     # Pairs(a, b) levels: Stage I on keyframe pairs Pairs(3, 6), Stage II on Pairs(0, 2).

@@ -23,20 +23,33 @@ _CHUNK = 64
 class Level:
     """All frames at one resolution.
 
-    prior: (N, H, W) prior depth D0, 0 where invalid.
-    valid: (N, H, W) bool.
+    packed: (N, C + 2, H, W) the signal warped between views (RGB or features, C
+        channels), then the prior depth D0 (0 where invalid), then its validity (0/1),
+        stored together so one grid_sample fetches all three from frame j.
     intrinsics: (N, 4) fx, fy, cx, cy at this resolution.
-    maps: (N, C, H, W) the signal warped between views (RGB or features).
     """
 
-    prior: torch.Tensor
-    valid: torch.Tensor
+    packed: torch.Tensor
     intrinsics: torch.Tensor
-    maps: torch.Tensor
+
+    @property
+    def maps(self) -> torch.Tensor:
+        """(N, C, H, W)."""
+        return self.packed[:, :-2]
+
+    @property
+    def prior(self) -> torch.Tensor:
+        """(N, H, W)."""
+        return self.packed[:, -2]
+
+    @property
+    def valid(self) -> torch.Tensor:
+        """(N, H, W) bool."""
+        return self.packed[:, -1] > 0.5
 
     @property
     def size(self) -> tuple[int, int]:
-        return tuple(self.prior.shape[-2:])
+        return tuple(self.packed.shape[-2:])
 
 
 @dataclass
@@ -90,7 +103,8 @@ def make_level(
     height, width = prior.shape[-2:]
     depth, valid = resize_depth(prior, size)
     scaled = scale_intrinsics(intrinsics, size[1] / width, size[0] / height)
-    return Level(prior=depth, valid=valid, intrinsics=scaled, maps=_resize(maps, size))
+    packed = torch.cat([_resize(maps, size), depth[:, None], valid[:, None].float()], dim=1)
+    return Level(packed=packed.contiguous(), intrinsics=scaled)
 
 
 def working_size(height: int, width: int, scale: float) -> tuple[int, int]:

@@ -128,24 +128,47 @@ def pair_transforms(poses: torch.Tensor, pairs: torch.Tensor) -> tuple[torch.Ten
     return i_to_j.float(), j_to_i.float()
 
 
+def _pixel_homography(intrinsics_i: torch.Tensor, intrinsics_j: torch.Tensor, i_to_j: torch.Tensor):
+    """M = K_j R K_i^-1 (B, 3, 3) and b = K_j t (B, 3): pixel (u, v) of view i at depth d
+    lands at the homogeneous pixel d * M [u, v, 1] + b of view j."""
+    k_i, k_j = intrinsics_matrix(intrinsics_i), intrinsics_matrix(intrinsics_j)
+    m = k_j @ i_to_j[:, :3, :3] @ torch.linalg.inv(k_i)
+    b = (k_j @ i_to_j[:, :3, 3:])[..., 0]
+    return m, b
+
+
 def reproject(
     depth_i: torch.Tensor,
     intrinsics_i: torch.Tensor,
     intrinsics_j: torch.Tensor,
     i_to_j: torch.Tensor,
     size_j: tuple[int, int],
+    pixels_i: torch.Tensor | None = None,
 ) -> Reprojection:
     """Reproject every pixel of view i (with its depth) into view j.
+
+    Written as per-pixel multiply-adds with per-pair scalars rather than batched 3x3
+    matrix products: the gradient flows only through depth_i, and this is the hot path
+    of the optimisation.
 
     Args:
         depth_i: (B, H, W) z-depth of view i in metres (<= 0 is invalid).
         intrinsics_i, intrinsics_j: (B, 4) at the resolution of depth_i / of frame j.
         i_to_j: (B, 4, 4) camera-i to camera-j transform (see pair_transforms).
         size_j: (H_j, W_j) of the maps that will be sampled in frame j.
+        pixels_i: (H, W, 2) pixel coordinates of depth_i's samples in view i; default
+            every pixel centre.
     """
     height, width = depth_i.shape[-2:]
-    points_i = camera_rays(intrinsics_i, height, width) * depth_i[..., None]
-    uv_j, z_j = project(transform_points(i_to_j, points_i), intrinsics_j)
+    m, b = _pixel_homography(intrinsics_i, intrinsics_j, i_to_j)
+    if pixels_i is None:
+        pixels_i = pixel_grid(height, width, depth_i.device, depth_i.dtype)
+    u, v = pixels_i[..., 0], pixels_i[..., 1]
+    m = m[..., None, None]
+    direction = m[:, :, 0] * u + m[:, :, 1] * v + m[:, :, 2]  # (B, 3, H, W), no gradient
+    homogeneous = depth_i[:, None] * direction + b[:, :, None, None]
+    z_j = homogeneous[:, 2]
+    uv_j = (homogeneous[:, :2] / z_j.clamp(min=1e-6)[:, None]).permute(0, 2, 3, 1)
     valid = (depth_i > 0) & (z_j > 1e-3) & inside_image(uv_j, *size_j)
     return Reprojection(uv_j=uv_j, valid=valid)
 
@@ -166,11 +189,7 @@ def depth_in_view_i(
     Returns:
         (B, H, W) depth along camera i's z axis.
     """
-    fx, fy, cx, cy = (x[:, None, None] for x in intrinsics_j.unbind(-1))
-    rays_j = torch.stack(
-        [(uv_j[..., 0] - cx) / fx, (uv_j[..., 1] - cy) / fy, torch.ones_like(sampled_depth_j)], dim=-1
-    )
-    # Only the z row of j_to_i is needed: z_i = r3 . (D_j * ray_j) + t3.
-    r3 = j_to_i[:, 2, :3]
-    t3 = j_to_i[:, 2, 3]
-    return sampled_depth_j * torch.einsum("bhwc,bc->bhw", rays_j, r3) + t3[:, None, None]
+    # Only the z row of j_to_i is needed: z_i = r3 . (D_j K_j^-1 [u, v, 1]) + t3.
+    c = (j_to_i[:, 2:3, :3] @ torch.linalg.inv(intrinsics_matrix(intrinsics_j)))[:, 0, :, None, None]
+    t3 = j_to_i[:, 2, 3, None, None]
+    return sampled_depth_j * (c[:, 0] * uv_j[..., 0] + c[:, 1] * uv_j[..., 1] + c[:, 2]) + t3

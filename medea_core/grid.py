@@ -13,16 +13,44 @@ import torch
 import torch.nn.functional as F
 
 
-def scale_field(log_scales: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """S = B(exp(l), H, W).
+def interpolation_matrix(size_out: int, size_in: int, device=None) -> torch.Tensor:
+    """(size_out, size_in) linear interpolation weights, end points aligned."""
+    eye = torch.eye(size_in, device=device)[None]
+    return F.interpolate(eye, size=size_out, mode="linear", align_corners=True)[0].T
+
+
+def scale_field(log_scales: torch.Tensor, size: tuple[int, int], lattice: tuple[slice, slice] | None = None) -> torch.Tensor:
+    """S = B(exp(l), H, W): bilinear interpolation with the vertices on the image corners.
+
+    Evaluated as two small matrix products (rows, then columns), which is the same
+    bilinear interpolation as F.interpolate(align_corners=True) but much cheaper to
+    differentiate.
 
     Args:
         log_scales: (B, h, w).
         size: (H, W).
+        lattice: optional (row slice, column slice) to evaluate only those pixels.
     Returns:
-        (B, H, W).
+        (B, H, W), or (B, H', W') on the lattice.
     """
-    return F.interpolate(log_scales.exp()[:, None], size=size, mode="bilinear", align_corners=True)[:, 0]
+    rows = interpolation_matrix(size[0], log_scales.shape[-2], log_scales.device)
+    cols = interpolation_matrix(size[1], log_scales.shape[-1], log_scales.device)
+    if lattice is not None:
+        rows, cols = rows[lattice[0]], cols[lattice[1]]
+    return rows @ log_scales.exp() @ cols.T
+
+
+def sample_scale_field(log_scales: torch.Tensor, uv: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """S at arbitrary pixel coordinates uv (B, H', W', 2) of a (H, W) frame -> (B, H', W').
+
+    Samples the coarse grid directly, so frame j's scale at warped positions costs a
+    grid_sample over (h, w) values instead of one over a full-resolution field.
+    """
+    height, width = size
+    scale = uv.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
+    grid = uv * scale - 1.0
+    sampled = F.grid_sample(log_scales.exp()[:, None], grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return sampled[:, 0]
 
 
 def adjust_depth(prior_depth: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:

@@ -10,8 +10,8 @@ import torch
 
 from .config import MedeaConfig
 from .frames import FrameData, Level
-from .geometry import depth_in_view_i, reproject, sample
-from .grid import scale_field
+from .geometry import depth_in_view_i, pixel_grid, reproject, sample
+from .grid import sample_scale_field, scale_field
 from .losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss
 
 
@@ -28,47 +28,86 @@ class PairBatch:
     j_to_i: torch.Tensor
 
 
-def warp_level(level: Level, batch: PairBatch, log_scales_i: torch.Tensor, log_scales_j: torch.Tensor, min_validity: float):
+def pixel_lattice(size: tuple[int, int], stride: int, generator: torch.Generator | None) -> tuple[slice, slice]:
+    """Rows and columns of view i scored in one step: every `stride`-th pixel, at a
+    random phase so that successive steps cover the whole image. stride 1: all pixels."""
+    if stride <= 1:
+        return slice(None), slice(None)
+    dy, dx = torch.randint(0, stride, (2,), generator=generator).tolist()
+    return slice(dy, size[0], stride), slice(dx, size[1], stride)
+
+
+def warp_level(
+    level: Level,
+    batch: PairBatch,
+    log_scales_i: torch.Tensor,
+    log_scales_j: torch.Tensor,
+    min_validity: float,
+    lattice: tuple[slice, slice] | None = None,
+):
     """Warp frame j's maps and depth into view i at one level.
 
+    Args:
+        lattice: optional (rows, cols) slices of view i to score (see pixel_lattice);
+            frame j is always sampled at full resolution.
     Returns:
-        depth_i (B, H, W), warped maps (B, C, H, W), D_{j->i} (B, H, W), mask (B, H, W).
+        maps_i (B, C, H', W') of view i, depth_i (B, H', W'), warped maps (B, C, H', W'),
+        D_{j->i} (B, H', W'), mask (B, H', W'); H', W' is the lattice (default H, W).
     """
     size = level.size
-    depth_i = level.prior[batch.i] * scale_field(log_scales_i, size)
-    depth_j = level.prior[batch.j] * scale_field(log_scales_j, size)
-    rep = reproject(depth_i, level.intrinsics[batch.i], level.intrinsics[batch.j], batch.i_to_j, size)
-    # One grid_sample for everything that lives in frame j: maps, depth and validity.
-    stacked = torch.cat([level.maps[batch.j], depth_j[:, None], level.valid[batch.j, None].float()], dim=1)
-    sampled = sample(stacked, rep.uv_j)
-    warped_maps, sampled_depth, sampled_valid = sampled[:, :-2], sampled[:, -2], sampled[:, -1]
-    mask = rep.valid & level.valid[batch.i] & (sampled_valid >= min_validity)
+    lattice = lattice or (slice(None), slice(None))
+    packed_i = level.packed[batch.i, :, lattice[0], lattice[1]]
+    maps_i, prior_i, valid_i = packed_i[:, :-2], packed_i[:, -2], packed_i[:, -1] > 0.5
+    depth_i = prior_i * scale_field(log_scales_i, size, lattice)
+    pixels_i = pixel_grid(*size, depth_i.device, depth_i.dtype)[lattice[0], lattice[1]]
+    rep = reproject(depth_i, level.intrinsics[batch.i], level.intrinsics[batch.j], batch.i_to_j, size, pixels_i)
+    # One grid_sample fetches frame j's maps, prior depth and validity; none of them
+    # needs a gradient, only the sampling positions do. Frame j's scale is smooth, so
+    # it is sampled from its coarse grid: D_j(uv) = D0_j(uv) * S_j(uv).
+    sampled = sample(level.packed[batch.j], rep.uv_j)
+    warped_maps, sampled_prior, sampled_valid = sampled[:, :-2], sampled[:, -2], sampled[:, -1]
+    sampled_depth = sampled_prior * sample_scale_field(log_scales_j, rep.uv_j, size)
+    mask = rep.valid & valid_i & (sampled_valid >= min_validity)
     depth_j_in_i = depth_in_view_i(sampled_depth, rep.uv_j, level.intrinsics[batch.j], batch.j_to_i)
-    return depth_i, warped_maps, depth_j_in_i, mask
+    return maps_i, depth_i, warped_maps, depth_j_in_i, mask
 
 
-def pair_losses(data: FrameData, batch: PairBatch, log_scales_i: torch.Tensor, log_scales_j: torch.Tensor, config: MedeaConfig) -> dict[str, torch.Tensor]:
+def pair_losses(
+    data: FrameData,
+    batch: PairBatch,
+    log_scales_i: torch.Tensor,
+    log_scales_j: torch.Tensor,
+    config: MedeaConfig,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
     """Per-pair loss terms (B,) and "total" (weighted sum of the enabled terms).
 
     Also returns "valid_fraction" (B,), the share of view i's pixels that j covers.
+    `generator` draws the pixel lattice when config.pixel_stride > 1.
     """
     level = data.image
-    depth_i, warped, depth_j_in_i, mask = warp_level(level, batch, log_scales_i, log_scales_j, config.min_sample_validity)
+    lattice = pixel_lattice(level.size, config.pixel_stride, generator)
+    maps_i, depth_i, warped, depth_j_in_i, mask = warp_level(
+        level, batch, log_scales_i, log_scales_j, config.min_sample_validity, lattice
+    )
     terms: dict[str, torch.Tensor] = {}
     total = torch.zeros(batch.i.shape[0], device=depth_i.device)
     if config.use_photometric:
-        terms["photometric"] = photometric_loss(level.maps[batch.i], warped, mask)
+        terms["photometric"] = photometric_loss(maps_i, warped, mask)
         total = total + config.photometric_weight * terms["photometric"]
     if config.use_depth:
         terms["depth"] = depth_loss(depth_i, depth_j_in_i, mask)
         total = total + config.depth_weight * terms["depth"]
     if config.use_features and data.features is not None:
         feat = data.features
-        _, warped_feat, _, feat_mask = warp_level(feat, batch, log_scales_i, log_scales_j, config.min_sample_validity)
+        feat_i, _, warped_feat, _, feat_mask = warp_level(
+            feat, batch, log_scales_i, log_scales_j, config.min_sample_validity,
+            pixel_lattice(feat.size, config.feature_stride, generator),
+        )
         if config.feature_loss == "S":
-            terms["feature"] = feature_loss_s(feat.maps[batch.i], warped_feat, feat_mask, config.feature_eps)
+            terms["feature"] = feature_loss_s(feat_i, warped_feat, feat_mask, config.feature_eps)
         else:
-            terms["feature"] = feature_loss_m(feat.maps[batch.i], warped_feat, feat_mask)
+            terms["feature"] = feature_loss_m(feat_i, warped_feat, feat_mask)
         total = total + config.feature_weight * terms["feature"]
     terms["total"] = total
     terms["valid_fraction"] = mask.flatten(1).float().mean(1)

@@ -105,6 +105,7 @@ def optimise_stage(
                 _grids(table, frozen, trainable, batch.i, grid),
                 _grids(table, frozen, trainable, batch.j, grid),
                 config,
+                generator,
             )
             overlapping = terms["valid_fraction"] > 0
             if not bool(overlapping.any()):
@@ -126,7 +127,7 @@ def optimise_stage(
         if progress is not None:
             progress(name, epoch, epoch_losses)
         current = epoch_losses["total"]
-        if current < best - stage.min_rel_improvement * abs(best):
+        if epoch == 0 or current < best - stage.min_rel_improvement * abs(best):
             best, stall = current, 0
         else:
             stall += 1

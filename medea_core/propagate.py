@@ -40,7 +40,7 @@ def propagate_scales(
     out = []
     for chunk in torch.arange(pairs.shape[0], device=pairs.device).split(batch_size):
         batch = PairBatch(pairs[chunk, 0], pairs[chunk, 1], i_to_j[chunk], j_to_i[chunk])
-        depth_i, _, depth_j_in_i, mask = warp_level(
+        _, depth_i, _, depth_j_in_i, mask = warp_level(
             data.image, batch, torch.zeros_like(log_scales[batch.i]), log_scales[batch.j], min_validity
         )
         mask = mask & (depth_j_in_i > 0)

@@ -114,7 +114,7 @@ def multiview_inconsistency(
     with torch.no_grad():
         for chunk in torch.arange(pairs.shape[0]).split(batch_size):
             batch = PairBatch(pairs[chunk, 0], pairs[chunk, 1], i_to_j[chunk], j_to_i[chunk])
-            depth_i, _, depth_j_in_i, mask = warp_level(data.image, batch, zeros[batch.i], zeros[batch.j], 0.999)
+            _, depth_i, _, depth_j_in_i, mask = warp_level(data.image, batch, zeros[batch.i], zeros[batch.j], 0.999)
             rel = ((depth_i - depth_j_in_i).abs() / depth_i.clamp(min=1e-6)).masked_fill(~mask, float("nan"))
             per_pair = rel.flatten(1).nanmedian(dim=1).values
             scores.append(per_pair[mask.flatten(1).any(1)])

@@ -1,0 +1,26 @@
+# Two entry points (see README "Quick start"):
+#   make demo   set up .venv and run the built-in synthetic sample end to end
+#   make test   set up .venv and run the test suite
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.recon-installed
+
+.PHONY: setup demo test bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh $(VENV)
+	touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/recon demo
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) benchmarks/medea_synthetic.py
+
+clean:
+	rm -rf $(VENV) demo_out
