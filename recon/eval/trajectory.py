@@ -1,0 +1,207 @@
+"""Trajectory metrics: alignment (Umeyama), absolute trajectory error, relative pose error,
+metric scale error and path length.
+
+Owns the comparison of an estimated camera trajectory with ground truth. Trajectories are
+camera-to-world poses (N, 4, 4) (OpenCV axes, metres) or camera positions (N, 3), matched
+frame by frame (associate timestamps first, e.g. with
+``recon.poses.formats.associate_timestamps``). Frames whose pose is non-finite in either
+trajectory (invalid poses are NaN) are left out. Everything is vectorised numpy.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from recon.errors import ReconInputError
+
+AlignMode = Literal["sim3", "se3", "none"]
+
+
+def _positions(traj) -> np.ndarray:
+    """Camera centres (N, 3) of poses (N, 4, 4) or positions (N, 3)."""
+    traj = np.asarray(traj, dtype=np.float64)
+    if traj.ndim == 3 and traj.shape[1:] == (4, 4):
+        return traj[:, :3, 3]
+    if traj.ndim == 2 and traj.shape[1] == 3:
+        return traj
+    raise ReconInputError(f"trajectory must be poses (N, 4, 4) or positions (N, 3), got shape {traj.shape}")
+
+
+def _as_poses(traj) -> np.ndarray:
+    """Poses (N, 4, 4) float64; positions (N, 3) get identity rotations."""
+    traj = np.asarray(traj, dtype=np.float64)
+    if traj.ndim == 2 and traj.shape[1] == 3:
+        poses = np.tile(np.eye(4), (len(traj), 1, 1))
+        poses[:, :3, 3] = traj
+        return poses
+    if traj.ndim == 3 and traj.shape[1:] == (4, 4):
+        return traj
+    raise ReconInputError(f"trajectory must be poses (N, 4, 4) or positions (N, 3), got shape {traj.shape}")
+
+
+def _matched(est, gt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """est, gt as poses (N, 4, 4) and the mask (N,) of frames finite in both."""
+    est, gt = _as_poses(est), _as_poses(gt)
+    if len(est) != len(gt):
+        raise ReconInputError(f"trajectories differ in length: estimate has {len(est)} poses, ground truth {len(gt)}")
+    valid = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
+    return est, gt, valid
+
+
+def umeyama(src, dst, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
+
+    src, dst: (N, 3) corresponding points. Returns R (3, 3) (a rotation, det +1), t (3,),
+    s (1.0 when not `with_scale`).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ReconInputError(f"umeyama needs two (N, 3) point sets of equal shape, got {src.shape} and {dst.shape}")
+    if len(src) < 2:
+        raise ReconInputError(f"umeyama needs at least 2 points, got {len(src)}")
+    mu_src, mu_dst = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_src, dst - mu_dst
+    var_src = (xs**2).sum() / len(src)
+    if var_src <= 1e-18:
+        raise ReconInputError("umeyama: source points are all the same (no motion to align)")
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    # Flip the weakest axis when needed so the result is a rotation, not a reflection.
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    rot = (u * sign) @ vt
+    scale = float((d * sign).sum() / var_src) if with_scale else 1.0
+    trans = mu_dst - scale * rot @ mu_src
+    return rot, trans, scale
+
+
+def apply_similarity(poses, rot: np.ndarray, trans: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Poses (N, 4, 4) mapped by ``x -> s R x + t``: rotations R @ R_i, centres s R c_i + t."""
+    poses = _as_poses(poses)
+    out = poses.copy()
+    out[:, :3, :3] = rot @ poses[:, :3, :3]
+    out[:, :3, 3] = scale * poses[:, :3, 3] @ rot.T + trans
+    return out
+
+
+def align(est, gt, mode: AlignMode = "sim3") -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) taking est camera centres onto gt's; identity for mode "none"."""
+    est_p, gt_p = _positions(est), _positions(gt)
+    if mode == "none":
+        return np.eye(3), np.zeros(3), 1.0
+    if mode not in ("sim3", "se3"):
+        raise ValueError(f"mode must be 'sim3', 'se3' or 'none', got {mode!r}")
+    return umeyama(est_p, gt_p, with_scale=mode == "sim3")
+
+
+def ate_rmse(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
+    """Absolute trajectory error of camera centres after aligning est to gt.
+
+    est_poses, gt_poses: (N, 4, 4) camera-to-world (or (N, 3) positions), frame-matched.
+    mode: "sim3" (rotation, translation, scale: for up-to-scale estimates), "se3" (rigid:
+    also penalises a wrong metric scale) or "none" (same world frame already).
+    Returns rmse, mean, median, max, std (metres), scale s, rotation R (3, 3), translation
+    t (3,), errors (N,) (NaN for left-out frames), aligned (N, 4, 4) est poses in gt's
+    frame, and n (frames used).
+    """
+    est, gt, valid = _matched(est_poses, gt_poses)
+    rot, trans, scale = align(est[valid], gt[valid], mode)
+    aligned = apply_similarity(est, rot, trans, scale)
+    errors = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+    errors[~valid] = np.nan
+    e = errors[valid]
+    return {
+        "rmse": float(np.sqrt(np.mean(e**2))),
+        "mean": float(e.mean()),
+        "median": float(np.median(e)),
+        "max": float(e.max()),
+        "std": float(e.std()),
+        "scale": scale,
+        "rotation": rot,
+        "translation": trans,
+        "errors": errors,
+        "aligned": aligned,
+        "n": int(valid.sum()),
+    }
+
+
+def _rotation_angles(rotations: np.ndarray) -> np.ndarray:
+    """Rotation angles (N,) radians of rotation matrices (N, 3, 3)."""
+    cos = (np.trace(rotations, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def _relative(poses: np.ndarray, delta: int) -> np.ndarray:
+    """Motions (N - delta, 4, 4) ``T_i^-1 T_{i+delta}`` (camera i+delta in camera i's frame)."""
+    a, b = poses[:-delta], poses[delta:]
+    rot_t = np.swapaxes(a[:, :3, :3], 1, 2)
+    out = np.tile(np.eye(4), (len(a), 1, 1))
+    out[:, :3, :3] = rot_t @ b[:, :3, :3]
+    out[:, :3, 3] = np.einsum("nij,nj->ni", rot_t, b[:, :3, 3] - a[:, :3, 3])
+    return out
+
+
+def rpe(est, gt, delta: int = 1, scale: float = 1.0) -> dict:
+    """Relative pose error over frame pairs (i, i + delta) (Sturm et al. 2012).
+
+    est, gt: (N, 4, 4) camera-to-world, frame-matched. The error of a pair is
+    ``E = (gt_i^-1 gt_j)^-1 (est_i^-1 est_j)``; its translation norm (metres) and rotation
+    angle (degrees) are reported. `scale` multiplies est's translations first (e.g. the
+    Sim(3) scale from :func:`ate_rmse` for up-to-scale estimates).
+    Returns trans_rmse, trans_mean, trans_median, rot_rmse_deg, rot_mean_deg,
+    rot_median_deg, trans_errors (M,), rot_errors_deg (M,) and n (pairs used).
+    """
+    est, gt, valid = _matched(est, gt)
+    if delta < 1 or delta >= len(est):
+        raise ReconInputError(f"rpe: delta must be in [1, {len(est) - 1}] for {len(est)} poses, got {delta}")
+    est = est.copy()
+    est[:, :3, 3] *= scale
+    rel_est, rel_gt = _relative(est, delta), _relative(gt, delta)
+    pair_ok = valid[:-delta] & valid[delta:]
+    if not pair_ok.any():
+        raise ReconInputError(f"rpe: no frame pair {delta} apart has valid poses in both trajectories")
+    rel_est, rel_gt = rel_est[pair_ok], rel_gt[pair_ok]
+    # (gt_rel)^-1 @ est_rel, written out for rigid transforms.
+    rot_gt_t = np.swapaxes(rel_gt[:, :3, :3], 1, 2)
+    err_rot = rot_gt_t @ rel_est[:, :3, :3]
+    err_trans = np.einsum("nij,nj->ni", rot_gt_t, rel_est[:, :3, 3] - rel_gt[:, :3, 3])
+    t_err = np.linalg.norm(err_trans, axis=1)
+    r_err = np.degrees(_rotation_angles(err_rot))
+    return {
+        "trans_rmse": float(np.sqrt(np.mean(t_err**2))),
+        "trans_mean": float(t_err.mean()),
+        "trans_median": float(np.median(t_err)),
+        "rot_rmse_deg": float(np.sqrt(np.mean(r_err**2))),
+        "rot_mean_deg": float(r_err.mean()),
+        "rot_median_deg": float(np.median(r_err)),
+        "trans_errors": t_err,
+        "rot_errors_deg": r_err,
+        "n": int(pair_ok.sum()),
+    }
+
+
+def scale_error(est, gt) -> float:
+    """|s - 1| for the Sim(3) scale s that best maps est's camera centres onto gt's.
+
+    0 means est already has metric scale; an est trajectory that is 10 % too small gives
+    s = 1 / 0.9 and an error of about 0.11. est, gt: (N, 4, 4) poses or (N, 3) positions.
+    """
+    est, gt, valid = _matched(est, gt)
+    _, _, s = umeyama(est[valid, :3, 3], gt[valid, :3, 3], with_scale=True)
+    return abs(s - 1.0)
+
+
+def path_length(traj) -> float:
+    """Length (metres) of the polyline through the camera centres, skipping non-finite ones.
+
+    traj: (N, 4, 4) poses or (N, 3) positions.
+    """
+    pos = _positions(traj)
+    pos = pos[np.isfinite(pos).all(axis=1)]
+    if len(pos) < 2:
+        return 0.0
+    return float(np.linalg.norm(np.diff(pos, axis=0), axis=1).sum())

@@ -1,0 +1,81 @@
+"""Microsoft 7-Scenes sequences (``frame-NNNNNN.color.png|jpg``, ``.depth.png``, ``.pose.txt``).
+
+Owns the 7-Scenes layout: frames keyed by their ``frame-NNNNNN`` stem, depth uint16
+millimetres with 0 and 65535 invalid, per-frame 4x4 camera-to-world poses, intrinsics from
+``camera-intrinsics.txt`` when present, else the usual fx = fy = 585, cx = 320, cy = 240.
+Those intrinsics are the depth camera's; colour and depth are not exactly registered.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from recon.errors import ReconInputError
+from recon.poses.formats import read_matrix_folder
+
+from .base import RGBDDataset, image_size, intrinsics_from_K, natural_key, read_matrix_txt
+
+DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+INVALID_DEPTH = (65535,)
+
+
+def _frames(root: Path, tag: str) -> dict[str, Path]:
+    """stem ('frame-000000') -> file, for files named ``<stem>.<tag>``."""
+    return {p.name.split(".", 1)[0]: p for p in root.glob(f"frame-*.{tag}") if p.is_file()}
+
+
+def is_7scenes(root: Path) -> bool:
+    """True when `root` holds 7-Scenes frame files."""
+    return any(root.glob("frame-*.color.*")) or any(root.glob("frame-*.depth.png"))
+
+
+def open_7scenes(root) -> RGBDDataset:
+    """Open a 7-Scenes sequence folder (e.g. ``redkitchen/seq-01``)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ReconInputError(f"{root}: folder not found")
+    color = _frames(root, "color.png") | _frames(root, "color.jpg")
+    depth = _frames(root, "depth.png")
+    if not color:
+        seqs = sorted(p.name for p in root.glob("seq-*") if p.is_dir())
+        hint = f" (open one sequence folder: {seqs[0]} ...)" if seqs else ""
+        raise ReconInputError(f"{root}: no frame-*.color.png/jpg files{hint}")
+    ids = sorted(color, key=natural_key)
+    missing_depth = [i for i in ids if i not in depth]
+    if missing_depth:
+        first = root / f"{missing_depth[0]}.depth.png"
+        raise ReconInputError(f"{first}: file not found ({len(missing_depth)} of {len(ids)} colour frames lack depth)")
+    extra_depth = sorted(set(depth) - set(color), key=natural_key)
+    if extra_depth:
+        raise ReconInputError(f"{root / (extra_depth[0] + '.color.png')}: file not found (depth without colour)")
+
+    poses = valid = None
+    pose_files = [root / f"{i}.pose.txt" for i in ids]
+    have = [p.is_file() for p in pose_files]
+    if any(have):
+        if not all(have):
+            raise ReconInputError(f"{pose_files[have.index(False)]}: file not found (other frames have poses)")
+        # read_matrix_folder validates rotations and reads the files in natural order == ids.
+        data = read_matrix_folder(root)
+        if data.names != [f"{i}.pose" for i in ids]:
+            raise ReconInputError(f"{root}: pose files do not match the colour frames")
+        poses, valid = data.poses, data.valid
+
+    intr_path = root / "camera-intrinsics.txt"
+    intrinsics = intrinsics_from_K(read_matrix_txt(intr_path, (3, 3))) if intr_path.is_file() else DEFAULT_INTRINSICS
+    width, height = image_size(color[ids[0]])
+    return RGBDDataset(
+        kind="7scenes",
+        name=root.resolve().name,
+        root=root,
+        frame_ids=ids,
+        intrinsics=intrinsics,
+        width=width,
+        height=height,
+        rgb_paths=[color[i] for i in ids],
+        depth_paths=[depth[i] for i in ids],
+        poses=poses,
+        pose_valid=valid,
+        depth_scale=1000.0,
+        depth_invalid=INVALID_DEPTH,
+    )
