@@ -1,0 +1,167 @@
+"""viewer: log a tiny run to an .rrd, read it back with rerun's chunk API, check it."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import rerun as rr
+import torch
+
+from viewer import RerunLogger, default_mode
+from viewer import rerun_log
+
+N_FRAMES = 5
+H, W = 24, 40
+INTRINSICS = (30.0, 30.0, 19.5, 11.5)  # fx fy cx cy, pixel centres at integers
+
+rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
+
+
+def _poses() -> list[np.ndarray]:
+    poses = []
+    for i in range(N_FRAMES):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.1 * i, 0.0, 0.0]
+        poses.append(pose)
+    return poses
+
+
+def _history() -> dict:
+    return {
+        "stage1": {"total": [3.0, 2.0, 1.5], "photometric": [1.0, 0.9, 0.8], "depth": [1.0, 0.6, 0.4], "feature": [1.0, 0.5, 0.3]},
+        "stage2": {"total": [1.2, 1.1], "photometric": [0.5, 0.4], "depth": [0.4, 0.4], "feature": [0.3, 0.3]},
+    }
+
+
+def _log_run(logger: RerunLogger) -> None:
+    rng = np.random.default_rng(0)
+    for i, pose in enumerate(_poses()):
+        rgb = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        prior = (1.0 + rng.random((H, W))).astype(np.float32)
+        prior[0, 0] = 0.0  # invalid pixel
+        adjusted = torch.from_numpy(prior * 1.1)  # torch input accepted too
+        logger.log_frame(i, rgb, prior, adjusted, pose, INTRINSICS, timestamp=i / 30.0)
+    vertices = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=np.float32)
+    triangles = np.array([[0, 1, 2], [1, 3, 2]])
+    logger.log_mesh(vertices, triangles, vertex_colors=np.full((4, 3), 0.5))
+    logger.log_points(vertices, colors=np.full((4, 3), 200, dtype=np.uint8))
+    logger.log_losses(_history())
+
+
+def _read_back(path) -> tuple[list[str], dict[str, set[str]], dict[str, list[int]], dict[str, dict[str, list]]]:
+    """Entity paths; component columns per entity; "frame" values per entity;
+    first-row values of a few columns per entity."""
+    reader = rr_chunk.RrdReader(path)
+    assert len(reader.recordings()) == 1
+    entities = reader.store().schema().entity_paths()
+    components: dict[str, set[str]] = defaultdict(set)
+    frames: dict[str, list[int]] = defaultdict(list)
+    values: dict[str, dict[str, list]] = defaultdict(dict)
+    for chunk in reader.stream():
+        batch = chunk.to_record_batch()
+        names = [n for n in batch.schema.names if ":" in n and not n.startswith("rerun.")]
+        components[chunk.entity_path].update(names)
+        if "frame" in chunk.timeline_names:
+            frames[chunk.entity_path].extend(batch.column("frame").to_pylist())
+        for name in names:
+            values[chunk.entity_path].setdefault(name, batch.column(name).to_pylist())
+        if "epoch" in chunk.timeline_names:
+            frames[chunk.entity_path + "#epoch"].extend(batch.column("epoch").to_pylist())
+    return entities, components, frames, values
+
+
+def test_save_roundtrip(tmp_path):
+    path = tmp_path / "sub" / "run.rrd"
+    with RerunLogger("save", path, max_width=None) as logger:
+        assert logger.enabled
+        _log_run(logger)
+    assert not logger.enabled
+    assert path.is_file() and path.stat().st_size > 0
+
+    entities, components, frames, values = _read_back(path)
+    expected = [
+        "/world",
+        "/world/camera",
+        "/world/camera/rgb",
+        "/world/camera/prior_depth",
+        "/world/camera/adjusted_depth",
+        "/world/trajectory",
+        "/world/mesh",
+        "/world/points",
+    ] + [f"/medea/{stage}/{term}" for stage in ("stage1", "stage2") for term in ("total", "photometric", "depth", "feature")]
+    for entity in expected:
+        assert entity in entities, entity
+
+    assert "ViewCoordinates:xyz" in components["/world"]
+    assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:translation", "Transform3D:mat3x3"} <= components["/world/camera"]
+    assert "Image:buffer" in components["/world/camera/rgb"]
+    assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/prior_depth"]
+    assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/adjusted_depth"]
+    assert "LineStrips3D:strips" in components["/world/trajectory"]
+    assert {"Mesh3D:vertex_positions", "Mesh3D:triangle_indices", "Mesh3D:vertex_colors"} <= components["/world/mesh"]
+    assert "Scalars:scalars" in components["/medea/stage1/total"]
+
+    # exactly one rgb row per frame on the "frame" timeline
+    assert sorted(frames["/world/camera/rgb"]) == list(range(N_FRAMES))
+    assert sorted(frames["/world/camera/adjusted_depth"]) == list(range(N_FRAMES))
+    # the mesh is static; losses are per epoch
+    assert "/world/mesh" not in frames
+    assert sorted(frames["/medea/stage1/total#epoch"]) == [0, 1, 2]
+    assert sorted(frames["/medea/stage2/total#epoch"]) == [0, 1]
+    stage1_total = [row[0] for row in values["/medea/stage1/total"]["Scalars:scalars"]]
+    assert stage1_total == pytest.approx(_history()["stage1"]["total"])
+
+    # pinhole: full resolution, principal point shifted to Rerun's pixel-corner origin
+    k = np.asarray(values["/world/camera"]["Pinhole:image_from_camera"][0], dtype=np.float64).reshape(3, 3).T
+    fx, fy, cx, cy = INTRINSICS
+    np.testing.assert_allclose(k, [[fx, 0, cx + 0.5], [0, fy, cy + 0.5], [0, 0, 1]], atol=1e-5)
+    assert np.ravel(values["/world/camera"]["Pinhole:resolution"][0]).tolist() == [W, H]
+    translations = values["/world/camera"]["Transform3D:translation"]
+    np.testing.assert_allclose(np.asarray(translations[0], dtype=np.float64).ravel(), [0.0, 0.0, 0.0])
+
+
+def test_save_downscaled(tmp_path):
+    path = tmp_path / "small.rrd"
+    with RerunLogger("save", path, max_width=W // 2) as logger:
+        _log_run(logger)
+    _, _, frames, values = _read_back(path)
+    assert sorted(frames["/world/camera/rgb"]) == list(range(N_FRAMES))
+    assert np.ravel(values["/world/camera"]["Pinhole:resolution"][0]).tolist() == [W // 2, H // 2]
+    k = np.asarray(values["/world/camera"]["Pinhole:image_from_camera"][0], dtype=np.float64).reshape(3, 3).T
+    fx, fy, cx, cy = INTRINSICS
+    np.testing.assert_allclose(k, [[fx / 2, 0, (cx + 0.5) / 2], [0, fy / 2, (cy + 0.5) / 2], [0, 0, 1]], atol=1e-5)
+
+
+def test_resize_nearest_keeps_invalid_pixels_unmixed():
+    depth = np.array([[0.0, 2.0], [3.0, 4.0]], dtype=np.float32).repeat(2, 0).repeat(2, 1)
+    small = rerun_log._resize_nearest(depth, 2, 2)
+    assert set(np.unique(small)) <= {0.0, 2.0, 3.0, 4.0}
+    np.testing.assert_array_equal(rerun_log._resize_nearest(depth, 4, 4), depth)
+
+
+def test_off_mode_is_noop(tmp_path):
+    path = tmp_path / "off.rrd"
+    logger = RerunLogger("off", path)
+    assert not logger.enabled
+    _log_run(logger)
+    logger.close()
+    assert not path.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_default_mode(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert default_mode() == "off"
+    assert RerunLogger().mode == "off"
+    monkeypatch.setenv("WAYLAND_DISPLAY", "wayland-0")
+    assert default_mode() == "spawn"
+
+
+def test_bad_arguments(tmp_path):
+    with pytest.raises(ValueError):
+        RerunLogger("nope")
+    with pytest.raises(ValueError):
+        RerunLogger("save")
