@@ -1,0 +1,17 @@
+"""Synthetic ground truth for tests, the demo and benchmarks: a rendered textured room with
+exact depth, poses and mesh (`scene`), and a simulated monocular depth prior (`prior`).
+"""
+
+from .prior import SimulatedPrior, simulate_prior, simulate_prior_with_truth
+from .scene import SyntheticSequence, camera_path, intrinsics_for, render_sequence, write_video
+
+__all__ = [
+    "SimulatedPrior",
+    "SyntheticSequence",
+    "camera_path",
+    "intrinsics_for",
+    "render_sequence",
+    "simulate_prior",
+    "simulate_prior_with_truth",
+    "write_video",
+]
