@@ -1,0 +1,103 @@
+"""Local Hugging Face depth models (DPT, Depth Anything, ZoeDepth, GLPN, ...) as priors.
+
+Optional extra: ``transformers`` is imported only when an HF prior is built. Models are
+loaded from a local folder with ``local_files_only=True``; nothing is downloaded.
+Whether the output is metric depth or affine-invariant disparity is read from the model
+config (:func:`model_kind`) and reported in ``PriorOutput.kind``.
+"""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ReconInputError
+from .base import PRIOR_KINDS, DepthPrior, PriorOutput, register_prior
+from .resample import resize_bilinear
+
+# Architectures whose depth head is trained for metric depth in metres.
+METRIC_MODEL_TYPES = ("zoedepth", "glpn", "depth_pro")
+
+
+def _transformers():
+    try:
+        import transformers
+    except ImportError:
+        raise ReconInputError(
+            "the 'hf' depth prior needs the optional dependency transformers: pip install 'recon[hf]'"
+            " (or pip install transformers)"
+        ) from None
+    return transformers
+
+
+def model_kind(config) -> str:
+    """"metric" or "affine_disparity" from a transformers model config.
+
+    Depth Anything states it (``depth_estimation_type`` "metric"/"relative"); ZoeDepth, GLPN
+    and Depth Pro are metric; DPT/MiDaS and relative Depth Anything predict affine-invariant
+    inverse depth.
+    """
+    stated = getattr(config, "depth_estimation_type", None)
+    if stated is not None:
+        return "metric" if stated == "metric" else "affine_disparity"
+    return "metric" if getattr(config, "model_type", "") in METRIC_MODEL_TYPES else "affine_disparity"
+
+
+@register_prior("hf")
+class HFDepthPrior(DepthPrior):
+    """Depth from a local transformers ``AutoModelForDepthEstimation`` checkpoint.
+
+    Args:
+        model: folder holding config.json, the weights and preprocessor_config.json
+            (what ``save_pretrained`` writes for the model and its image processor).
+        kind: override the output kind from :func:`model_kind` (e.g. "up_to_scale").
+        batch_size, device, progress, align_to: see DepthPrior (``align_to`` turns
+            affine-invariant disparity into metric depth).
+    """
+
+    name = "hf"
+
+    def __init__(self, model, kind: str | None = None, batch_size: int = 4, device: str = "cpu",
+                 progress: bool = True, align_to=None):
+        super().__init__(batch_size=batch_size, device=device, progress=progress, align_to=align_to)
+        transformers = _transformers()
+        self.path = Path(model).expanduser()
+        if not (self.path / "config.json").is_file():
+            raise ReconInputError(
+                f"{self.path}: not a local Hugging Face model folder (no config.json); models are never downloaded"
+            )
+        try:
+            self.processor = transformers.AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
+            self.model = transformers.AutoModelForDepthEstimation.from_pretrained(self.path, local_files_only=True)
+        except (OSError, ValueError, KeyError) as exc:
+            raise ReconInputError(f"{self.path}: cannot load the depth model ({str(exc).splitlines()[0]})") from None
+        self.model = self.model.eval().to(device)
+        self.kind = kind or model_kind(self.model.config)
+        if self.kind not in PRIOR_KINDS:
+            raise ValueError(f"kind must be one of {PRIOR_KINDS}, got {kind!r}")
+
+    @torch.inference_mode()
+    def predict_batch(self, frames, intrinsics, indices, plan=None) -> PriorOutput:
+        size = tuple(frames.shape[1:3])
+        inputs = self.processor(images=list(frames), return_tensors="pt")
+        inputs = {k: v.to(self.device) for k, v in inputs.items() if isinstance(v, torch.Tensor)}
+        outputs = self.model(**inputs)
+        post = getattr(self.processor, "post_process_depth_estimation", None)
+        if post is not None:
+            # The processor knows its own padding/cropping (e.g. ZoeDepth pads) and undoes it.
+            sizes = {"target_sizes": [size] * len(frames)}
+            if "source_sizes" in inspect.signature(post).parameters:
+                sizes["source_sizes"] = [size] * len(frames)
+            maps = torch.stack([r["predicted_depth"] for r in post(outputs, **sizes)])
+        else:
+            maps = resize_bilinear(outputs.predicted_depth, size)
+        maps = maps.float().cpu().numpy()
+        valid = np.isfinite(maps) & (maps > 0)
+        depth = np.where(valid, maps, 0.0).astype(np.float32)
+        return PriorOutput(depth=depth, kind=self.kind,
+                           info={"model": "hf", "path": str(self.path),
+                                 "model_type": getattr(self.model.config, "model_type", None),
+                                 "output": self.kind})

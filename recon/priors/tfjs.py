@@ -1,0 +1,528 @@
+"""Reading a TensorFlow.js graph model into a plain torch module (no TensorFlow needed).
+
+This module owns the TF.js file format (``model.json`` topology + weight manifest + binary
+shards) and a small compiler from the frozen TF graph to an ``nn.Module``. It supports
+the ops that convolutional encoder-decoders such as FastDepth are exported with:
+Placeholder, Const, Pad, Conv2D, DepthwiseConv2dNative, AddV2/Add, BiasAdd, Relu,
+Relu6, ResizeNearestNeighbor, Identity. Anything else is reported, not guessed.
+
+Compilation fuses ``Pad -> Conv -> Add(bias) -> Relu/Relu6`` chains into one
+``nn.Conv2d`` with its padding, bias and activation (one kernel call and no padded
+copies: the main CPU cost of the exported graph), and replaces resize-to-a-baked-size by
+an integer nearest upsampling factor so the network is fully convolutional.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..errors import ReconInputError
+
+# TF.js stored dtypes (little-endian on disk).
+_STORED_DTYPES = {
+    "float32": "<f4",
+    "float16": "<f2",
+    "int32": "<i4",
+    "uint8": "u1",
+    "uint16": "<u2",
+    "int8": "i1",
+    "bool": "?",
+}
+_CONV_OPS = ("Conv2D", "DepthwiseConv2dNative")
+_ACTIVATIONS = {"Relu": "relu", "Relu6": "relu6"}
+
+
+class GraphError(ValueError):
+    """The graph or its weights do not make a network we can build (corrupt or unsupported)."""
+
+
+@dataclass
+class GraphNode:
+    """One TF node: ``inputs`` are producer names (``:0`` and control inputs stripped)."""
+
+    name: str
+    op: str
+    inputs: list[str]
+    attr: dict
+
+
+@dataclass
+class TFJSGraph:
+    """A parsed TF.js graph model: nodes in topological order, constants as numpy arrays."""
+
+    nodes: list[GraphNode]
+    constants: dict[str, np.ndarray]
+    input_shape: tuple[int, ...] | None = None
+    source: str = ""
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ReconInputError(f"{path}: not a readable TF.js model.json ({type(exc).__name__}: {exc})") from None
+
+
+def read_weight_manifest(manifest: list[dict], folder: Path) -> dict[str, np.ndarray]:
+    """Decode every weight listed in a TF.js ``weightsManifest``.
+
+    Each group's shards are concatenated and read entry by entry, advancing by each
+    entry's *stored* size: quantised entries (``quantization.dtype``) take their stored
+    dtype's size, the others their own dtype's (the int32 Pad constants of a float16
+    export stay 4 bytes), so a single global element size would misalign everything after
+    the first int constant.
+
+    Returns:
+        name -> array of the manifest's ``shape`` in its declared (dequantised) dtype.
+    """
+    weights: dict[str, np.ndarray] = {}
+    for group in manifest:
+        shards = [folder / p for p in group["paths"]]
+        blobs = []
+        for shard in shards:
+            try:
+                blobs.append(shard.read_bytes())
+            except OSError as exc:
+                raise ReconInputError(f"{shard}: cannot read weight shard ({exc.strerror or exc})") from None
+        data = b"".join(blobs)
+        where = shards[-1] if len(shards) == 1 else f"{shards[0].parent}/{{{','.join(s.name for s in shards)}}}"
+        offset = 0
+        for entry in group["weights"]:
+            quant = entry.get("quantization")
+            stored = np.dtype(_STORED_DTYPES[(quant or entry)["dtype"]])
+            shape = [int(s) for s in entry["shape"]]
+            count = int(np.prod(shape, dtype=np.int64))
+            end = offset + count * stored.itemsize
+            if end > len(data):
+                raise ReconInputError(
+                    f"{where}: truncated or wrong weight file: {entry['name']} needs bytes {offset}-{end}"
+                    f" but the file has {len(data)}"
+                )
+            values = np.frombuffer(data, dtype=stored, count=count, offset=offset).reshape(shape)
+            weights[entry["name"]] = _dequantise(values, entry, quant)
+            offset = end
+        if offset != len(data):
+            raise ReconInputError(
+                f"{where}: weight file has {len(data)} bytes but the manifest describes {offset}"
+            )
+    return weights
+
+
+def _dequantise(values: np.ndarray, entry: dict, quant: dict | None) -> np.ndarray:
+    target = np.dtype(_STORED_DTYPES[entry["dtype"]]).newbyteorder("=")
+    if quant and quant["dtype"] in ("uint8", "uint16") and "scale" in quant:
+        # Affine quantisation: value = q * scale + min.
+        return (values.astype(np.float32) * quant["scale"] + quant.get("min", 0.0)).astype(target)
+    return values.astype(target)
+
+
+def _strip(name: str) -> str:
+    return name.split(":")[0]
+
+
+def _topological(nodes: list[GraphNode]) -> list[GraphNode]:
+    """Kahn's algorithm, stable in file order (exported files are usually already sorted)."""
+    by_name = {n.name: n for n in nodes}
+    indegree = {n.name: sum(i in by_name for i in n.inputs) for n in nodes}
+    consumers: dict[str, list[str]] = {n.name: [] for n in nodes}
+    for n in nodes:
+        for i in n.inputs:
+            if i in by_name:
+                consumers[i].append(n.name)
+    order = {n.name: k for k, n in enumerate(nodes)}
+    ready = sorted((n for n in indegree if indegree[n] == 0), key=order.get)
+    out = []
+    while ready:
+        name = ready.pop(0)
+        out.append(by_name[name])
+        fresh = []
+        for c in consumers[name]:
+            indegree[c] -= 1
+            if indegree[c] == 0:
+                fresh.append(c)
+        ready = sorted(ready + fresh, key=order.get)
+    if len(out) != len(nodes):
+        raise GraphError("graph has a cycle")
+    return out
+
+
+def load_tfjs_graph(model_json: str | Path) -> TFJSGraph:
+    """Parse ``model.json`` and its weight shards.
+
+    Raises:
+        ReconInputError: unreadable/invalid JSON, missing or truncated shards, or a weight
+            whose manifest shape disagrees with the graph's constant shape.
+    """
+    path = Path(model_json)
+    spec = _read_json(path)
+    try:
+        raw_nodes = spec["modelTopology"]["node"]
+        manifest = spec["weightsManifest"]
+    except (KeyError, TypeError):
+        raise ReconInputError(f"{path}: not a TF.js graph model (no modelTopology.node / weightsManifest)") from None
+    weights = read_weight_manifest(manifest, path.parent)
+    nodes = []
+    input_shape = None
+    for raw in raw_nodes:
+        node = GraphNode(
+            name=raw["name"],
+            op=raw["op"],
+            inputs=[_strip(i) for i in raw.get("input", []) if not i.startswith("^")],
+            attr=raw.get("attr", {}),
+        )
+        if node.op == "Const":
+            if node.name not in weights:
+                raise ReconInputError(f"{path}: constant {node.name} has no entry in the weight manifest")
+            dims = node.attr.get("value", {}).get("tensor", {}).get("tensorShape", {}).get("dim")
+            if dims is not None and [int(d["size"]) for d in dims] != list(weights[node.name].shape):
+                raise ReconInputError(
+                    f"{path}: constant {node.name} has shape {list(weights[node.name].shape)} in the manifest"
+                    f" but {[int(d['size']) for d in dims]} in the graph"
+                )
+        if node.op == "Placeholder":
+            dims = node.attr.get("shape", {}).get("shape", {}).get("dim", [])
+            input_shape = tuple(int(d["size"]) for d in dims) or None
+        nodes.append(node)
+    try:
+        nodes = _topological(nodes)
+    except GraphError as exc:
+        raise ReconInputError(f"{path}: {exc}") from None
+    return TFJSGraph(nodes=nodes, constants=weights, input_shape=input_shape, source=str(path))
+
+
+# --------------------------------------------------------------------------- compiling
+
+
+def _attr_string(node: GraphNode, key: str, default: str = "") -> str:
+    value = node.attr.get(key, {}).get("s")
+    return base64.b64decode(value).decode() if value is not None else default
+
+
+def _attr_ints(node: GraphNode, key: str) -> list[int]:
+    return [int(i) for i in node.attr.get(key, {}).get("list", {}).get("i", [])]
+
+
+class FusedConv2d(nn.Conv2d):
+    """Conv2d with its bias and activation ("none", "relu", "relu6") applied in one place."""
+
+    def __init__(self, *args, activation: str = "none", **kwargs):
+        super().__init__(*args, **kwargs)
+        self.activation = activation
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = super().forward(x)
+        if self.activation == "relu":
+            return torch.relu_(y) if not y.requires_grad else torch.relu(y)
+        if self.activation == "relu6":
+            return y.clamp_(0.0, 6.0) if not y.requires_grad else y.clamp(0.0, 6.0)
+        return y
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, activation={self.activation}"
+
+
+@dataclass
+class TensorInfo:
+    """Static facts about one graph tensor, for the graph's reference input size.
+
+    op: producing op ("Relu6", "Conv2D", ...); stride: input size / tensor size (rows, cols).
+    """
+
+    op: str
+    channels: int
+    stride: tuple[float, float]
+    order: int
+
+
+@dataclass
+class _Step:
+    kind: str  # "conv", "add", "add_const", "act", "resize", "pad"
+    inputs: tuple[int, ...]
+    output: int
+    arg: object = None
+    release: tuple[int, ...] = field(default=())
+
+
+class GraphNet(nn.Module):
+    """A compiled TF graph: NCHW float input -> NCHW output, plus named intermediate taps.
+
+    ``tensors`` maps every graph tensor name to its :class:`TensorInfo` (channels and stride
+    relative to the input), so callers can pick feature layers by structure.
+    """
+
+    def __init__(self, layers, constants, steps, input_slot, output_slot, slots, tensors, num_slots, multiple):
+        super().__init__()
+        self.layers = nn.ModuleList(layers)
+        for k, value in enumerate(constants):
+            self.register_buffer(f"const{k}", value)
+        self.steps = steps
+        self.input_slot = input_slot
+        self.output_slot = output_slot
+        self.slots = slots
+        self.tensors = tensors
+        self.num_slots = num_slots
+        # Height and width must be multiples of this (product of the strides).
+        self.multiple = multiple
+
+    def forward(self, x: torch.Tensor, taps: tuple[str, ...] = ()) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """x: (B, C, H, W) with H, W multiples of ``self.multiple``.
+
+        Returns:
+            the output (B, C', H', W') and {tap name: (B, c, h, w)}.
+        """
+        if x.shape[-2] % self.multiple or x.shape[-1] % self.multiple:
+            raise ValueError(f"input size {tuple(x.shape[-2:])} is not a multiple of {self.multiple}")
+        keep = {self.slots[t] for t in taps}
+        values: list[torch.Tensor | None] = [None] * self.num_slots
+        values[self.input_slot] = x
+        for step in self.steps:
+            args = [values[i] for i in step.inputs]
+            if step.kind == "conv":
+                out = self.layers[step.arg](args[0])
+            elif step.kind == "add":
+                out = args[0] + args[1]
+            elif step.kind == "add_const":
+                out = args[0] + getattr(self, f"const{step.arg}")
+            elif step.kind == "act":
+                out = torch.relu(args[0]) if step.arg == "relu" else args[0].clamp(0.0, 6.0)
+            elif step.kind == "resize":
+                out = F.interpolate(args[0], scale_factor=step.arg, mode="nearest")
+            else:  # pad: (left, right, top, bottom)
+                out = F.pad(args[0], step.arg)
+            values[step.output] = out
+            # Drop intermediates after their last use: keeps large-frame batches in memory.
+            for slot in step.release:
+                if slot not in keep:
+                    values[slot] = None
+        return values[self.output_slot], {t: values[self.slots[t]] for t in taps}
+
+
+def compile_graph(graph: TFJSGraph) -> GraphNet:
+    """Build a :class:`GraphNet` by walking the graph in topological order.
+
+    Raises:
+        GraphError: unsupported op or attribute, or tensor shapes that do not fit together.
+    """
+    consts = graph.constants
+    consumers: dict[str, int] = {}
+    for node in graph.nodes:
+        for i in node.inputs:
+            consumers[i] = consumers.get(i, 0) + 1
+    by_name = {n.name: n for n in graph.nodes}
+
+    slots: dict[str, int] = {}  # tensor name -> slot
+    shapes: dict[int, tuple[int, int, int]] = {}  # slot -> (C, H, W) at the reference size
+    producer: dict[int, _Step] = {}
+    deferred_pad: dict[str, tuple[str, int, int]] = {}  # Pad name -> (input, pad_h, pad_w)
+    steps: list[_Step] = []
+    layers: list[FusedConv2d] = []
+    buffers: list[torch.Tensor] = []
+    tensors: dict[str, TensorInfo] = {}
+    input_slot = None
+    in_h = in_w = None
+
+    def new_slot(name: str, shape: tuple[int, int, int], step: _Step | None) -> int:
+        slot = len(shapes)
+        slots[name] = slot
+        shapes[slot] = shape
+        if step is not None:
+            step.output = slot
+            steps.append(step)
+            producer[slot] = step
+        return slot
+
+    def fusable(tensor: str, kind: str) -> _Step | None:
+        """The conv step producing ``tensor`` if it can absorb the next op of ``kind``."""
+        slot = slots[tensor]
+        step = producer.get(slot)
+        if step is None or step.kind != "conv" or consumers.get(tensor, 0) != 1:
+            return None
+        layer = layers[step.arg]
+        if kind == "bias" and layer.bias is None and layer.activation == "none":
+            return step
+        if kind == "act" and layer.activation == "none":
+            return step
+        return None
+
+    for order, node in enumerate(graph.nodes):
+        op, name = node.op, node.name
+        if op == "Const":
+            continue
+        if op == "Placeholder":
+            if not graph.input_shape or len(graph.input_shape) != 4:
+                raise GraphError(f"input {name} needs a static NHWC shape")
+            _, in_h, in_w, channels = graph.input_shape
+            input_slot = new_slot(name, (channels, in_h, in_w), None)
+        elif op == "Identity":
+            slots[name] = slots[node.inputs[0]]
+        elif op == "Pad":
+            source, pads = node.inputs[0], consts[node.inputs[1]].astype(int)
+            (b0, b1), (top, bottom), (left, right), (c0, c1) = pads
+            if b0 or b1 or c0 or c1:
+                raise GraphError(f"{name}: padding of batch or channel axes is not supported")
+            users = [n for n in graph.nodes if name in n.inputs]
+            if top == bottom and left == right and len(users) == 1 and users[0].op in _CONV_OPS:
+                deferred_pad[name] = (source, int(top), int(left))
+                continue
+            c, h, w = shapes[slots[source]]
+            new_slot(name, (c, h + top + bottom, w + left + right),
+                     _Step("pad", (slots[source],), -1, (int(left), int(right), int(top), int(bottom))))
+        elif op in _CONV_OPS:
+            source, kernel = node.inputs[0], consts[node.inputs[1]]
+            pad_h = pad_w = 0
+            if source in deferred_pad:
+                source, pad_h, pad_w = deferred_pad.pop(source)
+            if _attr_string(node, "data_format", "NHWC") != "NHWC":
+                raise GraphError(f"{name}: only NHWC graphs are supported")
+            if any(d != 1 for d in _attr_ints(node, "dilations") or [1]):
+                raise GraphError(f"{name}: dilated convolutions are not supported")
+            strides = _attr_ints(node, "strides") or [1, 1, 1, 1]
+            stride = (strides[1], strides[2])
+            kh, kw = kernel.shape[:2]
+            padding = _attr_string(node, "padding", "VALID")
+            if padding == "SAME":
+                if stride != (1, 1) or kh % 2 == 0 or kw % 2 == 0 or pad_h or pad_w:
+                    raise GraphError(f"{name}: SAME padding is only supported for odd kernels at stride 1")
+                pad_h, pad_w = kh // 2, kw // 2
+            elif padding != "VALID":
+                raise GraphError(f"{name}: padding {padding} is not supported")
+            c_in, h, w = shapes[slots[source]]
+            if op == "Conv2D":
+                if kernel.shape[2] != c_in:
+                    raise GraphError(f"{name}: kernel {kernel.shape} does not fit {c_in} input channels")
+                c_out, groups = kernel.shape[3], 1
+                weight = kernel.transpose(3, 2, 0, 1)  # HWIO -> OIHW
+            else:
+                if kernel.shape[2] != c_in:
+                    raise GraphError(f"{name}: depthwise kernel {kernel.shape} does not fit {c_in} channels")
+                c_out, groups = kernel.shape[2] * kernel.shape[3], c_in
+                # HWCM -> (C*M, 1, H, W); TF orders output channels c*M + m, as does torch.
+                weight = kernel.transpose(2, 3, 0, 1).reshape(c_out, 1, kh, kw)
+            layer = FusedConv2d(
+                c_in, c_out, (kh, kw), stride=stride, padding=(pad_h, pad_w), groups=groups, bias=False
+            )
+            with torch.no_grad():
+                layer.weight.copy_(torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32)))
+            layers.append(layer)
+            out_h = (h + 2 * pad_h - kh) // stride[0] + 1
+            out_w = (w + 2 * pad_w - kw) // stride[1] + 1
+            new_slot(name, (c_out, out_h, out_w), _Step("conv", (slots[source],), -1, len(layers) - 1))
+        elif op in ("AddV2", "Add", "BiasAdd"):
+            a, b = node.inputs
+            if b in consts or a in consts:
+                tensor, const = (a, consts[b]) if b in consts else (b, consts[a])
+                c = shapes[slots[tensor]][0]
+                if const.size != c or (const.ndim and const.shape[-1] != c):
+                    raise GraphError(f"{name}: constant of shape {const.shape} does not fit {c} channels")
+                step = fusable(tensor, "bias")
+                if step is not None:
+                    layers[step.arg].bias = nn.Parameter(torch.from_numpy(const.reshape(c).astype(np.float32)))
+                    slots[name] = slots[tensor]
+                else:
+                    buffers.append(torch.from_numpy(const.reshape(1, c, 1, 1).astype(np.float32)))
+                    new_slot(name, shapes[slots[tensor]], _Step("add_const", (slots[tensor],), -1, len(buffers) - 1))
+            else:
+                if shapes[slots[a]] != shapes[slots[b]]:
+                    raise GraphError(f"{name}: adding shapes {shapes[slots[a]]} and {shapes[slots[b]]}")
+                new_slot(name, shapes[slots[a]], _Step("add", (slots[a], slots[b]), -1))
+        elif op in _ACTIVATIONS:
+            tensor, kind = node.inputs[0], _ACTIVATIONS[op]
+            step = fusable(tensor, "act")
+            if step is not None:
+                layers[step.arg].activation = kind
+                slots[name] = slots[tensor]
+            else:
+                new_slot(name, shapes[slots[tensor]], _Step("act", (slots[tensor],), -1, kind))
+        elif op == "ResizeNearestNeighbor":
+            if node.attr.get("align_corners", {}).get("b", False):
+                raise GraphError(f"{name}: align_corners resizing is not supported")
+            tensor, size = node.inputs[0], consts[node.inputs[1]].astype(int)
+            c, h, w = shapes[slots[tensor]]
+            # The export bakes the target size for its own input size; only the (integer)
+            # factor matters, which makes the network work at any multiple-of-stride size.
+            # With half_pixel_centers an integer factor picks the same pixels as torch "nearest".
+            if size[0] % h or size[1] % w:
+                raise GraphError(f"{name}: resize {h}x{w} -> {size[0]}x{size[1]} is not an integer factor")
+            factor = (float(size[0] // h), float(size[1] // w))
+            new_slot(name, (c, int(size[0]), int(size[1])), _Step("resize", (slots[tensor],), -1, factor))
+        else:
+            raise GraphError(f"{name}: unsupported op {op}")
+        if name in slots:
+            c, h, w = shapes[slots[name]]
+            tensors[name] = TensorInfo(op=op, channels=c, stride=(in_h / h, in_w / w), order=order)
+
+    outputs = [n.name for n in graph.nodes if n.op != "Const" and consumers.get(n.name, 0) == 0]
+    if input_slot is None or len(outputs) != 1:
+        raise GraphError(f"expected one input and one output, found outputs {outputs}")
+    output_slot = slots[outputs[0]]
+    _set_releases(steps, output_slot)
+    multiple = int(round(max(max(t.stride) for t in tensors.values())))
+    return GraphNet(layers, buffers, steps, input_slot, output_slot, slots, tensors, len(shapes), multiple)
+
+
+def _set_releases(steps: list[_Step], output_slot: int) -> None:
+    """Mark, on each step, the slots whose last reader it is."""
+    last: dict[int, int] = {}
+    for k, step in enumerate(steps):
+        for slot in step.inputs:
+            last[slot] = k
+    for k, step in enumerate(steps):
+        step.release = tuple(s for s in set(step.inputs) if last[s] == k and s != output_slot)
+
+
+def activation_bounds(net: GraphNet, low: float, high: float) -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """Per-channel bounds every slot can take for any input in [low, high] (interval arithmetic).
+
+    Sound but not tight: a channel with equal bounds is constant for *every* input (e.g.
+    pruned filters whose ReLU never fires), never just for the images seen so far. Zero
+    padding adds 0 to the range of padded convolutions.
+
+    Returns:
+        slot -> (lower (C,), upper (C,)).
+    """
+    channels = net.tensors[next(n for n, s in net.slots.items() if s == net.input_slot)].channels
+    bounds = {net.input_slot: (torch.full((channels,), float(low)), torch.full((channels,), float(high)))}
+    with torch.no_grad():
+        for step in net.steps:
+            lo, hi = bounds[step.inputs[0]]
+            if step.kind == "conv":
+                layer = net.layers[step.arg]
+                if layer.padding != (0, 0):
+                    lo, hi = lo.clamp(max=0.0), hi.clamp(min=0.0)
+                w = layer.weight.detach().float()
+                pos, neg = w.clamp(min=0.0).sum((2, 3)), w.clamp(max=0.0).sum((2, 3))  # (O, I/groups)
+                if layer.groups == 1:
+                    lo, hi = pos @ lo + neg @ hi, pos @ hi + neg @ lo
+                else:
+                    per_group = w.shape[0] // layer.groups
+                    lo_in, hi_in = lo.repeat_interleave(per_group), hi.repeat_interleave(per_group)
+                    lo, hi = (pos * lo_in[:, None] + neg * hi_in[:, None]).sum(1), (pos * hi_in[:, None] + neg * lo_in[:, None]).sum(1)
+                if layer.bias is not None:
+                    lo, hi = lo + layer.bias.detach(), hi + layer.bias.detach()
+                top = {"relu": float("inf"), "relu6": 6.0}.get(layer.activation)
+                if top is not None:
+                    lo, hi = lo.clamp(0.0, top), hi.clamp(0.0, top)
+            elif step.kind == "add":
+                lo2, hi2 = bounds[step.inputs[1]]
+                lo, hi = lo + lo2, hi + hi2
+            elif step.kind == "add_const":
+                const = getattr(net, f"const{step.arg}").flatten()
+                lo, hi = lo + const, hi + const
+            elif step.kind == "act":
+                top = float("inf") if step.arg == "relu" else 6.0
+                lo, hi = lo.clamp(0.0, top), hi.clamp(0.0, top)
+            elif step.kind == "pad":
+                lo, hi = lo.clamp(max=0.0), hi.clamp(min=0.0)
+            bounds[step.output] = (lo, hi)
+    return bounds
