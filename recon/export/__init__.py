@@ -1,0 +1,37 @@
+"""Writing results atomically into an output folder: meshes (PLY, GLB in glTF axes),
+TUM trajectory, intrinsics JSON, depth maps (16-bit PNG mm + float32 .npy), report
+(`writers`)."""
+
+from .writers import (
+    OutputFolder,
+    atomic_path,
+    atomic_write_bytes,
+    export_reconstruction,
+    glb_bytes,
+    read_depth_png_mm,
+    to_gltf_axes,
+    write_depth_frame,
+    write_depth_maps,
+    write_intrinsics_json,
+    write_mesh_glb,
+    write_mesh_ply,
+    write_point_cloud_ply,
+    write_trajectory_tum,
+)
+
+__all__ = [
+    "OutputFolder",
+    "atomic_path",
+    "atomic_write_bytes",
+    "export_reconstruction",
+    "glb_bytes",
+    "read_depth_png_mm",
+    "to_gltf_axes",
+    "write_depth_frame",
+    "write_depth_maps",
+    "write_intrinsics_json",
+    "write_mesh_glb",
+    "write_mesh_ply",
+    "write_point_cloud_ply",
+    "write_trajectory_tum",
+]
