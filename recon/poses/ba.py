@@ -1,0 +1,457 @@
+"""Dense bundle adjustment over keyframe poses and per-pixel inverse depth (DROID-SLAM style).
+
+This module owns the least-squares problem of the front end and its solvers:
+
+* **dense BA** (:func:`bundle_adjust`): for every edge (i, j) of the frame graph and every
+  pixel p of keyframe i on the BA grid, the residual is
+  ``target_ij(p) - proj(T_j T_i^-1 X_i(p, d_i(p)))`` (pixels), weighted by the flow
+  confidence and a robust (Huber) factor. Unknowns are world-to-camera poses (left
+  updates, ``recon.poses.lie``) and the inverse depth of every BA pixel of every keyframe.
+  Each inverse depth is also tied to the metric prior by ``sqrt(prior_weight) * log(d /
+  d0)`` (a relative error, so the tie is equally weak near and far; in logs because a
+  network's depth errors are multiplicative: a quadratic tie on (d - d0) / d0 would bias
+  the scale by ~exp(-1.5 sigma^2), 9 % for 25 % errors). Reprojection alone cannot see the
+  global scale; this tie is what makes the result metric.
+* The depth block of the Hessian is diagonal, so it is eliminated exactly with the
+  **Schur complement**; the reduced camera system (6 per free pose) is assembled with
+  scatter-adds and solved densely (Cholesky) in float64, then the depths are
+  back-substituted pixel by pixel. Levenberg-Marquardt damping with step acceptance.
+* **motion-only alignment** (:func:`align_frames`): Gauss-Newton on one pose per frame
+  against fixed keyframes (their pose and BA depth), batched over frames.
+
+Shapes: K keyframes (poses (K, 4, 4), inverse depths (K, H, W)), E directed edges
+(ii, jj (E,), targets (E, H, W, 2) = where pixel p of ii lands in jj, weights (E, H, W)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import torch
+
+from recon.poses import lie
+from recon.poses import projective as pj
+
+# Inverse depth is kept inside [MIN_DISP, MAX_DISP] (1/m): beyond 1 km nothing is
+# measurable from a hand-held video, and nearer than 5 cm nothing is in focus.
+MIN_DISP = 1e-3
+MAX_DISP = 20.0
+# Residual pixels processed per chunk when building the normal equations; bounds the
+# memory of the per-pixel Jacobians (~ 200 bytes per pixel-edge).
+CHUNK_PIXELS = 400_000
+
+
+@dataclass
+class Edges:
+    """Directed frame-graph edges with their flow targets.
+
+    ii, jj: (E,) int64 keyframe indices (source, target).
+    target: (E, H, W, 2) float64 pixel coordinates in jj of every BA pixel of ii.
+    weight: (E, H, W) float64 confidence in [0, 1] (0 = no measurement).
+    """
+
+    ii: torch.Tensor
+    jj: torch.Tensor
+    target: torch.Tensor
+    weight: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.ii.numel())
+
+    def select(self, mask: torch.Tensor) -> "Edges":
+        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask])
+
+    def remap(self, index: torch.Tensor) -> "Edges":
+        """The same edges with keyframe ids replaced by index[id] (e.g. global -> window)."""
+        return Edges(index[self.ii], index[self.jj], self.target, self.weight)
+
+
+@dataclass
+class BAOptions:
+    """Solver settings.
+
+    iters: Levenberg-Marquardt iterations.
+    huber: robust threshold (BA-grid pixels): residuals beyond it count linearly. Flow
+        outliers (occlusions, repeated texture, DIS failures) are what limits accuracy, so
+        the default is adaptive (``huber_auto``): ``huber_auto`` times the median residual
+        of confident pixels at the start of each call, clipped to [huber_min, huber].
+    prior_weight: weight of the relative inverse-depth tie to the prior, per pixel, in
+        units of squared BA pixels per squared relative error: 0.01 means a 10 % depth
+        change costs like a 0.01 px reprojection error. Weak on purpose: the prior is only
+        trusted where the images say nothing (scale, rotation-only motion, low parallax).
+    lm: initial damping (relative to the diagonal); multiplied by 10 on a rejected step and
+        divided by 3 on an accepted one.
+    eps: absolute damping added to every pose and depth diagonal entry.
+    pixel_dtype: dtype of the per-pixel Jacobians (float32 halves the time; the reduced
+        camera system and the poses stay float64).
+    """
+
+    iters: int = 6
+    huber: float = 1.0
+    huber_auto: float = 1.5
+    huber_min: float = 0.05
+    prior_weight: float = 0.01
+    lm: float = 1e-4
+    eps: float = 1e-6
+    pixel_dtype: torch.dtype = torch.float32
+
+
+@dataclass
+class BAReport:
+    """What one BA call did: cost per accepted iteration, rejected steps, final stats."""
+
+    costs: list[float] = field(default_factory=list)
+    rejected: int = 0
+    rmse: float = float("nan")
+    inlier_fraction: float = float("nan")
+    huber: float = float("nan")
+
+
+def huber_weights(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
+    """IRLS weights (...) of the Huber loss for residual norms r_norm (...)."""
+    return torch.where(r_norm <= delta, torch.ones_like(r_norm), delta / r_norm.clamp(min=1e-12))
+
+
+def huber_cost(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
+    """Huber loss (...) of residual norms (...), 0.5 r^2 inside delta, linear outside."""
+    return torch.where(r_norm <= delta, 0.5 * r_norm * r_norm, delta * (r_norm - 0.5 * delta))
+
+
+def _chunks(num_edges: int, pixels: int) -> list[slice]:
+    step = max(1, CHUNK_PIXELS // max(pixels, 1))
+    return [slice(s, min(s + step, num_edges)) for s in range(0, num_edges, step)]
+
+
+def edge_residuals(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residual vectors (E, P, 2) = target - projection and validity (E, P)."""
+    uv, valid = pj.reproject(T_cw, disps, intr, edges.ii, edges.jj)
+    num = len(edges)
+    r = (edges.target - uv).reshape(num, -1, 2)
+    return r, valid.reshape(num, -1)
+
+
+def total_cost(
+    T_cw: torch.Tensor,
+    disps: torch.Tensor,
+    intr: torch.Tensor,
+    edges: Edges,
+    prior: torch.Tensor | None,
+    prior_w: torch.Tensor | None,
+    opts: BAOptions,
+) -> float:
+    """The BA objective: robust reprojection cost plus the prior tie."""
+    cost = 0.0
+    if len(edges):
+        r, valid = edge_residuals(T_cw, disps, intr, edges)
+        w = edges.weight.reshape(len(edges), -1) * valid
+        cost += float((w * huber_cost(r.norm(dim=-1), opts.huber)).sum())
+    if prior is not None:
+        rel = torch.log(disps.clamp(min=MIN_DISP) / prior.clamp(min=MIN_DISP))
+        cost += float(0.5 * (prior_w * rel * rel).sum())
+    return cost
+
+
+def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """x with S x = g for a symmetric positive (semi)definite S (n, n), robust to near-singularity."""
+    L, info = torch.linalg.cholesky_ex(S)
+    if int(info) == 0:
+        return torch.cholesky_solve(g[:, None], L)[:, 0]
+    return torch.linalg.lstsq(S, g[:, None]).solution[:, 0]
+
+
+def _normal_equations(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions
+) -> dict:
+    """Per-edge pose blocks, per-pixel depth terms and pose-depth couplings of the robust GN system.
+
+    Returns (K keyframes, E edges, P pixels):
+        Hii, Hij, Hjj: (E, 6, 6) blocks of J^T W J for (ii, ii), (ii, jj), (jj, jj);
+        vi, vj: (E, 6) J^T W r for the two poses;
+        C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
+        Ei, Ej: (E, P, 6) pose-depth couplings J_pose^T W J_depth.
+    """
+    num_kf = disps.shape[0]
+    height, width = disps.shape[-2:]
+    P = height * width
+    E = len(edges)
+    dt = T_cw.dtype
+    px = opts.pixel_dtype
+    uv = pj.pixel_grid(height, width, dtype=px).reshape(1, P, 2)
+    Tij = lie.relative(T_cw, edges.ii, edges.jj)
+    Tij_px, intr_px = Tij.to(px), intr.to(px)
+    out = {
+        "Hjj": torch.empty(E, 6, 6, dtype=dt),
+        "vj": torch.empty(E, 6, dtype=dt),
+        "Ej": torch.empty(E, P, 6, dtype=px),
+        "C": torch.zeros(num_kf, P, dtype=dt),
+        "w": torch.zeros(num_kf, P, dtype=dt),
+    }
+    flat_disp = disps.reshape(num_kf, P).to(px)
+    for sl in _chunks(E, P):
+        ii = edges.ii[sl]
+        n = ii.numel()
+        Xi = pj.backproject(uv, flat_disp[ii], intr_px)
+        proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij_px[sl], Xi, intr_px)
+        r = edges.target[sl].reshape(n, P, 2).to(px) - proj
+        wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(r.norm(dim=-1), opts.huber)
+        wJj = (Jj * wgt[..., None, None]).reshape(n, 2 * P, 6)
+        out["Hjj"][sl] = (wJj.transpose(1, 2) @ Jj.reshape(n, 2 * P, 6)).to(dt)
+        out["vj"][sl] = (wJj.transpose(1, 2) @ r.reshape(n, 2 * P, 1))[..., 0].to(dt)
+        wJz = Jz * wgt[..., None]  # (n, P, 2)
+        out["Ej"][sl] = (Jj * wJz[..., None]).sum(2)
+        out["C"].index_add_(0, ii, (wJz * Jz).sum(-1).to(dt))
+        out["w"].index_add_(0, ii, (wJz * r).sum(-1).to(dt))
+    # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
+    A = lie.adjoint(Tij)
+    At = A.transpose(1, 2)
+    out["Hij"] = -(At @ out["Hjj"])
+    out["Hii"] = At @ out["Hjj"] @ A
+    out["vi"] = -(At @ out["vj"][..., None])[..., 0]
+    out["Ei"] = -(out["Ej"] @ A.to(px))
+    return out
+
+
+def _same_source_pairs(ii: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """All ordered pairs (a, b) of edge indices (M,) with ii[a] == ii[b] (a == b included)."""
+    same = ii[:, None] == ii[None, :]
+    a, b = same.nonzero(as_tuple=True)
+    return a, b
+
+
+def _reduced_system(
+    sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Schur complement over the depths: blocks S (K, K, 6, 6), gradient g (K, 6), Et (K, P, 6).
+
+    For the depth of pixel p of keyframe k, the coupling to pose k is the sum Et[k, p] of
+    Ei over k's outgoing edges, and to pose jj[e] it is Ej[e, p]; so S loses
+    Et Q Et^T on (k, k), Et Q Ej^T on (k, jj[e]) and Ej[a] Q Ej[b]^T on (jj[a], jj[b]) for
+    every pair of edges leaving the same keyframe.
+    """
+    ii, jj = edges.ii, edges.jj
+    dt = Q.dtype
+    px = sys["Ej"].dtype
+    K = num_kf
+    S = torch.zeros(K * K, 6, 6, dtype=dt)
+    S.index_add_(0, ii * K + ii, sys["Hii"])
+    S.index_add_(0, ii * K + jj, sys["Hij"])
+    S.index_add_(0, jj * K + ii, sys["Hij"].transpose(1, 2))
+    S.index_add_(0, jj * K + jj, sys["Hjj"])
+    g = torch.zeros(K, 6, dtype=dt)
+    g.index_add_(0, ii, sys["vi"])
+    g.index_add_(0, jj, sys["vj"])
+
+    P = Q.shape[1]
+    Qp, Qw = Q.to(px), (Q * wz).to(px)
+    Et = torch.zeros(K, P, 6, dtype=px)
+    Et.index_add_(0, ii, sys["Ei"])
+    EtQ = Et * Qp[..., None]
+    S.index_add_(0, torch.arange(K) * (K + 1), -(EtQ.transpose(1, 2) @ Et).to(dt))
+    g -= (Et.transpose(1, 2) @ Qw[..., None])[..., 0].to(dt)
+    Ej = sys["Ej"]
+    cross = (EtQ[ii].transpose(1, 2) @ Ej).to(dt)  # (E, 6, 6): Et[ii] Q Ej^T
+    S.index_add_(0, ii * K + jj, -cross)
+    S.index_add_(0, jj * K + ii, -cross.transpose(1, 2))
+    g.index_add_(0, jj, -(Ej.transpose(1, 2) @ Qw[ii][..., None])[..., 0].to(dt))
+    a, b = _same_source_pairs(ii)
+    step = max(1, CHUNK_PIXELS // max(P, 1))
+    for s in range(0, a.numel(), step):
+        aa, bb = a[s : s + step], b[s : s + step]
+        blk = (Ej[aa] * Qp[ii[aa]][..., None]).transpose(1, 2) @ Ej[bb]
+        S.index_add_(0, jj[aa] * K + jj[bb], -blk.to(dt))
+    return S.reshape(K, K, 6, 6), g, Et
+
+
+def ba_step(
+    T_cw: torch.Tensor,
+    disps: torch.Tensor,
+    intr: torch.Tensor,
+    edges: Edges,
+    prior: torch.Tensor | None,
+    prior_w: torch.Tensor | None,
+    fixed: torch.Tensor,
+    opts: BAOptions,
+    lm: float,
+    sys: dict | None = None,
+    fixed_disp: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """One damped Gauss-Newton step. Returns the proposed poses (K, 4, 4), inverse depths
+    (K, H, W) and the normal equations used (reusable for a re-damped retry)."""
+    K = disps.shape[0]
+    height, width = disps.shape[-2:]
+    P = height * width
+    if sys is None:
+        sys = _normal_equations(T_cw, disps, intr, edges, opts)
+    C = sys["C"].clone()
+    wz = sys["w"].clone()
+    if prior is not None:
+        d = disps.reshape(K, P).clamp(min=MIN_DISP)
+        d0 = prior.reshape(K, P).clamp(min=MIN_DISP)
+        pw = prior_w.reshape(K, P)
+        # r = log(d / d0), dr/dd = 1 / d.
+        C += pw / (d * d)
+        wz += pw * torch.log(d0 / d) / d
+    C = C * (1.0 + lm) + opts.eps
+    Q = 1.0 / C
+    if fixed_disp is not None:
+        # A held depth has infinite stiffness: it drops out of the Schur complement.
+        Q[fixed_disp] = 0.0
+    S, g, Et = _reduced_system(sys, edges, Q, wz, K)
+
+    free = (~fixed).nonzero(as_tuple=True)[0]
+    dx = torch.zeros(K, 6, dtype=T_cw.dtype)
+    if free.numel():
+        Sf = S[free][:, free].permute(0, 2, 1, 3).reshape(6 * free.numel(), 6 * free.numel())
+        Sf = 0.5 * (Sf + Sf.T)
+        diag = Sf.diagonal()
+        Sf = Sf + torch.diag(lm * diag + opts.eps)
+        dx[free] = _solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
+    # Back-substitution: dz = Q (w - Et^T dx_k - sum_e Ej^T dx_jj).
+    px = sys["Ej"].dtype
+    rhs = wz - (Et @ dx.to(px)[..., None])[..., 0].to(wz.dtype)
+    rhs.index_add_(0, edges.ii, -(sys["Ej"] @ dx.to(px)[edges.jj][..., None])[..., 0].to(wz.dtype))
+    dz = (Q * rhs).reshape(K, height, width)
+    T_new = lie.se3_exp(dx) @ T_cw
+    d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
+    return T_new, d_new, sys
+
+
+def bundle_adjust(
+    T_cw: torch.Tensor,
+    disps: torch.Tensor,
+    intr: torch.Tensor,
+    edges: Edges,
+    prior: torch.Tensor | None = None,
+    prior_w: torch.Tensor | None = None,
+    fixed: torch.Tensor | None = None,
+    opts: BAOptions | None = None,
+    fixed_disp: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, BAReport]:
+    """Levenberg-Marquardt dense BA.
+
+    T_cw: (K, 4, 4) float64 world-to-camera poses; disps: (K, H, W) inverse depth;
+    intr: (4,) BA-grid intrinsics; edges: the frame graph; prior: (K, H, W) prior inverse
+    depth (or None); prior_w: (K, H, W) per-pixel tie weight (0 where the prior is invalid);
+    fixed: (K,) bool poses held constant (at least one, or the gauge is free);
+    fixed_disp: (K,) bool keyframes whose depth is held (old keyframes around a window).
+    Returns the refined poses, inverse depths and a report.
+    """
+    opts = opts or BAOptions()
+    K = disps.shape[0]
+    if fixed is None:
+        fixed = torch.zeros(K, dtype=torch.bool)
+        fixed[0] = True
+    report = BAReport()
+    lm = opts.lm
+    sys = None
+    step_opts = opts
+    cost = float("nan")
+    for _ in range(opts.iters):
+        if sys is None:
+            # The robust threshold follows the residuals as they shrink; both sides of the
+            # accept test below use the same threshold.
+            if opts.huber_auto > 0:
+                step_opts = replace(opts, huber=adaptive_huber(T_cw, disps, intr, edges, opts))
+            cost = total_cost(T_cw, disps, intr, edges, prior, prior_w, step_opts)
+            if not report.costs:
+                report.costs.append(cost)
+        T_new, d_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed, step_opts, lm, sys, fixed_disp)
+        new_cost = total_cost(T_new, d_new, intr, edges, prior, prior_w, step_opts)
+        if new_cost <= cost:
+            T_cw, disps = T_new, d_new
+            report.costs.append(new_cost)
+            lm = max(lm / 3.0, 1e-7)
+            sys = None
+        else:
+            report.rejected += 1
+            lm *= 10.0
+            if lm > 1e4:
+                break
+    opts = step_opts
+    report.rmse, report.inlier_fraction = residual_stats(T_cw, disps, intr, edges, max(opts.huber, 0.5))
+    report.huber = opts.huber
+    return T_cw, disps, report
+
+
+def adaptive_huber(T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions) -> float:
+    """Huber threshold from the current residuals: huber_auto x median over confident pixels,
+    clipped to [huber_min, huber] (the residual norm of 2-D Gaussian noise has median 1.18 sigma)."""
+    if not len(edges):
+        return opts.huber
+    r, valid = edge_residuals(T_cw, disps, intr, edges)
+    conf = (edges.weight.reshape(len(edges), -1) > 0.5) & valid
+    if not conf.any():
+        return opts.huber
+    med = float(r.norm(dim=-1)[conf].median())
+    return float(min(max(opts.huber_auto * med, opts.huber_min), opts.huber))
+
+
+def residual_stats(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, inlier: float
+) -> tuple[float, float]:
+    """Confidence-weighted RMS residual (BA pixels) and the weight fraction within `inlier` px."""
+    if not len(edges):
+        return float("nan"), float("nan")
+    r, valid = edge_residuals(T_cw, disps, intr, edges)
+    w = edges.weight.reshape(len(edges), -1)
+    rn = r.norm(dim=-1)
+    total = float(w.sum())
+    if total <= 0:
+        return float("nan"), 0.0
+    ok = valid & (rn < inlier)
+    rmse = float(((w * valid * rn.clamp(max=10 * inlier) ** 2).sum() / max(float((w * valid).sum()), 1e-9)).sqrt())
+    return rmse, float((w * ok).sum()) / total
+
+
+def align_frames(
+    T_init: torch.Tensor,
+    T_kf: torch.Tensor,
+    disp_kf: torch.Tensor,
+    intr: torch.Tensor,
+    frame: torch.Tensor,
+    target: torch.Tensor,
+    weight: torch.Tensor,
+    iters: int = 8,
+    huber: float = 1.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Motion-only Gauss-Newton: world-to-camera poses of M frames against fixed keyframes.
+
+    T_init: (M, 4, 4) initial poses of the frames; for each of L measurements:
+    T_kf (L, 4, 4) the keyframe's pose, disp_kf (L, H, W) its inverse depth, frame (L,)
+    which of the M frames it observes, target (L, H, W, 2) where the keyframe's pixels
+    land in that frame, weight (L, H, W). Returns poses (M, 4, 4), the weighted RMS
+    residual (M,) in BA pixels and the fraction (M,) of confidence weight within `huber`.
+    """
+    M = T_init.shape[0]
+    L = T_kf.shape[0]
+    height, width = disp_kf.shape[-2:]
+    P = height * width
+    uv = pj.pixel_grid(height, width, dtype=T_init.dtype).reshape(1, P, 2)
+    Xk = pj.backproject(uv, disp_kf.reshape(L, P), intr)
+    tgt = target.reshape(L, P, 2)
+    w0 = weight.reshape(L, P)
+    T = T_init.clone()
+    eye = torch.eye(6, dtype=T.dtype)
+    for _ in range(iters):
+        Tkf_to_f = T[frame] @ lie.inv(T_kf)
+        proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk, intr)
+        r = tgt - proj
+        wgt = w0 * valid * huber_weights(r.norm(dim=-1), huber)
+        wJ = (Jf * wgt[..., None, None]).reshape(L, 2 * P, 6)
+        H = torch.zeros(M, 6, 6, dtype=T.dtype).index_add_(0, frame, wJ.transpose(1, 2) @ Jf.reshape(L, 2 * P, 6))
+        g = torch.zeros(M, 6, dtype=T.dtype).index_add_(0, frame, (wJ.transpose(1, 2) @ r.reshape(L, 2 * P, 1))[..., 0])
+        H = H + eye * (1e-4 * H.diagonal(dim1=1, dim2=2).mean(-1, keepdim=True)[..., None] + 1e-9)
+        dx = torch.linalg.solve(H, g[..., None])[..., 0]
+        T = lie.se3_exp(dx) @ T
+        if float(dx.abs().max()) < 1e-7:
+            break
+    proj, valid = pj.project(pj.transform(T[frame] @ lie.inv(T_kf), Xk), intr)
+    rn = (tgt - proj).norm(dim=-1)
+    wv = w0 * valid
+    num = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, (wv * rn.clamp(max=10 * huber) ** 2).sum(1))
+    den = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, wv.sum(1))
+    inl = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, (wv * (rn < huber)).sum(1))
+    tot = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, w0.sum(1))
+    return T, (num / den.clamp(min=1e-9)).sqrt(), inl / tot.clamp(min=1e-9)

@@ -1,0 +1,182 @@
+"""The keyframe graph of the front end (as in DROID-SLAM's ``factor_graph``): keyframe state,
+directed flow edges, and the choice of which keyframes to connect.
+
+This module owns:
+
+* :class:`FrameGraph`: per keyframe its video frame index, flow-resolution grey image,
+  world-to-camera pose, BA-grid inverse depth, prior inverse depth and prior weight; per
+  directed edge (i, j) its flow target and confidence on the BA grid, and its kind
+  ("temporal", "proximity", "reloc");
+* :func:`induced_flow`: how far pixels of keyframe k would move in other keyframes given
+  the current poses and depths (DROID's frame distance), used to find proximity edges;
+* :func:`select_proximity`: the nearest keyframes by that distance, with temporal
+  non-maximum suppression so that one revisit does not take all the edges;
+* :func:`predicted_flow`: the flow the geometry predicts, used to seed DIS on long edges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from recon.poses import ba
+from recon.poses import lie
+from recon.poses import projective as pj
+
+
+@dataclass
+class EdgeData:
+    """One directed edge: BA-grid target (H, W, 2) float32 in j's pixels, weight (H, W) float32."""
+
+    target: torch.Tensor
+    weight: torch.Tensor
+    kind: str
+
+
+class FrameGraph:
+    """Keyframes and directed edges. Keyframe ids are positions 0..K-1 in insertion order."""
+
+    def __init__(self, ba_shape: tuple[int, int]):
+        self.ba_shape = ba_shape
+        self.frames: list[int] = []
+        self.gray: list[np.ndarray] = []
+        self._T: list[torch.Tensor] = []
+        self._disp: list[torch.Tensor] = []
+        self._prior: list[torch.Tensor] = []
+        self._prior_w: list[torch.Tensor] = []
+        self.edges: dict[tuple[int, int], EdgeData] = {}
+
+    # ------------------------------------------------------------------ keyframes
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def add_keyframe(self, frame: int, gray: np.ndarray, T_cw: torch.Tensor, disp: torch.Tensor,
+                     prior: torch.Tensor, prior_w: torch.Tensor) -> int:
+        """Append a keyframe; returns its id."""
+        self.frames.append(int(frame))
+        self.gray.append(gray)
+        self._T.append(T_cw.clone())
+        self._disp.append(disp.clone())
+        self._prior.append(prior)
+        self._prior_w.append(prior_w)
+        return len(self.frames) - 1
+
+    def poses(self, ids=None) -> torch.Tensor:
+        """World-to-camera poses (K, 4, 4) float64 of `ids` (all when None)."""
+        ids = range(len(self)) if ids is None else ids
+        return torch.stack([self._T[i] for i in ids])
+
+    def disps(self, ids=None) -> torch.Tensor:
+        ids = range(len(self)) if ids is None else ids
+        return torch.stack([self._disp[i] for i in ids])
+
+    def priors(self, ids=None) -> tuple[torch.Tensor, torch.Tensor]:
+        ids = range(len(self)) if ids is None else ids
+        return torch.stack([self._prior[i] for i in ids]), torch.stack([self._prior_w[i] for i in ids])
+
+    def set_state(self, ids, T_cw: torch.Tensor, disps: torch.Tensor) -> None:
+        for n, i in enumerate(ids):
+            self._T[i] = T_cw[n].clone()
+            self._disp[i] = disps[n].clone()
+
+    def scale_world(self, s: float) -> None:
+        """Multiply the world by s (translations x s, inverse depths / s, priors unchanged)."""
+        for i in range(len(self)):
+            self._T[i] = self._T[i].clone()
+            self._T[i][:3, 3] *= s
+            self._disp[i] = self._disp[i] / s
+
+    # ------------------------------------------------------------------ edges
+
+    def add_edge(self, i: int, j: int, target: torch.Tensor, weight: torch.Tensor, kind: str) -> None:
+        self.edges[(int(i), int(j))] = EdgeData(target.float(), weight.float(), kind)
+
+    def remove_edge(self, i: int, j: int) -> None:
+        self.edges.pop((int(i), int(j)), None)
+
+    def connected(self, i: int, j: int) -> bool:
+        return (i, j) in self.edges or (j, i) in self.edges
+
+    def neighbours(self, k: int) -> set[int]:
+        return {j for (i, j) in self.edges if i == k} | {i for (i, j) in self.edges if j == k}
+
+    def edge_list(self, ids=None) -> tuple[list[tuple[int, int]], "ba.Edges"]:
+        """Edges with at least one end in `ids` (all when None), as global-id ba.Edges (float64)."""
+        keep = None if ids is None else set(int(i) for i in ids)
+        pairs = [p for p in self.edges if keep is None or p[0] in keep or p[1] in keep]
+        if not pairs:
+            h, w = self.ba_shape
+            empty = torch.zeros(0, dtype=torch.int64)
+            return [], ba.Edges(empty, empty, torch.zeros(0, h, w, 2, dtype=torch.float64),
+                                torch.zeros(0, h, w, dtype=torch.float64))
+        ii = torch.tensor([p[0] for p in pairs])
+        jj = torch.tensor([p[1] for p in pairs])
+        target = torch.stack([self.edges[p].target for p in pairs]).double()
+        weight = torch.stack([self.edges[p].weight for p in pairs]).double()
+        return pairs, ba.Edges(ii, jj, target, weight)
+
+    def kinds(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for e in self.edges.values():
+            out[e.kind] = out.get(e.kind, 0) + 1
+        return out
+
+
+def induced_flow(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, k: int, others: torch.Tensor, stride: int = 4
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean induced flow (C,) in BA pixels from keyframe k to each of `others` (C,), and the
+    fraction (C,) of k's (subsampled) pixels that land inside the other image in front of it.
+
+    T_cw: (K, 4, 4); disps: (K, H, W). Pixels are taken every `stride` on the BA grid.
+    """
+    height, width = disps.shape[-2:]
+    sub = disps[k, ::stride, ::stride]
+    uv = pj.pixel_grid(height, width, dtype=T_cw.dtype)[::stride, ::stride]
+    X = pj.backproject(uv, sub.double(), intr).reshape(1, -1, 4).expand(len(others), -1, -1)
+    Tij = T_cw[others] @ lie.inv(T_cw[k : k + 1])
+    proj, valid = pj.project(pj.transform(Tij, X), intr)
+    inside = valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5) & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5)
+    move = (proj - uv.reshape(1, -1, 2)).norm(dim=-1)
+    frac = inside.double().mean(1)
+    dist = torch.where(inside, move, torch.zeros_like(move)).sum(1) / inside.sum(1).clamp(min=1)
+    dist = torch.where(frac > 0, dist, torch.full_like(dist, float("inf")))
+    return dist, frac
+
+
+def select_proximity(
+    candidates: list[int], dist: np.ndarray, frac: np.ndarray, max_edges: int, max_dist: float,
+    min_overlap: float, nms: int,
+) -> list[int]:
+    """Up to `max_edges` candidate keyframes, nearest first, with dist <= max_dist and overlap
+    >= min_overlap, none within `nms` keyframe ids of an already chosen one."""
+    order = np.argsort(dist)
+    chosen: list[int] = []
+    for n in order:
+        if len(chosen) >= max_edges:
+            break
+        if not (dist[n] <= max_dist and frac[n] >= min_overlap):
+            continue
+        c = candidates[n]
+        if any(abs(c - o) <= nms for o in chosen):
+            continue
+        chosen.append(c)
+    return chosen
+
+
+def predicted_flow(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, i: int, j: int, flow_size: tuple[int, int]
+) -> np.ndarray:
+    """Flow (hf, wf, 2) float32 from keyframe i to j at the flow resolution predicted by the
+    current poses and BA depth (a seed for DIS); points behind j keep zero flow."""
+    uv, valid = pj.reproject(T_cw, disps, intr, torch.tensor([i]), torch.tensor([j]))
+    height, width = disps.shape[-2:]
+    flow = (uv[0] - pj.pixel_grid(height, width, dtype=uv.dtype)) * valid[0, ..., None]
+    wf, hf = flow_size
+    scale = np.array([wf / width, hf / height], dtype=np.float32)
+    up = cv2.resize(flow.numpy().astype(np.float32), (wf, hf), interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray(up * scale)

@@ -1,0 +1,115 @@
+"""Pinhole projective geometry with inverse depth, and its Jacobians, for dense BA.
+
+This module owns the residual model of the front end (as DROID-SLAM's
+``geom/projective_ops``): a pixel p = (u, v) of keyframe i with inverse depth d is the
+homogeneous point ``X_i = ((u - cx) / fx, (v - cy) / fy, 1, d)`` (the 3-D point scaled by
+d, so that d -> 0 stays finite); ``X_j = T_ij X_i`` with ``T_ij = T_j T_i^-1`` of
+world-to-camera poses; its projection is ``(fx X/Z + cx, fy Y/Z + cy)``.
+
+Jacobians follow ``recon.poses.lie``: tangent ``(v, w)``, left updates of world-to-camera
+poses. Intrinsics are a (4,) tensor ``(fx, fy, cx, cy)`` in pixels of the grid being
+projected, pixel centres at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from recon.poses import lie
+
+# Points closer than this (metres, in the target camera) count as behind it: their
+# projection is numerically meaningless.
+MIN_DEPTH = 0.05
+
+
+def scale_intrinsics(intrinsics, sx: float, sy: float | None = None) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of an image resized by sx horizontally and sy (default sx) vertically.
+
+    Pixel centres are at integer coordinates, so the principal point maps as
+    ``c' = (c + 0.5) * s - 0.5`` (exact for area resizing and pooling).
+    """
+    sy = sx if sy is None else sy
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
+
+
+def pixel_grid(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Pixel coordinates (H, W, 2) = (u, v) of every pixel centre."""
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=dtype, device=device), torch.arange(width, dtype=dtype, device=device), indexing="ij"
+    )
+    return torch.stack([u, v], -1)
+
+
+def backproject(uv: torch.Tensor, disp: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
+    """Homogeneous points (..., 4) = (x, y, 1, d) of pixels uv (..., 2) with inverse depth disp (...)."""
+    fx, fy, cx, cy = intr.unbind(-1)
+    x = (uv[..., 0] - cx) / fx
+    y = (uv[..., 1] - cy) / fy
+    x, y, disp = torch.broadcast_tensors(x, y, disp)
+    return torch.stack([x, y, torch.ones_like(x), disp], -1)
+
+
+def transform(T: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """Homogeneous points X (E, ..., 4) moved by transforms T (E, 4, 4)."""
+    shape = X.shape
+    Xf = X.reshape(shape[0], -1, 4)
+    return (Xf @ T.transpose(-1, -2)).reshape(shape)
+
+
+def project(Xj: torch.Tensor, intr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels (..., 2) of homogeneous points (..., 4) and validity (...) (in front of the camera).
+
+    Validity compares Z with MIN_DEPTH * W, i.e. metric depth > MIN_DEPTH for points with
+    positive inverse depth W.
+    """
+    fx, fy, cx, cy = intr.unbind(-1)
+    X, Y, Z, W = Xj.unbind(-1)
+    valid = Z > MIN_DEPTH * W.clamp(min=0.0)
+    valid &= Z > 1e-6
+    Zs = torch.where(valid, Z, torch.ones_like(Z))
+    return torch.stack([fx * X / Zs + cx, fy * Y / Zs + cy], -1), valid
+
+
+def reproject(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the pixels of keyframes ii land in keyframes jj.
+
+    T_cw: (K, 4, 4) world-to-camera; disps: (K, H, W) inverse depth; ii, jj: (E,) edges.
+    Returns coordinates (E, H, W, 2) in jj's pixels and validity (E, H, W).
+    """
+    height, width = disps.shape[-2:]
+    uv = pixel_grid(height, width, dtype=disps.dtype, device=disps.device)
+    Xi = backproject(uv[None], disps[ii], intr)
+    Xj = transform(lie.relative(T_cw, ii, jj), Xi)
+    return project(Xj, intr)
+
+
+def reproject_with_jacobians(
+    Tij: torch.Tensor, Xi: torch.Tensor, intr: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Projections of Xi into camera j and their Jacobians with respect to pose j and depth.
+
+    Tij: (E, 4, 4) camera i -> camera j; Xi: (E, P, 4) homogeneous points (x, y, 1, d).
+    Returns uv (E, P, 2), valid (E, P), Jj (E, P, 2, 6) with respect to a left update of the
+    world-to-camera pose T_j, and Jz (E, P, 2) with respect to d.
+
+    The Jacobian for pose i is ``Ji = -Jj @ adjoint(Tij)`` (a left update of T_i reaches
+    T_ij as ``exp(-Ad(T_ij) xi_i)``); callers apply it per edge to the summed normal
+    equations instead of per pixel, which is what keeps dense BA cheap.
+    """
+    fx, fy, cx, cy = intr.unbind(-1)
+    Xj = transform(Tij, Xi)
+    uv, valid = project(Xj, intr)
+    X, Y, Z, W = Xj.unbind(-1)
+    iz = 1.0 / torch.where(valid, Z, torch.ones_like(Z))
+    x, y, w = X * iz, Y * iz, W * iz
+    zero = torch.zeros_like(x)
+    # Closed form of d(u, v)/d xi for xi = (v, w) acting on homogeneous (X, Y, Z, W).
+    ju = fx * torch.stack([w, zero, -x * w, -x * y, 1.0 + x * x, -y], -1)
+    jv = fy * torch.stack([zero, w, -y * w, -(1.0 + y * y), x * y, x], -1)
+    Jj = torch.stack([ju, jv], -2)
+    t = Tij[:, None, :3, 3]
+    Jz = torch.stack([fx * (t[..., 0] - x * t[..., 2]) * iz, fy * (t[..., 1] - y * t[..., 2]) * iz], -1)
+    return uv, valid, Jj, Jz
