@@ -23,6 +23,22 @@ from recon.medea import adjust_sequence  # noqa: E402
 from recon.synthetic import render_sequence, simulate_prior  # noqa: E402
 
 
+def run_preset(name: str, seq, prior, device: str) -> dict:
+    config = MedeaConfig.fast(device=device) if name == "fast" else MedeaConfig(device=device)
+    start = time.perf_counter()
+    result = adjust_sequence(seq.rgb, prior, seq.poses, seq.intrinsics, config=config, progress=False)
+    total = time.perf_counter() - start
+    return {
+        "config": config.to_dict(),
+        "keyframes": len(result.keyframes),
+        "epochs": {k: h.epochs for k, h in result.history.items()},
+        "stopped_early": {k: h.stopped_early for k, h in result.history.items()},
+        "seconds": {**result.seconds, "total": total},
+        "seconds_per_frame": total / len(prior),
+        "after": depth_report(result.depth.numpy(), seq.depth, seq.poses, seq.intrinsics),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=120)
@@ -31,44 +47,37 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--presets", nargs="+", default=["paper", "fast"], choices=["paper", "fast"])
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     seq = render_sequence(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
     prior = simulate_prior(seq.depth, seed=args.seed)
-    config = MedeaConfig(device=args.device)
-    start = time.perf_counter()
-    result = adjust_sequence(seq.rgb, prior, seq.poses, seq.intrinsics, config=config, progress=False)
-    total = time.perf_counter() - start
     before = depth_report(prior, seq.depth, seq.poses, seq.intrinsics)
-    after = depth_report(result.depth.numpy(), seq.depth, seq.poses, seq.intrinsics)
+    runs = {name: run_preset(name, seq, prior, args.device) for name in args.presets}
 
     n = args.frames
-    stages = [["prepare", "-", f"{result.seconds['prepare']:.2f}", f"{result.seconds['prepare'] / n:.4f}"]]
-    for name in ("stage1", "propagate", "stage2"):
-        epochs = result.history[name].epochs if name in result.history else "-"
-        stages.append([name, epochs, f"{result.seconds[name]:.2f}", f"{result.seconds[name] / n:.4f}"])
-    stages.append(["total (incl. conversion)", "-", f"{total:.2f}", f"{total / n:.4f}"])
     print(f"MEDeA on the synthetic room: {n} frames at {args.width}x{args.height}, device {args.device}, "
-          f"{args.threads} threads, {len(result.keyframes)} keyframes")
-    print(table(["step", "epochs", "seconds", "s/frame"], stages))
+          f"{args.threads} torch threads, {machine()['cpu']}")
+    rows = []
+    for name, run in runs.items():
+        for step in ("prepare", "stage1", "propagate", "stage2", "total"):
+            epochs = run["epochs"].get(step, "-")
+            seconds = run["seconds"][step]
+            rows.append([name, step, epochs, f"{seconds:.2f}", f"{seconds / n:.4f}"])
+    print(table(["preset", "step", "epochs", "seconds", "s/frame"], rows))
     print()
     keys = ["abs_rel", "abs_diff", "sq_rel", "rmse", "delta1", "inconsistency"]
-    rows = [[k, f"{before[k]:.4f}", f"{after[k]:.4f}", f"{(after[k] - before[k]) / before[k]:+.0%}"] for k in keys]
-    print(table(["metric", "prior", "MEDeA", "change"], rows))
+    headers = ["metric", "prior"] + [f"MEDeA {name}" for name in runs]
+    rows = [[k, f"{before[k]:.4f}"] + [f"{run['after'][k]:.4f}" for run in runs.values()] for k in keys]
+    print(table(headers, rows))
     path = write_json("medea_synthetic", {
         "machine": machine(),
         "frames": n,
         "size": [args.height, args.width],
         "device": args.device,
-        "config": config.to_dict(),
-        "keyframes": len(result.keyframes),
-        "epochs": {k: h.epochs for k, h in result.history.items()},
-        "stopped_early": {k: h.stopped_early for k, h in result.history.items()},
-        "seconds": {**result.seconds, "total": total},
-        "seconds_per_frame": total / n,
         "before": before,
-        "after": after,
+        "runs": runs,
     })
     print(f"\nwrote {path}")
 
