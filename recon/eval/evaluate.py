@@ -1,0 +1,227 @@
+"""`recon eval`: score an output folder of `recon run` against a dataset's ground truth.
+
+This module owns reading an output folder back (depth maps, trajectory, mesh, which source
+frames they belong to) and the three evaluations, each built from the metric modules:
+
+* depth (DeepVideoMVS protocol, as in the MEDeA paper): ground truth resized to the output
+  depth's resolution by nearest neighbour (never blending valid and invalid pixels), pixels
+  with ground truth in ``[min_depth, max_depth]``; metric (no alignment), and median-scaled
+  per frame and per sequence;
+* trajectory: ATE RMSE after SE(3) and Sim(3) Umeyama alignment, RPE, scale error;
+* mesh: accuracy, completeness, chamfer, precision, recall, F-score at 5 cm against a
+  reference mesh: a given mesh file, or a TSDF of the sensor depth fused with the
+  ground-truth poses over the same frames and voxel size. When the poses were estimated,
+  the mesh is first brought into the ground truth's frame with the trajectory's Sim(3)
+  alignment (``mesh_align="auto"``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from recon.errors import ReconInputError
+from recon.eval.depth import depth_metrics
+from recon.eval.mesh import DEFAULT_THRESHOLD, mesh_metrics
+from recon.eval.trajectory import ate_rmse, rpe, scale_error
+from recon.export.writers import DEPTH_DIR, MESH_PLY, REPORT_JSON, TRAJECTORY, read_depth_png_mm
+from recon.io.datasets import open_dataset
+from recon.io.datasets.base import natural_key
+from recon.poses.formats import read_tum
+
+
+@dataclass
+class EvalOptions:
+    """min_depth, max_depth: evaluated ground-truth range in metres. threshold: mesh
+    precision/recall distance. mesh_points: surface samples per mesh. reference_mesh: a mesh
+    file to compare with instead of the sensor-depth TSDF. mesh_align: "auto" (Sim(3) from
+    the trajectory when the poses were estimated, none for ground-truth poses), "none",
+    "se3" or "sim3"."""
+
+    min_depth: float = 1e-3
+    max_depth: float = 10.0
+    threshold: float = DEFAULT_THRESHOLD
+    mesh_points: int = 200_000
+    reference_mesh: Path | None = None
+    mesh_align: Literal["auto", "none", "se3", "sim3"] = "auto"
+    progress: bool = True
+
+
+@dataclass
+class OutputFolderData:
+    """What `recon run` left in a folder: depth (N, H, W) metres, poses (N, 4, 4),
+    source frame indices (N,), the mesh (or None) and the parsed report."""
+
+    path: Path
+    report: dict
+    indices: np.ndarray
+    depth: np.ndarray | None
+    poses: np.ndarray | None
+    mesh: o3d.geometry.TriangleMesh | None
+
+
+def _depth_files(folder: Path, names: list[str] | None) -> list[Path]:
+    if names is not None:
+        files = []
+        for name in names:
+            npy, png = folder / f"{name}.npy", folder / f"{name}.png"
+            if not (npy.exists() or png.exists()):
+                raise ReconInputError(f"{folder}: no depth map for frame {name!r} (neither .npy nor .png)")
+            files.append(npy if npy.exists() else png)
+        return files
+    files = sorted(folder.glob("*.npy"), key=lambda p: natural_key(p.name)) or sorted(
+        folder.glob("*.png"), key=lambda p: natural_key(p.name)
+    )
+    return files
+
+
+def _read_depth(path: Path) -> np.ndarray:
+    return np.load(path).astype(np.float32) if path.suffix == ".npy" else read_depth_png_mm(path)
+
+
+def load_output(path) -> OutputFolderData:
+    """Read an output folder of `recon run` (report.json, depth/, trajectory.txt, mesh.ply)."""
+    path = Path(path)
+    report_path = path / REPORT_JSON
+    if not report_path.is_file():
+        raise ReconInputError(f"{path}: not an output folder of 'recon run' (no {REPORT_JSON})")
+    try:
+        report = json.loads(report_path.read_text())
+        indices = np.asarray(report["frames"]["indices"], dtype=np.int64)
+    except (ValueError, KeyError, TypeError) as error:
+        raise ReconInputError(f"{report_path}: unreadable report ({error})") from None
+    depth = None
+    depth_dir = path / DEPTH_DIR
+    if depth_dir.is_dir():
+        files = _depth_files(depth_dir, report["frames"].get("names"))
+        if len(files) != len(indices):
+            raise ReconInputError(f"{depth_dir}: {len(files)} depth maps for {len(indices)} frames in {report_path.name}")
+        depth = np.stack([_read_depth(f) for f in files]) if files else None
+    poses = None
+    if (path / TRAJECTORY).is_file():
+        poses = read_tum(path / TRAJECTORY).poses
+        if len(poses) != len(indices):
+            raise ReconInputError(f"{path / TRAJECTORY}: {len(poses)} poses for {len(indices)} frames in {report_path.name}")
+    mesh = None
+    if (path / MESH_PLY).is_file():
+        mesh = o3d.io.read_triangle_mesh(str(path / MESH_PLY))
+    return OutputFolderData(path, report, indices, depth, poses, mesh)
+
+
+def _gt_depth_at(gt: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Ground truth (H, W) at the prediction's size (h, w), nearest neighbour."""
+    if gt.shape == size:
+        return gt
+    return cv2.resize(gt, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+
+
+def evaluate_depth(depth: np.ndarray, gt_depth: np.ndarray, options: EvalOptions) -> dict:
+    """Metric and median-scaled depth metrics of depth (N, h, w) against gt (N, H, W)."""
+    gt = np.stack([_gt_depth_at(g, depth.shape[1:]) for g in gt_depth])
+    kw = dict(min_depth=options.min_depth, max_depth=options.max_depth)
+    return {
+        "metric": depth_metrics(depth, gt, **kw),
+        "median_frame": depth_metrics(depth, gt, align="median_frame", **kw),
+        "median_sequence": depth_metrics(depth, gt, align="median_sequence", **kw),
+    }
+
+
+def evaluate_trajectory(poses: np.ndarray, gt_poses: np.ndarray) -> dict:
+    """ATE (SE(3), Sim(3)), RPE and scale error of camera-to-world poses against gt."""
+    keep = ("rmse", "mean", "median", "max", "scale", "n")
+    out = {f"ate_{mode}": {k: v for k, v in ate_rmse(poses, gt_poses, mode).items() if k in keep} for mode in ("se3", "sim3")}
+    out["rpe"] = {k: v for k, v in rpe(poses, gt_poses).items() if not isinstance(v, np.ndarray)}
+    out["scale_error"] = scale_error(poses, gt_poses)
+    return out
+
+
+def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, max_depth: float, progress: bool):
+    """TSDF mesh of the dataset's sensor depth with its ground-truth poses over `indices`."""
+    from recon.fusion import FusionOptions, fuse
+
+    if not dataset.has_depth or not dataset.has_poses:
+        raise ReconInputError(f"{dataset.root}: needs sensor depth and poses for a reference mesh (or pass --reference-mesh)")
+    depth = dataset.load_depth_batch(indices)
+    options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress)
+    return fuse(depth, None, dataset.poses[indices], dataset.intrinsics, options).mesh
+
+
+def _aligned_mesh(mesh, alignment: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, triangles) of the mesh, moved by the trajectory alignment x -> s R x + t."""
+    vertices = np.asarray(mesh.vertices)
+    if alignment is not None:
+        vertices = alignment["scale"] * vertices @ alignment["rotation"].T + alignment["translation"]
+    return vertices, np.asarray(mesh.triangles)
+
+
+def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict:
+    """Evaluate an output folder of `recon run` against the dataset at `gt_path`.
+
+    Returns a JSON-ready dict with "depth", "trajectory" and "mesh" sections (each present
+    when the output and the dataset have what it needs) and "frames", "dataset".
+    """
+    options = options or EvalOptions()
+    out = load_output(output)
+    dataset = open_dataset(gt_path)
+    if out.indices.size and (out.indices.min() < 0 or out.indices.max() >= len(dataset)):
+        raise ReconInputError(
+            f"{out.path}: frame indices up to {int(out.indices.max())} do not fit {gt_path} ({len(dataset)} frames); "
+            "was the output made from this dataset?"
+        )
+    result: dict = {"output": str(out.path), "dataset": {"path": str(gt_path), "kind": dataset.kind, "frames": len(dataset)},
+                    "frames": int(len(out.indices)), "options": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(options).items()}}
+    if out.depth is not None and dataset.has_depth:
+        result["depth"] = evaluate_depth(out.depth, dataset.load_depth_batch(out.indices), options)
+    alignment = None
+    if out.poses is not None and dataset.has_poses:
+        result["trajectory"] = evaluate_trajectory(out.poses, dataset.poses[out.indices])
+        pose_source = str(out.report.get("poses", {}).get("source", ""))
+        mode = options.mesh_align
+        if mode == "auto":
+            mode = "none" if pose_source in ("gt", "ground truth", "dataset") or "ground" in pose_source else "sim3"
+        if mode != "none":
+            alignment = ate_rmse(out.poses, dataset.poses[out.indices], mode)
+        result["mesh_align"] = mode
+    if out.mesh is not None and len(out.mesh.triangles) > 0:
+        if options.reference_mesh is not None:
+            reference = o3d.io.read_triangle_mesh(str(options.reference_mesh))
+            if len(reference.triangles) == 0:
+                raise ReconInputError(f"{options.reference_mesh}: no triangles in the reference mesh")
+        else:
+            voxel = out.report.get("fusion", {}).get("voxel_size")
+            reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress)
+        result["mesh"] = mesh_metrics(
+            _aligned_mesh(out.mesh, alignment), reference, options.threshold, options.mesh_points
+        ).to_dict()
+    return result
+
+
+def format_evaluation(result: dict) -> str:
+    """The evaluation as short markdown tables."""
+    lines = [f"evaluation of {result['output']} against {result['dataset']['path']} "
+             f"({result['dataset']['kind']}, {result['frames']} frames)"]
+    if "depth" in result:
+        names = ("abs_diff", "abs_rel", "sq_rel", "rmse", "log_rmse", "delta1", "delta2", "delta3", "coverage")
+        lines += ["", "| depth | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+        for setting, metrics in result["depth"].items():
+            lines.append(f"| {setting} | " + " | ".join(f"{metrics[n]:.4f}" for n in names) + " |")
+    if "trajectory" in result:
+        t = result["trajectory"]
+        lines += ["", "| trajectory | ATE SE(3) rmse [m] | ATE Sim(3) rmse [m] | Sim(3) scale | RPE trans rmse [m] | RPE rot rmse [deg] |",
+                  "|---|---|---|---|---|---|",
+                  f"| | {t['ate_se3']['rmse']:.4f} | {t['ate_sim3']['rmse']:.4f} | {t['ate_sim3']['scale']:.4f} | "
+                  f"{t['rpe']['trans_rmse']:.4f} | {t['rpe']['rot_rmse_deg']:.3f} |"]
+    if "mesh" in result:
+        m = result["mesh"]
+        lines += ["", f"| mesh (align {result.get('mesh_align', 'none')}) | accuracy [m] | completeness [m] | chamfer [m] | "
+                  f"precision | recall | F-score@{m['threshold'] * 100:.0f}cm |",
+                  "|---|---|---|---|---|---|---|",
+                  f"| | {m['accuracy']:.4f} | {m['completeness']:.4f} | {m['chamfer']:.4f} | {m['precision']:.4f} | "
+                  f"{m['recall']:.4f} | {m['fscore']:.4f} |"]
+    return "\n".join(lines)

@@ -1,0 +1,78 @@
+"""`recon eval` on an output folder made from a synthetic 7-Scenes-style recording with known errors."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from recon.errors import ReconInputError
+from recon.eval.evaluate import EvalOptions, evaluate_output, format_evaluation, load_output
+from recon.export.writers import OutputFolder, export_reconstruction
+from recon.fusion import FusionOptions, fuse
+from recon.synthetic import render_sequence
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A 7-Scenes layout (colour, depth in mm, 4x4 poses, intrinsics) of the synthetic room."""
+    seq = render_sequence(num_frames=12, width=160, height=120, seed=5)
+    root = tmp_path_factory.mktemp("sevenscenes")
+    fx, fy, cx, cy = seq.intrinsics
+    np.savetxt(root / "camera-intrinsics.txt", [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    for i in range(len(seq.rgb)):
+        cv2.imwrite(str(root / f"frame-{i:06d}.color.png"), seq.rgb[i][..., ::-1])
+        cv2.imwrite(str(root / f"frame-{i:06d}.depth.png"), np.round(seq.depth[i] * 1000).astype(np.uint16))
+        np.savetxt(root / f"frame-{i:06d}.pose.txt", seq.poses[i])
+    return seq, root
+
+
+def _output(tmp_path, seq, indices, depth, poses, pose_source):
+    mesh = fuse(depth, seq.rgb[indices], poses, seq.intrinsics, FusionOptions(progress=False)).mesh
+    report = {"frames": {"indices": list(map(int, indices))}, "poses": {"source": pose_source}}
+    export_reconstruction(OutputFolder(tmp_path / "out"), mesh=mesh, poses=poses, intrinsics=seq.intrinsics,
+                          size=(160, 120), depth=depth, report=report, glb=False)
+    return tmp_path / "out"
+
+
+def test_known_errors_are_measured(tmp_path, recording):
+    seq, root = recording
+    indices = np.arange(0, 12, 2)
+    # Depth 10 % too far everywhere, ground-truth poses.
+    out = _output(tmp_path, seq, indices, seq.depth[indices] * 1.1, seq.poses[indices], "gt")
+    result = evaluate_output(out, root, EvalOptions(progress=False, mesh_points=20_000))
+    assert result["depth"]["metric"]["abs_rel"] == pytest.approx(0.1, abs=2e-3)
+    assert result["depth"]["median_frame"]["abs_rel"] < 2e-3
+    assert result["trajectory"]["ate_se3"]["rmse"] < 1e-6
+    assert result["mesh_align"] == "none"
+    # A mesh from depth scaled by 10 % sits centimetres off the reference: accuracy shows it.
+    assert 0.01 < result["mesh"]["accuracy"] < 0.5
+    text = format_evaluation(result)
+    assert "median_frame" in text and "F-score@5cm" in text
+
+
+def test_estimated_poses_are_aligned_before_the_mesh_is_compared(tmp_path, recording):
+    seq, root = recording
+    indices = np.arange(12)
+    # An up-to-scale reconstruction: the whole world scaled by 0.5 and shifted.
+    poses = seq.poses[indices].copy()
+    poses[:, :3, 3] = 0.5 * poses[:, :3, 3] + np.array([1.0, -2.0, 0.5])
+    out = _output(tmp_path, seq, indices, seq.depth[indices] * 0.5, poses, "estimate")
+    result = evaluate_output(out, root, EvalOptions(progress=False, mesh_points=20_000))
+    assert result["trajectory"]["ate_sim3"]["rmse"] < 1e-6
+    assert result["trajectory"]["ate_sim3"]["scale"] == pytest.approx(2.0, rel=1e-6)
+    assert result["trajectory"]["ate_se3"]["rmse"] > 0.01  # a rigid fit cannot undo the scale
+    assert result["depth"]["median_sequence"]["abs_rel"] < 2e-3
+    assert result["mesh_align"] == "sim3"
+    assert result["mesh"]["fscore"] > 0.9
+
+
+def test_bad_folders(tmp_path, recording):
+    _, root = recording
+    with pytest.raises(ReconInputError, match="report.json"):
+        load_output(tmp_path)
+    (tmp_path / "report.json").write_text(json.dumps({"frames": {"indices": [0, 50]}}))
+    with pytest.raises(ReconInputError, match="do not fit"):
+        evaluate_output(tmp_path, root)
