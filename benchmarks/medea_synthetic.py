@@ -1,6 +1,11 @@
 """MEDeA on the synthetic room: accuracy before/after, epochs per stage, seconds per frame.
 
     python benchmarks/medea_synthetic.py [--frames 120] [--device cpu] [--threads 2]
+        [--presets paper fast] [--strides 3 4 6]
+
+Presets: "paper" (MedeaConfig(), the paper's settings), "fast" (MedeaConfig.fast()), and
+"fast-sK" for each --strides K: the fast preset scoring every K-th pixel per step, to show
+what the pixel stride costs in accuracy.
 
 Prints a table and writes benchmarks/results/medea_synthetic.json.
 """
@@ -23,8 +28,17 @@ from recon.medea import adjust_sequence  # noqa: E402
 from recon.synthetic import render_sequence, simulate_prior  # noqa: E402
 
 
+def preset_config(name: str, device: str) -> MedeaConfig:
+    if name == "paper":
+        return MedeaConfig(device=device)
+    if name == "fast":
+        return MedeaConfig.fast(device=device)
+    stride = int(name.removeprefix("fast-s"))
+    return MedeaConfig.fast(device=device, pixel_stride=stride, feature_stride=stride)
+
+
 def run_preset(name: str, seq, prior, device: str) -> dict:
-    config = MedeaConfig.fast(device=device) if name == "fast" else MedeaConfig(device=device)
+    config = preset_config(name, device)
     start = time.perf_counter()
     result = adjust_sequence(seq.rgb, prior, seq.poses, seq.intrinsics, config=config, progress=False)
     total = time.perf_counter() - start
@@ -48,13 +62,16 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--presets", nargs="+", default=["paper", "fast"], choices=["paper", "fast"])
+    parser.add_argument("--strides", nargs="*", type=int, default=[3, 4, 6],
+                        help="also run the fast preset at these pixel strides")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     seq = render_sequence(num_frames=args.frames, width=args.width, height=args.height, seed=args.seed)
     prior = simulate_prior(seq.depth, seed=args.seed)
     before = depth_report(prior, seq.depth, seq.poses, seq.intrinsics)
-    runs = {name: run_preset(name, seq, prior, args.device) for name in args.presets}
+    names = list(args.presets) + [f"fast-s{k}" for k in args.strides]
+    runs = {name: run_preset(name, seq, prior, args.device) for name in names}
 
     n = args.frames
     print(f"MEDeA on the synthetic room: {n} frames at {args.width}x{args.height}, device {args.device}, "
