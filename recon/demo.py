@@ -37,7 +37,7 @@ from .errors import ReconInputError
 from .eval.depth import depth_metrics, multiview_inconsistency
 from .eval.mesh import mesh_metrics, visible_mask
 from .export import OutputFolder
-from .export.writers import REPORT_JSON, frame_name, npy_bytes
+from .export.writers import REPORT_JSON, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from .fusion import FusionOptions, fuse
 from .pipeline import PipelineConfig, PipelineResult, run_pipeline
 from .synthetic import render_sequence, simulate_prior
@@ -210,7 +210,8 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
                                          "seed": options.seed, "poses": poses, "prior": options.prior,
                                          "seconds_render": seconds_render, "command": command},
               "evaluation": evaluation}
-    out.write_json(REPORT_JSON, report)
+    # The pipeline wrote report.json through its own OutputFolder; this run owns it.
+    atomic_write_bytes(out.path / REPORT_JSON, json_bytes(report), overwrite=True)
     result = replace(result, report=report)
     return DemoReport(result, seq, poses, evaluation, seconds_render, command)
 

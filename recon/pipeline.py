@@ -180,7 +180,7 @@ def select_frames(config: PipelineConfig) -> FrameSource:
             end_time=config.end_time, width=config.width, min_frames=2, fps=config.fps,
         )
 
-    source = open_with(config.stride or 1)
+    source = open_with(1 if config.stride is None else config.stride)
     if config.stride is None and config.max_frames is None and source.count > config.frame_budget:
         stride = math.ceil(source.count / config.frame_budget)
         print(f"note: {source.count} frames exceed the frame budget of {config.frame_budget}; using every "
@@ -259,16 +259,17 @@ def depth_prior(config: PipelineConfig, source: FrameSource, frames: FrameBatch,
     return output
 
 
-def _matched_pose_file(path: Path, source: FrameSource, frames: FrameBatch):
-    """(poses (N, 4, 4), intrinsics at working size or None) of a pose file, matched to the frames.
+def _matched_pose_file(data, source: FrameSource, frames: FrameBatch):
+    """(poses (N, 4, 4), intrinsics at working size or None) of a read pose file (PoseData),
+    matched to the frames.
 
     Matching: by frame name when the file names frames (COLMAP, nerfstudio, matrices),
     else by source frame index when the file has one pose per input frame, else by
     position when it has one per selected frame, else by timestamp (TUM).
     """
-    from .poses.formats import interpolate_poses, read_poses
+    from .poses.formats import interpolate_poses
 
-    data = read_poses(path)
+    path = data.path
     n_total = {ImageFolderSource: lambda s: len(s.files), DatasetSource: lambda s: len(s.full)}.get(
         type(source), lambda s: getattr(s, "frame_count_meta", 0))(source)
     poses = None
@@ -314,33 +315,47 @@ class PoseStage:
     keep: np.ndarray | None = None  # frames kept (ground truth may lack poses for some)
 
 
-def camera_poses(config: PipelineConfig, source: FrameSource, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
-    """Poses of the selected frames from the configured source (module docstring)."""
+def plan_poses(config: PipelineConfig, source: FrameSource):
+    """Where poses will come from, checked before any heavy work: "gt", "estimate" or the
+    read pose file (PoseData). Raises ReconInputError when that source cannot work."""
+    from .poses.formats import read_poses
+
     choice = config.poses
     has_gt = isinstance(source, DatasetSource) and source.poses is not None
     if choice == "auto":
         choice = "gt" if has_gt else "estimate"
-    if choice == "gt":
-        if not has_gt:
-            raise ReconInputError(f"{config.input}: --poses gt needs a dataset folder with ground-truth poses")
-        valid = np.isfinite(source.poses).all(axis=(1, 2))
-        if valid.sum() < 2:
-            raise ReconInputError(f"{config.input}: fewer than 2 selected frames have a ground-truth pose")
-        return PoseStage(source.poses, None, "dataset ground truth", keep=None if valid.all() else np.flatnonzero(valid))
+    if choice == "gt" and not has_gt:
+        raise ReconInputError(f"{config.input}: --poses gt needs a dataset folder with ground-truth poses")
     if choice == "estimate":
-        return estimated_poses(config, frames, prior_depth, intrinsics)
-    poses, file_intrinsics = _matched_pose_file(Path(choice), source, frames)
-    return PoseStage(poses, file_intrinsics, f"file {choice}")
+        _pose_estimator()
+    return choice if choice in ("gt", "estimate") else read_poses(Path(choice))
 
 
-def estimated_poses(config: PipelineConfig, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
+def _pose_estimator():
     try:
         from .poses import estimate_poses
     except ImportError:
         raise ReconInputError(
             "pose estimation not available; pass --poses FILE or a dataset with ground-truth poses"
         ) from None
-    result = estimate_poses(
+    return estimate_poses
+
+
+def camera_poses(config: PipelineConfig, plan, source: FrameSource, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
+    """Poses of the selected frames from the planned source (see plan_poses)."""
+    if plan == "gt":
+        valid = np.isfinite(source.poses).all(axis=(1, 2))
+        if valid.sum() < 2:
+            raise ReconInputError(f"{config.input}: fewer than 2 selected frames have a ground-truth pose")
+        return PoseStage(source.poses, None, "dataset ground truth", keep=None if valid.all() else np.flatnonzero(valid))
+    if plan == "estimate":
+        return estimated_poses(config, frames, prior_depth, intrinsics)
+    poses, file_intrinsics = _matched_pose_file(plan, source, frames)
+    return PoseStage(poses, file_intrinsics, f"file {plan.path}")
+
+
+def estimated_poses(config: PipelineConfig, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
+    result = _pose_estimator()(
         frames.rgb, prior_depth, intrinsics=intrinsics, method=config.pose_method, device=config.device,
         progress=config.progress,
     )
@@ -419,8 +434,28 @@ def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None 
     """Run every stage (module docstring) and write the output folder; returns what was made.
 
     The input is opened and the output folder checked before any heavy work, so bad input
-    or a non-empty output folder fail at once, with nothing written.
+    or a non-empty output folder fail at once, with nothing written. An output folder this
+    run created is removed again if the run fails before writing anything into it.
     """
+    created = not Path(config.output).exists()
+    try:
+        return _run_stages(config, on_stage)
+    except BaseException:
+        if created and Path(config.output).is_dir():
+            _remove_if_empty(Path(config.output))
+        raise
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """rmdir `folder` and its empty subfolders; anything holding a file stays."""
+    for sub in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        if not any(sub.iterdir()):
+            sub.rmdir()
+    if not any(folder.iterdir()):
+        folder.rmdir()
+
+
+def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     from .fusion import fuse
 
     config.validate()
@@ -428,7 +463,8 @@ def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None 
     timer = _Timer()
     with timer.stage("decode"):
         source = select_frames(config)
-    out = OutputFolder(config.output, config.overwrite)
+        out = OutputFolder(config.output, config.overwrite)
+        pose_plan = plan_poses(config, source)
 
     say(f"input: {source.description}")
     with timer.stage("decode"):
@@ -442,7 +478,7 @@ def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None 
 
     say(f"poses: {config.poses}")
     with timer.stage("poses"):
-        pose_stage = camera_poses(config, source, frames, prior.depth, intrinsics)
+        pose_stage = camera_poses(config, pose_plan, source, frames, prior.depth, intrinsics)
     poses, prior_depth, features = pose_stage.poses, prior.depth, prior.features
     if pose_stage.keep is not None:
         print(f"note: {len(frames) - len(pose_stage.keep)} frames have no ground-truth pose and are left out",
@@ -587,6 +623,7 @@ __all__ = [
     "given_intrinsics",
     "log_to_rerun",
     "medea_summary",
+    "plan_poses",
     "run_pipeline",
     "select_frames",
 ]
