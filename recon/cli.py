@@ -1,4 +1,8 @@
-"""The `recon` command line.
+"""The `recon` command line: `recon run` (the pipeline), `recon demo` (the synthetic sample
+end to end) and `recon view` (Rerun inspection of a result).
+
+Options mirror the typed configs (recon.pipeline.PipelineConfig, MedeaConfig,
+FusionOptions); this module only parses them.
 
 Bad input raises ReconInputError anywhere below; `main` prints its single line and exits
 with code 2, without a traceback.
@@ -8,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import torch
 
@@ -16,13 +21,14 @@ from medea_core import MedeaConfig
 from .errors import ReconInputError
 
 
-def add_medea_arguments(parser: argparse.ArgumentParser) -> None:
+def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -> None:
     """Options mirroring MedeaConfig. Unset options keep the preset's value."""
     d = MedeaConfig()
     g = parser.add_argument_group("MEDeA depth adjustment")
-    g.add_argument("--preset", choices=["paper", "fast"], default="paper",
-                   help="paper: the paper's settings (default); fast: pixel stride 2 and Stage II lr 0.01, "
-                        "about 4x faster at equal accuracy on our benchmarks")
+    g.add_argument("--preset", choices=["paper", "fast"], default=preset,
+                   help="paper: the paper's settings; fast: pixel stride 2 and Stage II lr 0.01, "
+                        "about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
+    g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
     g.add_argument("--image-scale", type=float, help=f"working resolution relative to the input (paper {d.image_scale})")
     g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
     g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
@@ -69,34 +75,303 @@ def resolve_device(name: str) -> str:
     return name
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import format_report, run_synthetic_demo
+# --------------------------------------------------------------------------- shared options
 
-    config = medea_config_from_args(args)
-    print(f"recon demo: rendering a synthetic room ({args.frames} frames, {args.width}x{args.height}), "
-          f"simulating a monocular prior, adjusting it with MEDeA on {config.device}")
-    report = run_synthetic_demo(args.frames, args.width, args.height, args.scene_seed, config, progress=not args.quiet)
-    print(format_report(report))
+
+def _numbers(text: str, count: int, what: str) -> tuple[float, ...]:
+    parts = [p for p in text.replace(",", " ").split() if p]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != count:
+        raise ReconInputError(f"{what}: expected {count} numbers separated by commas, got {text!r}")
+    return values
+
+
+def add_device_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def add_rerun_argument(parser: argparse.ArgumentParser, default: str | None, what: str) -> None:
+    default_text = default or "spawn when a display is available, else off"
+    parser.add_argument(
+        "--rerun", nargs="+", metavar="MODE", default=None,
+        help=f"Rerun inspection of {what}: spawn (desktop viewer), save [PATH.rrd] (default OUT/recording.rrd), "
+             f"serve (web viewer on localhost; waits until Ctrl-C), off (default: {default_text})",
+    )
+
+
+def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None]:
+    """(mode, path or None) from --rerun MODE [PATH]."""
+    from .pipeline import RERUN_MODES
+
+    values = args.rerun or [default]
+    mode, rest = values[0], values[1:]
+    if mode not in RERUN_MODES:
+        raise ReconInputError(f"--rerun: mode must be one of {', '.join(RERUN_MODES)}, got {mode!r}")
+    if rest and mode != "save":
+        raise ReconInputError(f"--rerun {mode} takes no path (only 'save' does)")
+    if len(rest) > 1:
+        raise ReconInputError(f"--rerun save takes one path, got {len(rest)}")
+    return mode, Path(rest[0]) if rest else None
+
+
+def _wait_for_ctrl_c(url: str | None) -> None:
+    import time
+
+    print(f"rerun: serving {url or ''} (web viewer on localhost); press Ctrl-C to stop", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+
+
+# --------------------------------------------------------------------------- recon run
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    from .fusion import FusionOptions
+    from .pipeline import PipelineConfig
+
+    d, fd = PipelineConfig(Path(), Path()), FusionOptions()
+    g = parser.add_argument_group("frames")
+    g.add_argument("--stride", type=int, help="use every k-th frame (default: 1, raised to stay within --frame-budget)")
+    g.add_argument("--max-frames", type=int, help="use at most this many frames")
+    g.add_argument("--start", type=float, dest="start_time", help="first second of the video to use")
+    g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
+    g.add_argument("--frame-budget", type=int, default=d.frame_budget,
+                   help="without --stride/--max-frames, raise the stride so that at most this many frames are used "
+                        "(default %(default)s)")
+    g.add_argument("--width", type=int, default=d.width,
+                   help="working width in pixels, aspect kept; 0 keeps the input's size (default %(default)s)")
+    g.add_argument("--fps", type=float, help="frame rate of an image folder (default 30), for --start/--end")
+
+    g = parser.add_argument_group("camera")
+    g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
+                   help="pinhole intrinsics in pixels of the input as decoded (pixel centres at integers)")
+    g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
+
+    g = parser.add_argument_group("poses")
+    g.add_argument("--poses", default="auto", metavar="SOURCE",
+                   help="auto (dataset ground truth if any, else estimate), gt, estimate, or a pose file/folder "
+                        "(TUM, COLMAP, nerfstudio transforms.json, per-frame 4x4 matrices, Open3D .log); "
+                        "default %(default)s")
+    g.add_argument("--pose-method", choices=["auto", "frontend", "sfm"], default="auto",
+                   help="pose estimator (default %(default)s)")
+
+    g = parser.add_argument_group("depth prior")
+    g.add_argument("--prior", choices=["fastdepth", "sensor", "folder"], default=d.prior,
+                   help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (--prior-path)")
+    g.add_argument("--prior-path", type=Path, help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; "
+                                                   "16-bit PNG in millimetres), matched by frame name")
+    g.add_argument("--weights", type=Path, help="FastDepth weights (file or folder); default: $RECON_WEIGHTS, "
+                                                "../shared/weights, ~/.cache/recon/weights")
+    g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
+
+    g = parser.add_argument_group("TSDF fusion")
+    g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
+    g.add_argument("--trunc", type=float, help=f"truncation in metres (default {fd.trunc_voxels:g} voxels)")
+    g.add_argument("--max-depth", type=float, help="ignore depth beyond this many metres (default: 1.1 x the 99th "
+                                                   "percentile)")
+    g.add_argument("--weight-threshold", type=float, default=fd.weight_threshold,
+                   help="frames that must see a voxel for it to be meshed (default %(default)s)")
+    g.add_argument("--min-fragment", type=int, default=fd.min_fragment_triangles,
+                   help="drop mesh pieces with fewer triangles (default %(default)s; 0 keeps all)")
+    g.add_argument("--block-count", type=int, default=fd.block_count,
+                   help="memory budget in voxel blocks (10 KiB each); the voxel grows to fit (default %(default)s)")
+    g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
+
+    g = parser.add_argument_group("output")
+    g.add_argument("--no-npy", action="store_true", help="write depth maps as 16-bit PNG only (no float .npy)")
+    g.add_argument("--no-glb", action="store_true", help="do not write mesh.glb")
+
+
+def fusion_options_from_args(args: argparse.Namespace):
+    from .fusion import FusionOptions
+
+    return FusionOptions(
+        voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
+        min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
+    )
+
+
+def pipeline_config_from_args(args: argparse.Namespace):
+    from .pipeline import PipelineConfig
+
+    medea = medea_config_from_args(args)
+    mode, path = rerun_mode(args, default_rerun_mode())
+    return PipelineConfig(
+        input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
+        max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
+        width=args.width or None, fps=args.fps,
+        intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
+        poses=args.poses, pose_method=args.pose_method, prior=args.prior, prior_path=args.prior_path,
+        weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
+        fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
+        progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
+    )
+
+
+def default_rerun_mode() -> str:
+    from viewer import default_mode
+
+    return default_mode()
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .pipeline import format_summary, run_pipeline
+
+    config = pipeline_config_from_args(args)
+    result = run_pipeline(config, on_stage=None if args.quiet else lambda stage: print(stage, flush=True))
+    print(format_summary(result))
+    if config.rerun == "serve":
+        _wait_for_ctrl_c(result.rerun_url)
     return 0
+
+
+# --------------------------------------------------------------------------- recon demo
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import DemoOptions, default_output, format_demo, run_demo
+    from .pipeline import format_summary
+
+    medea = medea_config_from_args(args)
+    mode, path = rerun_mode(args, "save")
+    if path is not None:
+        raise ReconInputError("recon demo --rerun save takes no path (the recording is OUT/recording.rrd)")
+    output = args.output or default_output()
+    print(f"recon demo: {args.frames} frames at {args.width}x{args.height}, prior {args.prior}, poses {args.poses}, "
+          f"MEDeA preset {args.preset} on {medea.device}; output {output}")
+    report = run_demo(DemoOptions(
+        output=output, overwrite=args.overwrite, frames=args.frames, width=args.width, height=args.height,
+        seed=args.scene_seed, poses=args.poses, prior=args.prior, compare_prior=not args.no_compare,
+        adjust=not args.no_medea, medea=medea,
+        rerun=mode, device=medea.device, progress=not args.quiet,
+    ))
+    print(format_summary(report.result))
+    print()
+    print(format_demo(report))
+    if mode == "serve":
+        _wait_for_ctrl_c(report.result.rerun_url)
+    return 0
+
+
+# --------------------------------------------------------------------------- recon view
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from viewer import RerunLogger
+    from viewer.output_folder import log_output_folder, recording_of
+
+    display_default = "spawn" if default_rerun_mode() == "spawn" else "serve"
+    mode, path = rerun_mode(args, display_default)
+    if mode == "off":
+        raise ReconInputError("recon view needs a Rerun mode: spawn, serve or save PATH")
+    target = Path(args.path)
+    if not target.exists():
+        raise ReconInputError(f"{target}: no such file or folder")
+    recording = recording_of(target)
+    if recording is not None and mode != "save":
+        command = [sys.executable, "-m", "rerun", str(recording)] + (["--serve-web"] if mode == "serve" else [])
+        print(f"opening {recording} in Rerun ({mode})")
+        if mode == "spawn":
+            subprocess.Popen(command, start_new_session=True)
+            return 0
+        try:
+            return subprocess.call(command)
+        except KeyboardInterrupt:
+            return 0
+    if mode == "save" and path is None:
+        raise ReconInputError("recon view --rerun save needs a path: --rerun save OUT.rrd")
+    if path is not None and path.exists() and not args.overwrite:
+        raise ReconInputError(f"{path}: already exists (pass --overwrite to replace it)")
+    with RerunLogger(mode, path, max_width=None) as logger:
+        summary = log_output_folder(target, logger, progress=not args.quiet)
+        url = logger.url
+    print(f"logged {summary}" + (f" to {path}" if path else ""))
+    if mode == "serve":
+        _wait_for_ctrl_c(url)
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+
+RUN_EXAMPLES = """examples:
+  recon run my_video.mp4 -o out/                       phone video, FastDepth prior, estimated poses
+  recon run my_video.mp4 -o out/ --fov 70 --stride 2   known field of view, every 2nd frame
+  recon run frames/ -o out/ --poses poses.txt          image folder with a TUM trajectory
+  recon run rgbd_dataset_freiburg1_desk/ -o out/ --prior sensor --poses gt
+  recon run my_video.mp4 -o out/ --rerun save          also write out/recording.rrd
+  recon view out/                                      inspect the result in Rerun
+"""
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="recon",
-        description="Video to multi-view-consistent metric depth (MEDeA) and a mesh.",
+        description="Video to multi-view-consistent metric depth (MEDeA) and a mesh. "
+                    "Start with `recon demo`, then `recon run YOUR_VIDEO -o OUT`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run the built-in synthetic sample and report depth error before/after MEDeA")
-    demo.add_argument("--frames", type=int, default=120, help="number of rendered frames (default %(default)s)")
-    demo.add_argument("--width", type=int, default=640)
-    demo.add_argument("--height", type=int, default=480)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,demo,view}")
+
+    run = sub.add_parser(
+        "run", help="video / image folder / RGB-D dataset -> depth maps, camera trajectory and mesh",
+        description="Run the whole pipeline: decode frames, depth prior, camera poses, MEDeA depth adjustment, "
+                    "TSDF fusion, export (mesh.ply, mesh.glb, trajectory.txt, intrinsics.json, depth/, report.json) "
+                    "and optional Rerun logging.",
+        epilog=RUN_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    run.add_argument("input", help="video file (mp4, mov, avi, mkv, ...), image folder, or RGB-D dataset folder "
+                                   "(TUM, 7-Scenes, ScanNet export, ARKitScenes, Open3D/Redwood)")
+    run.add_argument("-o", "--output", required=True, help="output folder (must be empty unless --overwrite)")
+    run.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
+    add_rerun_argument(run, None, "the run")
+    add_device_arguments(run)
+    add_run_arguments(run)
+    add_medea_arguments(run)
+    run.set_defaults(func=_cmd_run)
+
+    demo = sub.add_parser(
+        "demo", help="render a synthetic room as a video, run `recon run` on it, score it against ground truth",
+        description="The built-in sample: renders a textured synthetic room to OUT/input/synthetic.mp4 with a "
+                    "simulated monocular prior and the true trajectory, runs the pipeline on it, and prints the "
+                    "depth error before/after MEDeA and the mesh F-score against the ground-truth mesh.",
+    )
+    demo.add_argument("-o", "--output", type=Path, help="output folder (default demo_out/<date-time>)")
+    demo.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
+    demo.add_argument("--frames", type=int, default=90, help="number of rendered frames (default %(default)s)")
+    demo.add_argument("--width", type=int, default=640, help="rendered width (default %(default)s)")
+    demo.add_argument("--height", type=int, default=480, help="rendered height (default %(default)s)")
     demo.add_argument("--scene-seed", type=int, default=0, help="seed of the synthetic scene and prior")
-    demo.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
-    demo.add_argument("--quiet", action="store_true", help="no progress bars")
+    demo.add_argument("--poses", choices=["auto", "gt", "estimate"], default="auto",
+                      help="estimate (pose front end), gt (rendered trajectory), auto: estimate when the estimator "
+                           "is installed, else gt with a note (default %(default)s)")
+    demo.add_argument("--prior", choices=["simulated", "fastdepth"], default="simulated",
+                      help="simulated: ground truth distorted like a monocular network (default); fastdepth: the "
+                           "real network")
+    demo.add_argument("--no-compare", action="store_true", help="skip fusing the raw prior for the F-score comparison")
+    add_rerun_argument(demo, "save", "the demo")
+    add_device_arguments(demo)
     add_medea_arguments(demo)
     demo.set_defaults(func=_cmd_demo)
-    return parser
 
+    view = sub.add_parser(
+        "view", help="open a result in Rerun",
+        description="Open OUT/recording.rrd (or an .rrd file) in the Rerun viewer; for an output folder without a "
+                    "recording, log its mesh, cameras and depth maps.",
+    )
+    view.add_argument("path", help="output folder of `recon run` or an .rrd file")
+    view.add_argument("--overwrite", action="store_true", help="replace an existing file given to --rerun save")
+    add_rerun_argument(view, "spawn with a display, else serve", "the result")
+    view.add_argument("--quiet", action="store_true", help="no progress bars")
+    view.set_defaults(func=_cmd_view)
+    return parser
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()

@@ -1,0 +1,250 @@
+"""The `recon` command line end to end: the demo on a short synthetic video (files, mesh
+quality against the ground-truth mesh, GLB axes, the Rerun recording), `recon view`, and
+every kind of bad input (one-line error, exit code 2, nothing previously written lost)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+import trimesh
+
+from recon.cli import build_parser, main
+from recon.demo import pose_estimator_available
+from recon.export import read_depth_png_mm
+from recon.poses.formats import read_poses
+from test_viewer import _read_back  # rerun's chunk API reader, shared with the viewer tests
+
+FRAMES, WIDTH, HEIGHT = 24, 320, 240
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """`recon demo` on 24 frames at 320x240 with ground-truth poses, recording saved."""
+    out = tmp_path_factory.mktemp("demo") / "out"
+    code = main(["demo", "-o", str(out), "--frames", str(FRAMES), "--width", str(WIDTH), "--height", str(HEIGHT),
+                 "--poses", "gt", "--quiet"])
+    assert code == 0
+    return out, json.loads((out / "report.json").read_text())
+
+
+def test_demo_writes_every_output(demo):
+    out, report = demo
+    for name in ("mesh.ply", "mesh.glb", "recording.rrd", "trajectory.txt", "intrinsics.json", "report.json",
+                 "input/synthetic.mp4", "input/poses_gt.txt"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    pngs, npys = sorted((out / "depth").glob("*.png")), sorted((out / "depth").glob("*.npy"))
+    assert len(pngs) == len(npys) == FRAMES
+    # PNG (mm) and npy (m) hold the same depth, at the working size.
+    depth_m = np.load(npys[3])
+    assert depth_m.shape == (HEIGHT, WIDTH) and (depth_m > 0).all()
+    np.testing.assert_allclose(read_depth_png_mm(pngs[3]), depth_m, atol=0.0006)
+    # Trajectory: the ground-truth poses that went in come out (TUM, camera-to-world).
+    written = read_poses(out / "trajectory.txt").poses
+    given = read_poses(out / "input/poses_gt.txt").poses
+    np.testing.assert_allclose(written, given, atol=1e-5)
+    assert not any(p.name.startswith(".") for p in out.rglob("*")), "temporary files left behind"
+    # report.json: inputs, options, versions, per-stage timings, MEDeA loss summary.
+    assert report["frames"]["count"] == FRAMES and report["input"]["kind"] == "video"
+    assert set(report["seconds"]) == {"decode", "prior", "poses", "medea", "fusion", "export", "logging"}
+    assert all(v >= 0 for v in report["seconds"].values()) and report["seconds"]["medea"] > 0
+    stage1 = report["medea"]["stages"]["stage1"]
+    assert stage1["epochs"] > 1 and stage1["last"]["total"] < stage1["first"]["total"]
+    assert {"recon", "torch", "open3d", "rerun"} <= set(report["versions"])
+    assert report["options"]["poses"].endswith("poses_gt.txt") and report["intrinsics"]["source"] == "given"
+
+
+def test_demo_mesh_quality(demo):
+    """MEDeA's depth fuses into a mesh within 5 cm of the ground truth; the raw prior does not."""
+    _, report = demo
+    ev = report["evaluation"]
+    assert ev["depth_adjusted"]["abs_rel"] < 0.4 * ev["depth_prior"]["abs_rel"]
+    adjusted, prior = ev["mesh_adjusted"], ev["mesh_prior"]
+    assert adjusted["fscore"] >= 0.85, adjusted
+    assert adjusted["fscore"] > prior["fscore"] + 0.4, (adjusted, prior)
+    assert adjusted["accuracy"] < 0.5 * prior["accuracy"]
+
+
+def test_glb_matches_ply_and_is_y_up(demo):
+    out, _ = demo
+    ply = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
+    glb = trimesh.load(str(out / "mesh.glb"), file_type="glb", force="mesh", process=False)
+    assert len(glb.vertices) == len(ply.vertices) and len(glb.faces) == len(ply.triangles)
+    assert glb.visual.vertex_colors is not None
+    # The synthetic world is y-down with the floor at y = 0 and the ceiling above (y < 0):
+    # in glTF (y up) the floor must be the lowest part of the mesh.
+    ply_y = np.asarray(ply.vertices)[:, 1]
+    np.testing.assert_allclose(glb.vertices[:, 1], -ply_y, atol=1e-5)
+    floor = np.abs(ply_y) < 0.02
+    assert floor.sum() > 100 and glb.vertices[floor, 1].mean() < np.percentile(glb.vertices[:, 1], 5) + 0.05
+
+
+def test_recording_has_frames_cameras_mesh_losses(demo):
+    out, report = demo
+    entities, components, frames, _ = _read_back(out / "recording.rrd")
+    for entity in ("/world/camera", "/world/camera/rgb", "/world/camera/prior_depth", "/world/camera/adjusted_depth",
+                   "/world/trajectory", "/world/mesh", "/medea/stage1/total"):
+        assert entity in entities, entity
+    indices = report["frames"]["indices"]
+    assert sorted(frames["/world/camera/rgb"]) == indices
+    assert sorted(frames["/world/camera/adjusted_depth"]) == indices
+    assert {"Mesh3D:vertex_positions", "Mesh3D:triangle_indices"} <= components["/world/mesh"]
+    assert len(frames["/medea/stage1/total#epoch"]) == report["medea"]["stages"]["stage1"]["epochs"]
+
+
+def test_view_logs_an_output_folder(demo, tmp_path):
+    out, report = demo
+    rrd = tmp_path / "view.rrd"
+    assert main(["view", str(out), "--rerun", "save", str(rrd), "--quiet"]) == 0
+    entities, _, frames, _ = _read_back(rrd)
+    assert "/world/mesh" in entities
+    assert sorted(frames["/world/camera/adjusted_depth"]) == report["frames"]["indices"]
+    assert main(["view", str(out), "--rerun", "save", str(rrd), "--quiet"]) == 2  # exists: refused
+
+
+def test_run_on_an_image_folder_with_a_pose_file(demo, tmp_path):
+    """`recon run` on frames as PNGs, poses by file, prior from a folder, MEDeA off, no Rerun."""
+    out, _ = demo
+    images = tmp_path / "frames"
+    images.mkdir()
+    cap = cv2.VideoCapture(str(out / "input/synthetic.mp4"))
+    for i in range(6):
+        ok, bgr = cap.read()
+        assert ok
+        cv2.imwrite(str(images / f"frame_{i:06d}.png"), bgr)
+    cap.release()
+    result = tmp_path / "result"
+    k = json.loads((out / "intrinsics.json").read_text())
+    code = main(["run", str(images), "-o", str(result), "--width", "160", "--poses", str(out / "input/poses_gt.txt"),
+                 "--prior", "folder", "--prior-path", str(out / "input/prior"), "--no-medea", "--rerun", "off",
+                 "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--no-npy"])
+    assert code == 0
+    report = json.loads((result / "report.json").read_text())
+    assert report["frames"]["working_size"] == [160, 120] and report["medea"] == {}
+    assert report["intrinsics"]["values"][0] == pytest.approx(k["fx"] / 2)
+    assert len(list((result / "depth").glob("*.png"))) == 6 and not list((result / "depth").glob("*.npy"))
+    assert not (result / "recording.rrd").exists()
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _video(path: Path, frames: int, size=(64, 48)) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG" if path.suffix == ".avi" else "mp4v"), 10.0, size)
+    rng = np.random.default_rng(0)
+    for _ in range(frames):
+        writer.write(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8))
+    writer.release()
+    return path
+
+
+def _images(folder: Path, sizes) -> Path:
+    folder.mkdir()
+    for i, (w, h) in enumerate(sizes):
+        cv2.imwrite(str(folder / f"img{i}.png"), np.full((h, w, 3), 100, np.uint8))
+    return folder
+
+
+def _run_fails(capsys, argv, *expected) -> str:
+    code = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("recon: error: "), err
+    assert "Traceback" not in err[0]
+    for text in expected:
+        assert text in err[0], (text, err[0])
+    return err[0]
+
+
+@pytest.mark.parametrize(
+    "make_input, expected",
+    [
+        (lambda d: d / "missing.mp4", ["missing.mp4", "no such file"]),
+        (lambda d: (d / "notes.mp4", (d / "notes.mp4").write_text("not a video\n" * 50))[0], ["notes.mp4", "not a video"]),
+        (lambda d: _video(d / "empty.avi", 0), ["empty.avi", "no decodable frames"]),
+        (lambda d: _video(d / "one.mp4", 1), ["one.mp4", "at least 2 frames"]),
+        (lambda d: (d / "empty").mkdir() or d / "empty", ["empty", "no images"]),
+        (lambda d: _images(d / "mixed", [(64, 48), (64, 48), (32, 24)]), ["img2.png", "32x24", "64x48"]),
+    ],
+    ids=["missing-file", "not-a-video", "zero-frame-video", "one-frame-video", "empty-folder", "mixed-sizes"],
+)
+def test_bad_input_one_line_exit_2(tmp_path, capsys, make_input, expected):
+    source = make_input(tmp_path)
+    out = tmp_path / "out"
+    _run_fails(capsys, ["run", str(source), "-o", str(out), "--quiet"], *expected)
+    assert not out.exists(), "a failed run must not leave an output folder behind"
+
+
+def test_existing_output_folder_is_kept(tmp_path, capsys):
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mesh.ply").write_text("precious result")
+    _run_fails(capsys, ["run", str(video), "-o", str(out), "--quiet"], str(out), "not empty", "overwrite")
+    assert (out / "mesh.ply").read_text() == "precious result" and len(list(out.iterdir())) == 1
+    _run_fails(capsys, ["demo", "-o", str(out), "--quiet"], "not empty")
+    assert (out / "mesh.ply").read_text() == "precious result" and len(list(out.iterdir())) == 1
+
+
+def test_bad_options(tmp_path, capsys):
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = str(tmp_path / "out")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--intrinsics", "500,500,320"], "--intrinsics", "4 numbers")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--rerun", "loud"], "--rerun", "loud")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--stride", "0"], "stride")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--prior", "folder"], "--prior-path")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--voxel-size", "-1"], "voxel_size")
+    _run_fails(capsys, ["view", str(tmp_path / "nothing")], "no such file")
+    assert not Path(out).exists()
+
+
+def test_bad_pose_file(tmp_path, capsys):
+    video = _video(tmp_path / "clip.mp4", 4)
+    poses = tmp_path / "poses.txt"
+    poses.write_text("0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n5 0 0 0 0 0 0 1\n")  # 3 poses, 4 frames, gap at 0.2-0.3 s
+    msg = _run_fails(capsys, ["run", str(video), "-o", str(tmp_path / "out"), "--poses", str(poses), "--quiet",
+                              "--prior", "folder", "--prior-path", str(_depth_folder(tmp_path, 4))], "poses.txt")
+    assert "frame" in msg and not (tmp_path / "out").exists()
+
+
+def _depth_folder(tmp_path: Path, n: int) -> Path:
+    folder = tmp_path / "prior"
+    folder.mkdir()
+    for i in range(n):
+        np.save(folder / f"frame_{i:06d}.npy", np.full((48, 64), 2.0, np.float32))
+    return folder
+
+
+@pytest.mark.skipif(pose_estimator_available(), reason="pose estimation is installed")
+def test_missing_pose_estimator_is_a_clear_error(tmp_path, capsys):
+    video = _video(tmp_path / "clip.mp4", 4)
+    _run_fails(capsys, ["run", str(video), "-o", str(tmp_path / "out"), "--poses", "estimate", "--quiet",
+                        "--prior", "folder", "--prior-path", str(_depth_folder(tmp_path, 4))],
+               "pose estimation not available", "--poses FILE")
+
+
+def test_frame_budget_raises_the_stride(tmp_path):
+    from recon.pipeline import PipelineConfig, select_frames
+
+    video = _video(tmp_path / "clip.mp4", 12)
+    source = select_frames(PipelineConfig(video, tmp_path / "out", frame_budget=5, width=None))
+    assert source.selection.stride == 3 and source.count == 4
+    source = select_frames(PipelineConfig(video, tmp_path / "out", frame_budget=5, stride=1, width=None))
+    assert source.count == 12
+
+
+def test_help_texts():
+    parser = build_parser()
+    texts = {}
+    for name in ("run", "demo", "view"):
+        sub = parser._subparsers._group_actions[0].choices[name]
+        texts[name] = sub.format_help()
+    for option in ("--poses", "--prior", "--intrinsics", "--fov", "--stride", "--width", "--voxel-size", "--device",
+                   "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:"):
+        assert option in texts["run"], option
+    assert "--frames" in texts["demo"] and "--poses" in texts["demo"]
+    assert "recording.rrd" in texts["view"]
