@@ -263,6 +263,22 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- recon view
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from .eval.evaluate import EvalOptions, evaluate_output, format_evaluation
+    from .export.writers import atomic_write_bytes, json_bytes
+
+    options = EvalOptions(min_depth=args.min_depth, max_depth=args.max_depth, threshold=args.threshold,
+                          reference_mesh=args.reference_mesh, mesh_align=args.mesh_align, progress=not args.quiet)
+    target = Path(args.output) / "eval.json"
+    if target.exists() and not args.overwrite:
+        raise ReconInputError(f"{target}: already exists (use --overwrite to replace it)")
+    result = evaluate_output(args.output, args.gt, options)
+    print(format_evaluation(result))
+    atomic_write_bytes(target, json_bytes(result), overwrite=args.overwrite)
+    print(f"\nwrote {target}")
+    return 0
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     import subprocess
 
@@ -371,6 +387,26 @@ def build_parser() -> argparse.ArgumentParser:
     add_rerun_argument(view, "spawn with a display, else serve", "the result")
     view.add_argument("--quiet", action="store_true", help="no progress bars")
     view.set_defaults(func=_cmd_view)
+
+    ev = sub.add_parser(
+        "eval", help="score an output folder against a dataset's ground truth",
+        description="Depth (metric and median-scaled, DeepVideoMVS protocol), trajectory (ATE SE(3)/Sim(3), RPE, "
+                    "scale error) and mesh (accuracy, completeness, chamfer, precision, recall, F-score) of an "
+                    "output folder of `recon run`, against the dataset it was made from. Prints tables and writes "
+                    "OUT/eval.json.",
+    )
+    ev.add_argument("output", help="output folder of `recon run`")
+    ev.add_argument("--gt", required=True, help="dataset folder with ground truth (TUM, 7-Scenes, ScanNet, ARKitScenes, Redwood)")
+    ev.add_argument("--min-depth", type=float, default=1e-3, help="evaluated ground-truth depth range, metres (default %(default)s)")
+    ev.add_argument("--max-depth", type=float, default=10.0, help="(default %(default)s)")
+    ev.add_argument("--threshold", type=float, default=0.05, help="mesh precision/recall distance, metres (default %(default)s)")
+    ev.add_argument("--reference-mesh", type=Path, help="compare with this mesh instead of a TSDF of the sensor depth")
+    ev.add_argument("--mesh-align", choices=["auto", "none", "se3", "sim3"], default="auto",
+                    help="bring the mesh into the ground truth's frame first; auto: Sim(3) from the trajectory "
+                         "when the poses were estimated, none for ground-truth poses")
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing OUT/eval.json")
+    ev.add_argument("--quiet", action="store_true", help="no progress bars")
+    ev.set_defaults(func=_cmd_eval)
     return parser
 
 def main(argv: list[str] | None = None) -> int:

@@ -535,7 +535,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     report = {
         "input": {"path": str(config.input), "kind": source.kind, "description": source.description,
                   "native_size": list(source.native_size), "fps": source.fps},
-        "frames": {"count": len(frames), "indices": frames.indices.tolist(), "working_size": list(source.size)},
+        "frames": {"count": len(frames), "indices": frames.indices.tolist(), "names": names,
+                   "working_size": list(source.size)},
         "intrinsics": {"values": list(intrinsics), "source": intrinsics_from},
         "poses": {"source": pose_stage.source, **pose_stage.info},
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,

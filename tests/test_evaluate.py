@@ -76,3 +76,17 @@ def test_bad_folders(tmp_path, recording):
     (tmp_path / "report.json").write_text(json.dumps({"frames": {"indices": [0, 50]}}))
     with pytest.raises(ReconInputError, match="do not fit"):
         evaluate_output(tmp_path, root)
+
+
+def test_cli_writes_eval_json_and_refuses_to_overwrite(tmp_path, recording, capsys):
+    from recon.cli import main
+
+    seq, root = recording
+    indices = np.arange(0, 12, 3)
+    out = _output(tmp_path, seq, indices, seq.depth[indices], seq.poses[indices], "gt")
+    assert main(["eval", str(out), "--gt", str(root), "--quiet"]) == 0
+    saved = json.loads((out / "eval.json").read_text())
+    assert saved["depth"]["metric"]["abs_rel"] < 1e-3
+    assert saved["frames"] == len(indices)
+    assert main(["eval", str(out), "--gt", str(root), "--quiet"]) == 2
+    assert "already exists" in capsys.readouterr().err
