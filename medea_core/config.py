@@ -40,6 +40,10 @@ class MedeaConfig:
     pixel_stride: int = 1
     # The same for the feature term, on the features' own grid.
     feature_stride: int = 1
+    # Keep only this many feature channels, those with the largest variance over the
+    # sequence (None: all, as in the paper). Warping cost grows with the channel count,
+    # and pruned or near-constant channels carry no matching signal.
+    feature_channels: int | None = None
     stage1: StageConfig = field(default_factory=lambda: StageConfig(epochs=600, gamma=0.996, patience=40))
     stage2: StageConfig = field(default_factory=lambda: StageConfig(epochs=60, gamma=0.96, patience=4))
     # Pairs(a, b) levels: Stage I on keyframe pairs Pairs(3, 6), Stage II on Pairs(0, 2).

@@ -107,6 +107,19 @@ def make_level(
     return Level(packed=packed.contiguous(), intrinsics=scaled)
 
 
+def most_varying_channels(features: torch.Tensor, count: int) -> torch.Tensor:
+    """Indices (count,) of the channels of features (N, C, h, w) with the largest variance
+    over all frames and pixels, in their original order. Selecting channels (rather than
+    projecting them) keeps them non-negative, which the S-form loss assumes."""
+    if count >= features.shape[1]:
+        return torch.arange(features.shape[1], device=features.device)
+    total = sum(chunk.float().sum(dim=(0, 2, 3)) for chunk in features.split(_CHUNK))
+    squares = sum(chunk.float().square().sum(dim=(0, 2, 3)) for chunk in features.split(_CHUNK))
+    samples = features.shape[0] * features.shape[2] * features.shape[3]
+    variance = squares / samples - (total / samples).square()
+    return variance.topk(count).indices.sort().values
+
+
 def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
     return max(1, round(height * scale)), max(1, round(width * scale))
 
@@ -119,6 +132,7 @@ def prepare_frames(
     features: torch.Tensor | None,
     image_scale: float,
     device: torch.device | str,
+    feature_channels: int | None = None,
 ) -> FrameData:
     """Build the optimisation tensors on `device`.
 
@@ -129,6 +143,7 @@ def prepare_frames(
         intrinsics: (N, 4) or (4,) fx, fy, cx, cy in pixels of the prior's resolution.
         features: (N, C, h, w) or None, covering the same field of view.
         image_scale: working resolution relative to the prior (0.25 in the paper).
+        feature_channels: keep this many channels (see most_varying_channels); None: all.
     """
     num = prior.shape[0]
     intrinsics = intrinsics.to(device=device, dtype=torch.float32)
@@ -139,5 +154,7 @@ def prepare_frames(
     image = make_level(prior, intrinsics, images.to(device), size)
     feature_level = None
     if features is not None:
+        if feature_channels is not None:
+            features = features[:, most_varying_channels(features, feature_channels).to(features.device)]
         feature_level = make_level(prior, intrinsics, features.to(device), tuple(features.shape[-2:]))
     return FrameData(poses=poses.to(device=device, dtype=torch.float64), image=image, features=feature_level)

@@ -174,7 +174,9 @@ def run_medea(
     seconds: dict[str, float] = {}
 
     start = time.perf_counter()
-    data = prepare_frames(images, prior, poses, intrinsics, features, config.image_scale, device)
+    # Unused features are not prepared: for many channels they are most of the memory.
+    features = features if config.use_features else None
+    data = prepare_frames(images, prior, poses, intrinsics, features, config.image_scale, device, config.feature_channels)
     grid = config.grid_for(*prior.shape[-2:])
     log_scales = torch.zeros((num, *grid), device=device)
     pairs1, keyframes, pairs2 = stage_pairs(num, config.stage1_levels, config.stage2_levels)

@@ -183,3 +183,18 @@ def test_single_frame_returns_the_prior():
     images, depth, poses, intr = _plane_sequence(1)
     result = run_medea(images, depth, poses, intr)
     assert torch.equal(result.depth, depth)
+
+
+def test_feature_channel_selection_keeps_the_most_varying():
+    from medea_core.frames import most_varying_channels
+
+    gen = torch.Generator().manual_seed(0)
+    spread = torch.tensor([0.0, 3.0, 0.1, 1.0, 0.0, 2.0])
+    features = torch.rand(5, 6, 4, 7, generator=gen) * spread[None, :, None, None] + 1.0
+    assert most_varying_channels(features, 3).tolist() == [1, 3, 5]
+    assert most_varying_channels(features, 10).tolist() == list(range(6))
+    prior = torch.full((5, 8, 14), 2.0)
+    data = prepare_frames(torch.rand(5, 3, 8, 14), prior, torch.eye(4).expand(5, 4, 4), torch.tensor([10.0, 10.0, 7.0, 4.0]),
+                          features, 0.5, "cpu", feature_channels=2)
+    assert data.features.maps.shape[1] == 2
+    assert torch.allclose(data.features.maps, features[:, [1, 5]])
