@@ -32,6 +32,9 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     g.add_argument("--image-scale", type=float, help=f"working resolution relative to the input (paper {d.image_scale})")
     g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
     g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
+    g.add_argument("--feature-stride", type=int, help="the same on the feature grid (paper 1)")
+    g.add_argument("--feature-channels", type=int,
+                   help="keep only the N most varying feature channels (paper: all); warping cost grows with N")
     g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs})")
     g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
     g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
@@ -47,7 +50,7 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
 
 def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
     config = MedeaConfig.fast() if args.preset == "fast" else MedeaConfig()
-    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_loss"):
+    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_stride", "feature_channels", "feature_loss"):
         if getattr(args, name) is not None:
             setattr(config, name, getattr(args, name))
     if args.stage1_epochs is not None:
