@@ -82,6 +82,15 @@ def _import_pycolmap():
 def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: SfMConfig, workdir: Path):
     """Run extraction, matching and mapping; returns the largest reconstruction (or None)."""
     pycolmap = _import_pycolmap()
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 1)  # COLMAP's INFO lines would flood the console
+    try:
+        return _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg, workdir)
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workdir: Path):
     image_dir = workdir / "images"
     image_dir.mkdir()
     names = []
