@@ -11,7 +11,7 @@ depth to the SfM depth of the triangulated points seen in each image (a log-mean
 images). The remaining frames (and keyframes the mapper left out) are registered by the
 front end's motion-only dense alignment (``frontend.align_to_keyframes``) against the
 neighbouring registered keyframes, whose dense depth is the prior corrected by that
-keyframe's own ratio.
+keyframe's own prior / SfM depth ratios on a coarse grid.
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ class SfMConfig:
     mapper: "incremental" (COLMAP) or "global" (GLOMAP).
     min_registered: fraction of keyframes the model must register, else SfM fails.
     num_threads: threads for feature extraction, matching and mapping.
+    correction_grid: (rows, cols) of the per-keyframe prior correction from SfM points
+        (the keyframe depth used to register the other frames).
     frontend: flow / alignment settings used to register the remaining frames.
     """
 
@@ -68,6 +70,7 @@ class SfMConfig:
     mapper: str = "incremental"
     min_registered: float = 0.5
     num_threads: int = 2
+    correction_grid: tuple[int, int] = (3, 4)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
 
 
@@ -158,9 +161,14 @@ def _model_poses(rec) -> tuple[dict[int, np.ndarray], tuple[float, float, float,
     return poses, (float(fx), float(fy), float(cx) - 0.5, float(cy) - 0.5)
 
 
-def _depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray]) -> dict[int, float]:
-    """Per registered image: median of prior depth / SfM depth over its triangulated points."""
-    ratios = {}
+def _depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray], grid: tuple[int, int]
+                  ) -> dict[int, tuple[float, np.ndarray]]:
+    """Per registered image: the median ratio prior depth / SfM depth over its triangulated
+    points, and the same median per cell of a coarse (rows, cols) grid over the image (the
+    image median where a cell has fewer than 5 points). Network depth errors are mostly
+    smooth, so the grid corrects the prior's shape as well as its scale."""
+    out = {}
+    rows, cols = grid
     for image in rec.images.values():
         if not image.has_pose:
             continue
@@ -174,14 +182,31 @@ def _depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray]) -> dict[int
         z = xyz @ T[:, :3].T + T[:, 3]
         depth = prior.get(i, frames[i])
         height, width = frames[i].shape[:2]
-        # COLMAP pixel centres are at +0.5; scale to the prior's grid.
-        u = np.clip(((xy[:, 0]) * depth.shape[1] / width).astype(int), 0, depth.shape[1] - 1)
-        v = np.clip(((xy[:, 1]) * depth.shape[0] / height).astype(int), 0, depth.shape[0] - 1)
+        # COLMAP pixel coordinates start at the image corner: floor() gives the pixel.
+        u = np.clip((xy[:, 0] * depth.shape[1] / width).astype(int), 0, depth.shape[1] - 1)
+        v = np.clip((xy[:, 1] * depth.shape[0] / height).astype(int), 0, depth.shape[0] - 1)
         d = depth[v, u]
         ok = (d > 0) & (z[:, 2] > 1e-6)
-        if ok.sum() >= 10:
-            ratios[i] = float(np.median(d[ok] / z[ok, 2]))
-    return ratios
+        if ok.sum() < 10:
+            continue
+        ratio = d[ok] / z[ok, 2]
+        total = float(np.median(ratio))
+        cell = (v[ok] * rows // depth.shape[0]) * cols + (u[ok] * cols // depth.shape[1])
+        cells = np.full(rows * cols, total)
+        for c in range(rows * cols):
+            if (cell == c).sum() >= 5:
+                cells[c] = np.median(ratio[cell == c])
+        out[i] = (total, cells.reshape(rows, cols))
+    return out
+
+
+def _corrected_disp(depth: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Inverse depth (h, w) in SfM units of a pooled prior depth (h, w) and its per-cell
+    ratios (rows, cols) prior / SfM depth (bilinear between cell centres)."""
+    h, w = depth.shape
+    ratio = np.exp(cv2.resize(np.log(cells).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR))
+    fill = np.median(depth[depth > 0])
+    return ratio / np.where(depth > 0, depth, fill)
 
 
 def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = True,
@@ -217,10 +242,10 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
             f"SfM registered only {registered} of {len(kf_ids)} keyframes (need {cfg.min_registered:.0%}); "
             "the video may lack texture or overlap", frame=None)
     T_model, intr = _model_poses(rec)
-    ratios = _depth_ratios(rec, prior, frames_list)
+    ratios = _depth_ratios(rec, prior, frames_list, cfg.correction_grid)
     if not ratios:
         raise TrackingLostError("SfM: no triangulated point has a valid prior depth; cannot fix the metric scale")
-    scale = robust_log_mean(np.array(list(ratios.values())))
+    scale = robust_log_mean(np.array([r for r, _ in ratios.values()]))
 
     # Dense registration of the other frames against registered keyframes (SfM units).
     fcfg = cfg.frontend
@@ -230,12 +255,9 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     kf_frames = np.array(kf_reg)
     kf_gray = [fl.prepare_gray(frames_list[i], geo.flow_size) for i in kf_reg]
     T_kf = torch.from_numpy(np.stack([T_model[i] for i in kf_reg]))
-    disp_kf = []
-    for i in kf_reg:
-        d = pool_depth(prior.get(i, frames_list[i]), geo.ba_size).astype(np.float64)
-        fill = np.median(d[d > 0])
-        disp_kf.append(ratios[i] / np.where(d > 0, d, fill))
-    disp_kf = torch.from_numpy(np.stack(disp_kf))
+    disp_kf = torch.from_numpy(np.stack([
+        _corrected_disp(pool_depth(prior.get(i, frames_list[i]), geo.ba_size).astype(np.float64), ratios[i][1])
+        for i in kf_reg]))
     jobs = [i for i in range(n) if i not in set(kf_reg)]
     aligned = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_list[i], geo.flow_size), kf_frames, kf_gray,
                                  T_kf, disp_kf, geo.ba_intrinsics(intr), fcfg, progress=progress)
@@ -248,7 +270,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         status[i] = "aligned" if ok else "interpolated"
     poses = invert_poses(T_all)
     poses[:, :3, 3] *= scale
-    log_r = np.log(np.array(list(ratios.values())))
+    log_r = np.log(np.array([r for r, _ in ratios.values()]))
     diagnostics = {
         "method": "sfm",
         "mapper": cfg.mapper,
