@@ -15,6 +15,7 @@ benchmarks/results/poses.json.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, table, write_json  # noqa: E402
+from common import RESULTS, machine, table, write_json  # noqa: E402
 
 from recon.errors import ReconInputError  # noqa: E402
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error  # noqa: E402
@@ -84,6 +85,7 @@ def main() -> None:
     parser.add_argument("--cases", nargs="+", default=["7scenes", "tum", "synthetic", "synthetic-nok"])
     parser.add_argument("--methods", nargs="+", default=["frontend", "sfm"])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--save", type=Path, help="also write each estimate's poses to DIR/<case>-<method>.npz")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     results, rows = [], []
@@ -102,6 +104,10 @@ def main() -> None:
                 continue
             try:
                 res = estimate_poses(rgb, prior, intr, method=method, progress=False)
+                if args.save:
+                    args.save.mkdir(parents=True, exist_ok=True)
+                    np.savez(args.save / f"{case}-{method}.npz", poses=res.poses, gt=gt,
+                             status=np.array(res.diagnostics.get("frame_status", [])))
                 entry = {"case": case, "method": method, "frames": len(rgb), "prior_s_per_frame": prior_s / len(rgb),
                          **evaluate(res, gt, true_intr)}
             except ReconInputError as err:
@@ -118,6 +124,12 @@ def main() -> None:
             ])
     print(table(["case", "method", "frames", "ATE Sim(3) cm", "ATE metric cm", "scale err %", "s/frame", "lost",
                  "focal err %"], rows))
+    # Merge with earlier runs of other cases/methods (one JSON for the whole table).
+    previous = RESULTS / "poses.json"
+    if previous.is_file():
+        done = {(r["case"], r["method"]) for r in results}
+        kept = [r for r in json.loads(previous.read_text()).get("results", []) if (r["case"], r["method"]) not in done]
+        results = kept + results
     path = write_json("poses", {"machine": machine(), "results": results})
     print(f"wrote {path}")
 
