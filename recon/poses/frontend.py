@@ -75,6 +75,8 @@ class FrontendConfig:
         flow is finer than while tracking: f shows only in the slight bending of the flow
         field (x^2 / f), and DIS at 1/4 resolution smooths it enough to bias f by ~5 %
         (with exact flow the search lands within 0.1 % on the synthetic room).
+    calib_tol, calib_iters: golden-section bracket width on log f at which the search stops
+        (0.01 = 1 %), and LM iterations per evaluated focal length.
     align_chunk: non-keyframes aligned per batch at the end (memory bound).
     torch_threads: intra-op threads while tracking (restored after). The tensors are small
         (thousands of BA pixels), so thread synchronisation costs more than it saves: one
@@ -100,6 +102,8 @@ class FrontendConfig:
     calib_keyframes: int = 10
     calib_stride: int = 8
     calib_flow_stride: int = 2
+    calib_tol: float = 0.01
+    calib_iters: int = 6
     align_chunk: int = 64
     torch_threads: int | None = 1
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
@@ -518,7 +522,7 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
     priors = [_disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_size), cfg.prior_weight) for k in kfs]
     disp0 = torch.stack([p[0] for p in priors])
     pw = torch.stack([p[1] for p in priors])
-    opts = replace(cfg.ba, iters=10, prior_weight=cfg.prior_weight)
+    opts = replace(cfg.ba, iters=cfg.calib_iters, prior_weight=cfg.prior_weight)
     score_opts = replace(opts, huber_auto=0.0, huber=1.0)
 
     def score(f: float) -> float:
@@ -533,7 +537,7 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
         T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)
         return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts)
 
-    return calib.search_focal(score, calib.candidate_focals(width, height))
+    return calib.search_focal(score, calib.candidate_focals(width, height), tol=cfg.calib_tol)
 
 
 # --------------------------------------------------------------------------- entry point
