@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 
 from recon.errors import ReconInputError
 from recon.poses.result import PoseResult, TrackingLostError, parse_intrinsics
@@ -58,8 +59,6 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     unknown = set(options) - fe_fields - sfm_fields
     if unknown:
         raise ReconInputError(f"unknown pose option(s): {', '.join(sorted(unknown))}")
-    from dataclasses import replace
-
     fe_cfg = replace(fe_cfg, **{k: v for k, v in options.items() if k in fe_fields})
     sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in sfm_fields})
     if method == "sfm":

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from recon.errors import ReconInputError
 from recon.poses import ba
 from recon.poses import calib
 from recon.poses import flow as fl
@@ -575,8 +576,6 @@ def _estimate(frames, prior_depth, intrinsics, progress: bool, cfg: FrontendConf
         raise TrackingLostError("no frames to track", frame=0)
     prior = PriorSource(prior_depth)
     if not prior.is_callable and len(prior) != len(frames_list):
-        from recon.errors import ReconInputError
-
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
     height, width = frames_list[0].shape[:2]
     diagnostics: dict = {"method": "frontend"}
