@@ -54,9 +54,10 @@ class FlowConfig:
 _DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
 
 
-def _dis(cfg: FlowConfig) -> cv2.DISOpticalFlow:
-    """One DIS instance per parameter set (creating one allocates buffers)."""
-    key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters)
+def _dis(cfg: FlowConfig, shape: tuple[int, int]) -> cv2.DISOpticalFlow:
+    """One DIS instance per parameter set and image shape (creating one allocates buffers;
+    reusing one on a larger image than it was first used on crashes OpenCV 4.x)."""
+    key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters, tuple(shape))
     if key not in _DIS_CACHE:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
         dis.setFinestScale(cfg.finest_scale)
@@ -83,7 +84,7 @@ def dis_flow(a: np.ndarray, b: np.ndarray, cfg: FlowConfig, init: np.ndarray | N
     prediction lets it find motions far beyond its search range.
     """
     flow = None if init is None else np.ascontiguousarray(init, dtype=np.float32)
-    return _dis(cfg).calc(a, b, flow)
+    return _dis(cfg, a.shape[:2]).calc(a, b, flow)
 
 
 def warp_flow(flow: np.ndarray, by: np.ndarray) -> np.ndarray:

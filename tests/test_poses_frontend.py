@@ -1,0 +1,150 @@
+"""The dense pose front end on the synthetic room: accuracy, metric scale, focal search,
+tracking loss; and the geometry it rests on (Lie maps, Jacobians, Schur-complement BA)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from recon.errors import ReconInputError
+from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
+from recon.poses import TrackingLostError, estimate_poses, intrinsics_from_fov
+from recon.poses import ba, lie
+from recon.poses import projective as pj
+from recon.synthetic import render_sequence, simulate_prior
+
+
+@pytest.fixture(scope="module")
+def room():
+    seq = render_sequence(36, 320, 240, seed=0)
+    return seq, simulate_prior(seq.depth, seed=1)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_se3_exp_log_round_trip_and_adjoint():
+    g = torch.Generator().manual_seed(0)
+    xi = torch.randn(64, 6, generator=g, dtype=torch.float64) * torch.tensor([1, 1, 1, 0.8, 0.8, 0.8])
+    xi[:4, 3:] *= 1e-6  # small-angle branch
+    T = lie.se3_exp(xi)
+    assert torch.allclose(lie.se3_log(T), xi, atol=1e-9)
+    assert torch.allclose(lie.inv(T) @ T, torch.eye(4, dtype=torch.float64).expand(64, 4, 4), atol=1e-12)
+    d = torch.randn(64, 6, generator=g, dtype=torch.float64) * 0.1
+    assert torch.allclose(T @ lie.se3_exp(d) @ lie.inv(T), lie.se3_exp((lie.adjoint(T) @ d[..., None])[..., 0]),
+                          atol=1e-10)
+
+
+def test_projection_jacobians_match_finite_differences():
+    g = torch.Generator().manual_seed(1)
+    intr = torch.tensor([80.0, 82.0, 39.5, 29.5], dtype=torch.float64)
+    Tij = lie.se3_exp(torch.randn(3, 6, generator=g, dtype=torch.float64) * 0.1)
+    uv = torch.rand(3, 50, 2, generator=g, dtype=torch.float64) * torch.tensor([80.0, 60.0])
+    disp = 0.2 + torch.rand(3, 50, generator=g, dtype=torch.float64)
+    X = pj.backproject(uv, disp, intr)
+    proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij, X, intr)
+    assert valid.all()
+    eps = 1e-6
+    for k in range(6):
+        step = torch.zeros(6, dtype=torch.float64)
+        step[k] = eps
+        moved, _ = pj.project(pj.transform(lie.se3_exp(step)[None] @ Tij, X), intr)
+        assert torch.allclose((moved - proj) / eps, Jj[..., k], atol=1e-3)
+    Xd = pj.backproject(uv, disp + eps, intr)
+    moved, _ = pj.project(pj.transform(Tij, Xd), intr)
+    assert torch.allclose((moved - proj) / eps, Jz, atol=1e-3)
+
+
+def test_dense_ba_recovers_poses_and_depth_from_exact_flow(room):
+    """Exact targets from ground truth; perturbed poses and prior depths converge back."""
+    torch.set_num_threads(1)  # small tensors: threads only add synchronisation
+    seq, prior = room
+    ids = [0, 4, 8, 12]
+    h, w = 30, 40
+    intr = torch.tensor(pj.scale_intrinsics(seq.intrinsics, w / 320), dtype=torch.float64)
+    depth = torch.from_numpy(np.stack([seq.depth[i][4::8, 4::8] for i in ids])).double()
+    T_gt = torch.from_numpy(np.linalg.inv(seq.poses[ids]))
+    ii, jj = zip(*[(a, b) for a in range(4) for b in range(4) if a != b and abs(a - b) <= 2])
+    ii, jj = torch.tensor(ii), torch.tensor(jj)
+    target, valid = pj.reproject(T_gt, 1.0 / depth, intr, ii, jj)
+    edges = ba.Edges(ii, jj, target, valid.double())
+    noise = lie.se3_exp(torch.randn(4, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 0.01)
+    noise[0] = torch.eye(4)
+    prior_disp = 1.0 / torch.from_numpy(np.stack([prior[i][4::8, 4::8] for i in ids])).double()
+    T, D, report = ba.bundle_adjust(noise @ T_gt, prior_disp.clone(), intr, edges, 1.0 / depth,
+                                    torch.full_like(depth, 0.01), opts=ba.BAOptions(iters=15))
+    err = (lie.inv(T) - lie.inv(T_gt))[:, :3, 3].norm(dim=-1)
+    assert float(err.max()) < 2e-3  # metres; the perturbation was ~1 cm
+    assert report.costs[-1] < 1e-3 * report.costs[0]
+    assert float(((1 / D - depth).abs() / depth).median()) < 0.01
+
+
+# --------------------------------------------------------------------------- front end
+
+
+def test_frontend_synthetic_accuracy_and_metric_scale(room):
+    seq, prior = room
+    res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
+    assert res.poses.shape == (36, 4, 4) and np.isfinite(res.poses).all()
+    assert res.diagnostics["method"] == "frontend" and len(res.keyframes) >= 4
+    length = path_length(seq.poses)
+    ate = ate_rmse(res.poses, seq.poses, "sim3")["rmse"]
+    assert ate <= 0.01 * length, f"Sim(3) ATE {ate:.4f} m > 1% of the {length:.2f} m path"
+    assert scale_error(res.poses, seq.poses) <= 0.10
+    # Rotations are right too (ATE looks at camera centres only).
+    assert rpe(res.poses, seq.poses, delta=10)["rot_rmse_deg"] < 0.5  # the true 10-frame rotation is ~4 deg
+    assert res.keyframe_depth is not None and res.keyframe_depth.shape[0] == len(res.keyframes)
+
+
+def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(room):
+    seq, prior = room
+    res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    f_true = seq.intrinsics[0]
+    assert abs(res.intrinsics[0] / f_true - 1) <= 0.05, (res.intrinsics, f_true)
+    assert res.diagnostics["focal_search"]["bracketed"]
+    length = path_length(seq.poses)
+    assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
+
+
+def test_tracking_loss_names_the_frame(room):
+    seq, prior = room
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 256, size=(14, 240, 320, 3), dtype=np.uint8)
+    frames = np.concatenate([seq.rgb[:12], noise])
+    depth = np.concatenate([prior[:12], prior[:14]])
+    with pytest.raises(TrackingLostError, match="tracking lost at frame 12") as info:
+        estimate_poses(frames, depth, seq.intrinsics, method="frontend", progress=False)
+    assert info.value.frame == 12
+
+
+def test_auto_falls_back_to_sfm_when_tracking_is_lost(room, monkeypatch, capsys):
+    seq, prior = room
+    import recon.poses.frontend as fe
+    import recon.poses.sfm as sfm
+
+    def lost(*args, **kwargs):
+        raise TrackingLostError("tracking lost at frame 7: test", frame=7)
+
+    sentinel = fe.PoseResult(np.tile(np.eye(4), (36, 1, 1)), seq.intrinsics, np.arange(36), 0.0, {"method": "sfm"})
+    monkeypatch.setattr(fe, "estimate_poses_frontend", lost)
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: sentinel)
+    res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=True)
+    assert res.diagnostics["fallback"]["frame"] == 7
+    assert "falling back to SfM" in capsys.readouterr().out
+    with pytest.raises(TrackingLostError):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
+
+
+def test_bad_inputs_raise_one_line_errors(room):
+    seq, prior = room
+    with pytest.raises(ReconInputError, match="pose method"):
+        estimate_poses(seq.rgb, prior, method="slam")
+    with pytest.raises(ReconInputError, match="prior depth has 5 frames"):
+        estimate_poses(seq.rgb[:8], prior[:5], seq.intrinsics, method="frontend", progress=False)
+    with pytest.raises(ReconInputError, match="unknown pose option"):
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, bogus=1)
+    with pytest.raises(ReconInputError, match="positive focal"):
+        estimate_poses(seq.rgb[:8], prior[:8], (0, 0, 1, 1))
+    f = intrinsics_from_fov(90.0, 640, 480)
+    assert f[0] == pytest.approx(320.0) and f[2] == 319.5
