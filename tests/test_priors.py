@@ -220,6 +220,17 @@ def test_sensor_prior_keeps_holes():
         SensorDepthPrior(metres)(_frames(2))
 
 
+def test_sensor_prior_names_empty_frame_and_file():
+    depth = _depth(3)
+    depth[2] = np.nan
+    files = [f"depth/{k:03d}.png" for k in range(3)]
+    _one_line_error(SensorDepthPrior(depth, files=files, batch_size=2), _frames(3), "frame 2", "depth/002.png",
+                    "no valid pixel")
+    _one_line_error(SensorDepthPrior(depth, source="rec/"), _frames(3), "rec/", "frame 2")
+    # A map of another aspect cannot be this frame's depth.
+    _one_line_error(SensorDepthPrior(depth[:, :, :20], source="rec/"), _frames(3), "rec/", "aspect")
+
+
 # ---------------------------------------------------------------------------- Hugging Face prior
 
 needs_transformers = pytest.mark.skipif(importlib.util.find_spec("transformers") is None,
