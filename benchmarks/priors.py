@@ -51,6 +51,7 @@ VARIANTS = {
     "M4": ("stride4", {"feature_loss": "M"}),
     "S8-photo": ("stride8", {"feature_loss": "S", "use_photometric": False}),
     "S8-depth": ("stride8", {"feature_loss": "S", "use_depth": False}),
+    "photo": (None, {"use_depth": False}),
 }
 VARIANT_TEXT = {
     "none": "MEDeA, no feature term",
@@ -60,6 +61,7 @@ VARIANT_TEXT = {
     "M4": "MEDeA-M, stride-4 features",
     "S8-photo": "MEDeA-S (stride 8) w/o photometric",
     "S8-depth": "MEDeA-S (stride 8) w/o depth",
+    "photo": "MEDeA, photometric term only",
 }
 
 
@@ -126,7 +128,7 @@ def accuracy(name: str, step: int, preset: str, variants: list[str], results: di
         features = None if layer is None else outputs[layer].features
         result = adjust_sequence(rgb, base.depth, poses, intrinsics, features=features, config=config, progress=False)
         depth = result.depth.numpy() if isinstance(result.depth, torch.Tensor) else np.asarray(result.depth)
-        record(variant, depth, {
+        record(variant if preset == "fast" else f"{variant} ({preset})", depth, {
             "preset": preset, "feature_layer": layer,
             "feature_channels": None if features is None else int(features.shape[1]),
             "seconds_per_frame": sum(result.seconds.values()) / len(rgb), "seconds": result.seconds,
@@ -171,16 +173,45 @@ def speed(hf_model: str | None) -> dict[str, float]:
     return timings
 
 
+def feature_cost(step: int, preset: str, rounds: int = 3, epochs: tuple[int, int] = (20, 5)) -> dict:
+    """Seconds per epoch of each stage with and without the feature term, on 7-Scenes.
+
+    Early stopping makes whole-run times depend on when each variant converges; here every
+    variant runs exactly ``epochs`` (stage I, stage II) and the rounds are interleaved so
+    that a busy machine slows all variants alike. Best round per variant.
+    """
+    rgb, _, poses, intrinsics = load("7scenes", step)
+    features = {layer: FastDepthPrior(features=True, feature_layer=layer, progress=False)(rgb, intrinsics)
+                for layer in ("stride8", "stride4")}
+    prior = features["stride8"].depth
+    best: dict[str, dict[str, float]] = {}
+    for _ in range(rounds):
+        for variant in ("none", "S8", "S4", "M8", "M4"):
+            layer, overrides = VARIANTS[variant]
+            config = medea_config(preset, overrides)
+            for stage, count in zip((config.stage1, config.stage2), epochs):
+                stage.epochs, stage.patience = count, count + 1
+            result = adjust_sequence(rgb, prior, poses, intrinsics, config=config, progress=False,
+                                     features=None if layer is None else features[layer].features)
+            per_epoch = {stage: h.seconds / h.epochs for stage, h in result.history.items()}
+            row = best.setdefault(variant, per_epoch)
+            for stage, value in per_epoch.items():
+                row[stage] = min(row[stage], value)
+    return best
+
+
 # ---------------------------------------------------------------------------- output
 
 
-def save(results: dict, timing: dict, args=None) -> Path:
+def save(results: dict, timing: dict, cost: dict | None = None) -> Path:
     path = RESULTS / "priors.json"
     payload = json.loads(path.read_text()) if path.is_file() else {}
     payload.setdefault("accuracy", {}).update(results)
     if timing:
         payload["speed_ms_per_frame"] = timing
         payload["speed_machine"] = {**machine(), "load_average_at_end": os.getloadavg()}
+    if cost:
+        payload["medea_seconds_per_epoch"] = cost
     payload["machine"] = {**machine(), "load_average_at_end": os.getloadavg()}
     payload["max_depth"] = MAX_DEPTH
     return write_json("priors", payload)
@@ -193,7 +224,7 @@ def accuracy_table(results: dict) -> str:
     for r in results.values():
         m, s = r["metric"], r["median_scaled"]
         seconds = r.get("seconds_per_frame")
-        label = VARIANT_TEXT.get(r["row"], r["row"])
+        label = VARIANT_TEXT.get(r["row"].split(" (")[0], r["row"])
         if "preset" in r:
             label += f" [{r['preset']}]"
         rows.append([f"{r['dataset']} ({r['frames']}, every {r['every']})", label, f"{m['abs_rel']:.3f}",
@@ -213,6 +244,7 @@ def main() -> None:
     parser.add_argument("--hf-model", help="a local Hugging Face depth model folder to time as well")
     parser.add_argument("--no-speed", action="store_true")
     parser.add_argument("--no-medea", action="store_true", help="prior and oracle rows only")
+    parser.add_argument("--feature-cost", action="store_true", help="time MEDeA epochs with/without features")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if not DATA.is_dir():
@@ -224,6 +256,12 @@ def main() -> None:
         print(table(["prior (7-Scenes 640x480 frames, end to end)", "ms/frame"],
                     [[label, f"{value:.1f}"] for label, value in timing.items()]), flush=True)
         save({}, timing)
+    if args.feature_cost:
+        cost = feature_cost(args.step7, args.preset)
+        print(table(["MEDeA variant (7-Scenes)", "stage I s/epoch", "stage II s/epoch"],
+                    [[VARIANT_TEXT[v], f"{c['stage1']:.3f}", f"{c['stage2']:.3f}"] for v, c in cost.items()]),
+              flush=True)
+        save({}, {}, {"preset": args.preset, "every": args.step7, **cost})
     results: dict = {}
     for name in args.datasets:
         step = args.step7 if name == "7scenes" else args.steptum
