@@ -65,10 +65,37 @@ VARIANT_TEXT = {
 }
 
 
-def load(name: str, step: int):
-    """Frames (N, H, W, 3) uint8, sensor depth (N, H, W) m, GT poses (N, 4, 4), intrinsics (4,)."""
+def load(name: str, step: int, colour_focal: float | None = None):
+    """Frames (N, H, W, 3) uint8, sensor depth (N, H, W) m, GT poses (N, 4, 4), intrinsics (4,).
+
+    colour_focal: the colour camera's focal length when it differs from the reader's (the
+    depth camera's, for 7-Scenes); the sensor depth is then re-registered into the colour
+    camera (see :func:`register_depth`) and the intrinsics use this focal.
+    """
     dataset = open_dataset(DATA / FOLDERS[name]).with_valid_poses().select(stride=step)
-    return dataset.load_rgb_batch(), dataset.load_depth_batch(), dataset.poses, np.asarray(dataset.intrinsics)
+    rgb, depth, intrinsics = dataset.load_rgb_batch(), dataset.load_depth_batch(), np.asarray(dataset.intrinsics)
+    if colour_focal:
+        colour = np.array([colour_focal, colour_focal, *intrinsics[2:]])
+        depth, intrinsics = register_depth(depth, intrinsics, colour), colour
+    return rgb, depth, dataset.poses, intrinsics
+
+
+def register_depth(depth: np.ndarray, depth_k: np.ndarray, colour_k: np.ndarray) -> np.ndarray:
+    """Depth (N, H, W) seen by the depth camera -> the same z-depth on the colour camera's pixels.
+
+    Both cameras are taken to share the pose (Kinect v1: ~2.5 cm apart, ignored); only the
+    intrinsics differ. Nearest-neighbour lookup keeps holes as holes; pixels the depth
+    camera does not see are 0.
+    """
+    height, width = depth.shape[1:]
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    # Colour pixel -> ray -> depth-camera pixel at the same direction (z-depth is unchanged).
+    du = np.rint((u - colour_k[2]) / colour_k[0] * depth_k[0] + depth_k[2]).astype(np.int64)
+    dv = np.rint((v - colour_k[3]) / colour_k[1] * depth_k[1] + depth_k[3]).astype(np.int64)
+    inside = (du >= 0) & (du < width) & (dv >= 0) & (dv < height)
+    out = np.zeros_like(depth)
+    out[:, inside] = depth[:, dv[inside], du[inside]]
+    return out
 
 
 def scores(depth: np.ndarray, gt: np.ndarray, poses, intrinsics) -> dict:
@@ -104,19 +131,21 @@ def medea_config(preset: str, overrides: dict) -> MedeaConfig:
     return config
 
 
-def accuracy(name: str, step: int, preset: str, variants: list[str], results: dict) -> None:
-    rgb, gt, poses, intrinsics = load(name, step)
+def accuracy(name: str, step: int, preset: str, variants: list[str], results: dict,
+             colour_focal: float | None = None) -> None:
+    rgb, gt, poses, intrinsics = load(name, step, colour_focal)
+    label = name if not colour_focal else f"{name} (colour fx {colour_focal:g})"
     priors = {layer: FastDepthPrior(features=True, feature_layer=layer, progress=False)
               for layer in ("stride8", "stride4")}
     outputs = {layer: prior(rgb, intrinsics) for layer, prior in priors.items()}
     base = outputs["stride8"]
-    common = {"frames": len(rgb), "every": step, "network_input": list(base.info["network_input"])}
+    common = {"frames": len(rgb), "every": step, "network_input": list(base.info["network_input"]),
+              "intrinsics": intrinsics.tolist()}
 
     def record(row: str, depth: np.ndarray, extra: dict) -> None:
-        results[f"{name}/{row}"] = {"dataset": name, "row": row, **common, **extra,
-                                    **scores(depth, gt, poses, intrinsics)}
-        r = results[f"{name}/{row}"]
-        print(f"{name} {row}: abs rel {r['metric']['abs_rel']:.4f} (median scaled {r['median_scaled']['abs_rel']:.4f})"
+        results[f"{label}/{row}"] = r = {"dataset": label, "row": row, **common, **extra,
+                                         **scores(depth, gt, poses, intrinsics)}
+        print(f"{label} {row}: abs rel {r['metric']['abs_rel']:.4f} (median scaled {r['median_scaled']['abs_rel']:.4f})"
               f" inconsistency {r['inconsistency']:.4f}", flush=True)
 
     record("prior", base.depth, {})
@@ -171,6 +200,43 @@ def speed(hf_model: str | None) -> dict[str, float]:
         prior = make_prior("hf", model=hf_model, progress=False)
         timings[f"hf ({Path(hf_model).name})"] = best_ms_per_item(lambda: prior(rgb), count, rounds=1)
     return timings
+
+
+def colour_focal_check(focals=range(495, 606, 10), gaps=(4, 8, 16)) -> dict[int, float]:
+    """Mean colour disagreement on 7-Scenes for each candidate colour focal length.
+
+    3D points from the sensor depth (depth camera, the reader's intrinsics) are projected
+    into the colour images of frames i and i+gap (ground-truth poses) with a candidate
+    colour focal; the right focal makes the two colours agree best.
+    """
+    dataset = open_dataset(DATA / FOLDERS["7scenes"]).select(stride=2)
+    rgb = torch.from_numpy(dataset.load_rgb_batch()).permute(0, 3, 1, 2).float() / 255.0
+    depth = torch.from_numpy(dataset.load_depth_batch())[:, ::4, ::4]
+    poses = torch.from_numpy(dataset.poses).float()
+    fx, fy, cx, cy = dataset.intrinsics
+    height, width = rgb.shape[-2:]
+    v, u = torch.meshgrid(torch.arange(0, height, 4.0), torch.arange(0, width, 4.0), indexing="ij")
+    pairs = torch.tensor([(i, i + g) for g in gaps for i in range(0, len(dataset) - g, 6)])
+    i, j = pairs[:, 0], pairs[:, 1]
+    z = depth[i].flatten(1)
+    points_i = torch.stack([(u.flatten() - cx) / fx * z, (v.flatten() - cy) / fy * z, z], 1)  # (P, 3, M)
+    i_to_j = torch.linalg.inv(poses[j]) @ poses[i]
+    points_j = i_to_j[:, :3, :3] @ points_i + i_to_j[:, :3, 3:]
+
+    def colours(images, points, f):
+        x = (f * points[:, 0] / points[:, 2] + cx) / (width - 1) * 2 - 1
+        y = (f * points[:, 1] / points[:, 2] + cy) / (height - 1) * 2 - 1
+        grid = torch.stack([x, y], -1)[:, None]
+        inside = (grid.abs() <= 1).all(-1)[:, 0]
+        return torch.nn.functional.grid_sample(images, grid, align_corners=True)[:, :, 0], inside
+
+    result = {}
+    for f in focals:
+        c_i, in_i = colours(rgb[i], points_i, f)
+        c_j, in_j = colours(rgb[j], points_j, f)
+        valid = (z > 0) & (points_j[:, 2] > 0.1) & in_i & in_j
+        result[int(f)] = float((c_i - c_j).abs().mean(1)[valid].mean())
+    return result
 
 
 def feature_cost(step: int, preset: str, rounds: int = 3, epochs: tuple[int, int] = (20, 5)) -> dict:
@@ -240,11 +306,14 @@ def main() -> None:
     parser.add_argument("--steptum", type=int, default=2, help="every k-th TUM frame (100 in all)")
     parser.add_argument("--preset", choices=("fast", "paper"), default="fast", help="MedeaConfig.fast() or paper defaults")
     parser.add_argument("--variants", nargs="*", default=["none", "S8", "S4", "M8", "M4"], choices=list(VARIANTS))
+    parser.add_argument("--colour-focal7", type=float, default=0.0,
+                        help="7-Scenes colour focal (px) if not the depth camera's 585; 0: the reader's")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--hf-model", help="a local Hugging Face depth model folder to time as well")
     parser.add_argument("--no-speed", action="store_true")
     parser.add_argument("--no-medea", action="store_true", help="prior and oracle rows only")
     parser.add_argument("--feature-cost", action="store_true", help="time MEDeA epochs with/without features")
+    parser.add_argument("--check-focal", action="store_true", help="estimate the 7-Scenes colour focal length")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if not DATA.is_dir():
@@ -256,6 +325,12 @@ def main() -> None:
         print(table(["prior (7-Scenes 640x480 frames, end to end)", "ms/frame"],
                     [[label, f"{value:.1f}"] for label, value in timing.items()]), flush=True)
         save({}, timing)
+    if args.check_focal:
+        check = colour_focal_check()
+        print(table(["7-Scenes colour focal [px]", "mean |I_i - I_j| at sensor-depth points"],
+                    [[f, f"{e:.4f}"] for f, e in check.items()]), flush=True)
+        payload = json.loads((RESULTS / "priors.json").read_text()) if (RESULTS / "priors.json").is_file() else {}
+        write_json("priors", {**payload, "7scenes_colour_focal_check": check})
     if args.feature_cost:
         cost = feature_cost(args.step7, args.preset)
         print(table(["MEDeA variant (7-Scenes)", "stage I s/epoch", "stage II s/epoch"],
@@ -265,7 +340,8 @@ def main() -> None:
     results: dict = {}
     for name in args.datasets:
         step = args.step7 if name == "7scenes" else args.steptum
-        accuracy(name, step, args.preset, [] if args.no_medea else args.variants, results)
+        focal = args.colour_focal7 if name == "7scenes" else None
+        accuracy(name, step, args.preset, [] if args.no_medea else args.variants, results, focal)
     path = save(results, {})
     print(accuracy_table(json.loads(path.read_text())["accuracy"]))
     print(f"wrote {path}")

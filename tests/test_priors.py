@@ -231,6 +231,18 @@ def test_sensor_prior_names_empty_frame_and_file():
     _one_line_error(SensorDepthPrior(depth[:, :, :20], source="rec/"), _frames(3), "rec/", "aspect")
 
 
+def test_sensor_prior_from_dataset(shared_dir):
+    from recon.io.datasets import open_dataset
+
+    dataset = open_dataset(shared_dir / "data" / "7scenes-redkitchen").select(stride=200)
+    out = SensorDepthPrior.from_dataset(dataset)(dataset.load_rgb_batch())
+    raw = cv2.imread(str(dataset.depth_paths[1]), cv2.IMREAD_UNCHANGED)
+    holes = (raw == 0) | (raw == 65535)
+    assert out.kind == "metric" and out.depth.shape == (2, 480, 640) and holes.any()
+    assert (out.depth[1][holes] == 0).all()
+    np.testing.assert_allclose(out.depth[1][~holes], raw[~holes] / 1000.0, rtol=1e-6)
+
+
 # ---------------------------------------------------------------------------- Hugging Face prior
 
 needs_transformers = pytest.mark.skipif(importlib.util.find_spec("transformers") is None,

@@ -53,6 +53,16 @@ class SensorDepthPrior(DepthPrior):
         if self.files is not None and len(self.files) != len(depth):
             raise ReconInputError(f"{source}: {len(self.files)} depth file names for {len(depth)} depth maps")
 
+    @classmethod
+    def from_dataset(cls, dataset, **options) -> "SensorDepthPrior":
+        """The depth channel of an opened RGB-D dataset (:mod:`recon.io.datasets`), in metres.
+
+        Errors about a frame name its depth file.
+        """
+        if not dataset.has_depth:
+            raise ReconInputError(f"{dataset.root}: this {dataset.kind} recording has no depth")
+        return cls(dataset.load_depth_batch(), source=str(dataset.root), files=dataset.depth_paths, **options)
+
     def plan(self, frames, intrinsics):
         if len(self.depth) != len(frames):
             raise ReconInputError(f"{self.source}: {len(self.depth)} depth maps for {len(frames)} frames")
