@@ -141,8 +141,9 @@ def main() -> None:
     best = min(results, key=lambda k: results[k]["mean_metric_abs_rel"])
     print(f"lowest mean metric abs rel: {best}")
     timing = {} if args.no_speed else speed(datasets["7scenes"][0], datasets["7scenes"][2])
-    print(table(["setting (7-Scenes 640x480 frames, end to end)", "ms/frame"],
-                [[label, f"{value:.1f}"] for label, value in timing.items()]))
+    if timing:
+        print(table(["setting (7-Scenes 640x480 frames, end to end)", "ms/frame"],
+                    [[label, f"{value:.1f}"] for label, value in timing.items()]))
     path = write_json("fastdepth_preprocessing", {
         "machine": {**machine(), "load_average_at_end": os.getloadavg()},
         "data": {"7scenes": f"every {args.step7}th of 400 frames", "tum": f"every {args.steptum}th of 100 frames"},
