@@ -49,3 +49,18 @@ def write_json(name: str, payload: dict) -> Path:
     tmp.write_text(json.dumps(payload, indent=2, default=float))
     tmp.replace(path)
     return path
+
+
+def best_ms_per_item(run, count: int, rounds: int = 3) -> float:
+    """Milliseconds per item of ``run()`` (which handles ``count`` items): one warm-up call,
+    then the best of ``rounds`` timed calls (on a shared machine the minimum is the least
+    disturbed run)."""
+    import time
+
+    run()
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return 1000 * min(times) / count

@@ -13,19 +13,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import sys
-import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, table, write_json  # noqa: E402
+from common import best_ms_per_item, machine, table, write_json  # noqa: E402
 
 from recon.eval.depth import depth_metrics  # noqa: E402
+from recon.io.datasets import open_dataset  # noqa: E402
 from recon.priors import FastDepthPrior  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -45,41 +43,16 @@ OPTIONS = {
 }
 
 
-def load_7scenes(step: int):
-    """RGB (N, 480, 640, 3) uint8, depth (N, 480, 640) metres, intrinsics (4,)."""
-    root = DATA / "7scenes-redkitchen"
-    colour = sorted(root.glob("frame-*.color.jpg"))[::step]
-    rgb = np.stack([cv2.imread(str(p))[:, :, ::-1] for p in colour])
-    raw = np.stack([cv2.imread(str(p).replace(".color.jpg", ".depth.png"), cv2.IMREAD_UNCHANGED) for p in colour])
-    depth = np.where((raw == 0) | (raw == 65535), 0, raw / 1000.0).astype(np.float32)
-    k = np.loadtxt(root / "camera-intrinsics.txt")
-    return rgb, depth, np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]])
-
-
-def load_tum(step: int):
-    root = DATA / "tum-fr1-rpy"
-    pairs = [line.split() for line in (root / "rgbd_assoc.txt").read_text().splitlines()
-             if line.strip() and not line.startswith("#")][::step]
-    rgb = np.stack([cv2.imread(str(root / p[1]))[:, :, ::-1] for p in pairs])
-    depth = np.stack([cv2.imread(str(root / p[3]), cv2.IMREAD_UNCHANGED) / 5000.0 for p in pairs]).astype(np.float32)
-    text = (root / "intrinsics.txt").read_text()
-    values = {k: float(v) for k, v in re.findall(r"(fx|fy|cx|cy)=([-\d.]+)", text.split("\n# Calibrated")[0])}
-    return rgb, depth, np.array([values["fx"], values["fy"], values["cx"], values["cy"]])
+def load(folder: str, step: int):
+    """RGB (N, 480, 640, 3) uint8, sensor depth (N, 480, 640) metres, intrinsics (4,)."""
+    dataset = open_dataset(DATA / folder).select(stride=step)
+    return dataset.load_rgb_batch(), dataset.load_depth_batch(), np.asarray(dataset.intrinsics)
 
 
 def ms_per_frame(prior: FastDepthPrior, rgb: np.ndarray, intrinsics, repeats: int = 5) -> float:
-    """Best of ``repeats`` runs over one batch, end to end (uint8 frames in, full-size depth out).
-
-    The machine may be shared: the minimum is the least disturbed run.
-    """
+    """End to end (uint8 frames in, full-size depth out) over one batch, best of ``repeats``."""
     batch = rgb[: prior.batch_size]
-    prior(batch, intrinsics)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        prior(batch, intrinsics)
-        times.append(time.perf_counter() - start)
-    return 1000 * min(times) / len(batch)
+    return best_ms_per_item(lambda: prior(batch, intrinsics), len(batch), repeats)
 
 
 # Speed settings: (label, FastDepthPrior options); frames are 640x480 7-Scenes (fx = 585).
@@ -120,7 +93,7 @@ def main() -> None:
     if not DATA.is_dir():
         sys.exit(f"{DATA} not found")
 
-    datasets = {"7scenes": load_7scenes(args.step7), "tum": load_tum(args.steptum)}
+    datasets = {"7scenes": load("7scenes-redkitchen", args.step7), "tum": load("tum-fr1-rpy", args.steptum)}
     results = {}
     for name in args.options:
         for scaling in (False, True):
@@ -168,8 +141,9 @@ def main() -> None:
     best = min(results, key=lambda k: results[k]["mean_metric_abs_rel"])
     print(f"lowest mean metric abs rel: {best}")
     timing = {} if args.no_speed else speed(datasets["7scenes"][0], datasets["7scenes"][2])
-    print(table(["setting (7-Scenes 640x480 frames, end to end)", "ms/frame"],
-                [[label, f"{value:.1f}"] for label, value in timing.items()]))
+    if timing:
+        print(table(["setting (7-Scenes 640x480 frames, end to end)", "ms/frame"],
+                    [[label, f"{value:.1f}"] for label, value in timing.items()]))
     path = write_json("fastdepth_preprocessing", {
         "machine": {**machine(), "load_average_at_end": os.getloadavg()},
         "data": {"7scenes": f"every {args.step7}th of 400 frames", "tum": f"every {args.steptum}th of 100 frames"},

@@ -220,6 +220,29 @@ def test_sensor_prior_keeps_holes():
         SensorDepthPrior(metres)(_frames(2))
 
 
+def test_sensor_prior_names_empty_frame_and_file():
+    depth = _depth(3)
+    depth[2] = np.nan
+    files = [f"depth/{k:03d}.png" for k in range(3)]
+    _one_line_error(SensorDepthPrior(depth, files=files, batch_size=2), _frames(3), "frame 2", "depth/002.png",
+                    "no valid pixel")
+    _one_line_error(SensorDepthPrior(depth, source="rec/"), _frames(3), "rec/", "frame 2")
+    # A map of another aspect cannot be this frame's depth.
+    _one_line_error(SensorDepthPrior(depth[:, :, :20], source="rec/"), _frames(3), "rec/", "aspect")
+
+
+def test_sensor_prior_from_dataset(shared_dir):
+    from recon.io.datasets import open_dataset
+
+    dataset = open_dataset(shared_dir / "data" / "7scenes-redkitchen").select(stride=200)
+    out = SensorDepthPrior.from_dataset(dataset)(dataset.load_rgb_batch())
+    raw = cv2.imread(str(dataset.depth_paths[1]), cv2.IMREAD_UNCHANGED)
+    holes = (raw == 0) | (raw == 65535)
+    assert out.kind == "metric" and out.depth.shape == (2, 480, 640) and holes.any()
+    assert (out.depth[1][holes] == 0).all()
+    np.testing.assert_allclose(out.depth[1][~holes], raw[~holes] / 1000.0, rtol=1e-6)
+
+
 # ---------------------------------------------------------------------------- Hugging Face prior
 
 needs_transformers = pytest.mark.skipif(importlib.util.find_spec("transformers") is None,
