@@ -2,12 +2,12 @@
 
     python benchmarks/poses.py [--cases 7scenes tum synthetic synthetic-nok] [--methods frontend sfm]
 
-Cases: ``7scenes`` (../shared/data/7scenes-redkitchen, 400 frames, given intrinsics,
-FastDepth prior), ``tum`` (../shared/data/tum-fr1-rpy, 100 frames, near-pure rotation,
-FastDepth prior), ``synthetic`` (the synthetic room, 120 frames 640x480, simulated prior),
-``synthetic-nok`` (the same with intrinsics withheld: focal-length error), ``7scenes-nok``
-(7-Scenes with the focal length estimated: the published 585 px is the depth camera's; the
-colour camera's is nearer 525 px, which shows as a ~11 % scale error). For each case and
+Cases: ``7scenes`` (../shared/data/7scenes-redkitchen, 400 frames, the reader's colour
+intrinsics fx = 525, FastDepth prior), ``tum`` (../shared/data/tum-fr1-rpy, 100 frames,
+near-pure rotation, FastDepth prior), ``synthetic`` (the synthetic room, 120 frames
+640x480, simulated prior), ``synthetic-nok`` (the same with intrinsics withheld:
+focal-length error), ``7scenes-nok`` (7-Scenes with the focal length estimated).
+For each case and
 method: Sim(3)-aligned ATE RMSE, metric (SE(3)-aligned) ATE RMSE, scale error, RPE (1
 frame), path length, keyframes, lost frames and seconds per frame of pose estimation (the
 depth prior's time is reported separately). Prints a table and writes

@@ -35,6 +35,7 @@ from common import RESULTS, best_ms_per_item, machine, table, write_json  # noqa
 from medea_core import MedeaConfig, adjust_depth, median_pool_to_grid  # noqa: E402
 from recon.eval.depth import depth_metrics, multiview_inconsistency  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
+from recon.io.datasets.sevenscenes import DEPTH_INTRINSICS  # noqa: E402
 from recon.medea import adjust_sequence  # noqa: E402
 from recon.priors import FastDepthPrior, make_prior  # noqa: E402
 
@@ -68,34 +69,13 @@ VARIANT_TEXT = {
 def load(name: str, step: int, colour_focal: float | None = None):
     """Frames (N, H, W, 3) uint8, sensor depth (N, H, W) m, GT poses (N, 4, 4), intrinsics (4,).
 
-    colour_focal: the colour camera's focal length when it differs from the reader's (the
-    depth camera's, for 7-Scenes); the sensor depth is then re-registered into the colour
-    camera (see :func:`register_depth`) and the intrinsics use this focal.
+    colour_focal: 7-Scenes colour focal length overriding the reader's (525 px); the sensor
+    depth is re-registered into that colour camera by the reader.
     """
-    dataset = open_dataset(DATA / FOLDERS[name]).with_valid_poses().select(stride=step)
+    options = {"colour_intrinsics": (colour_focal, colour_focal, 320.0, 240.0)} if colour_focal else {}
+    dataset = open_dataset(DATA / FOLDERS[name], **options).with_valid_poses().select(stride=step)
     rgb, depth, intrinsics = dataset.load_rgb_batch(), dataset.load_depth_batch(), np.asarray(dataset.intrinsics)
-    if colour_focal:
-        colour = np.array([colour_focal, colour_focal, *intrinsics[2:]])
-        depth, intrinsics = register_depth(depth, intrinsics, colour), colour
     return rgb, depth, dataset.poses, intrinsics
-
-
-def register_depth(depth: np.ndarray, depth_k: np.ndarray, colour_k: np.ndarray) -> np.ndarray:
-    """Depth (N, H, W) seen by the depth camera -> the same z-depth on the colour camera's pixels.
-
-    Both cameras are taken to share the pose (Kinect v1: ~2.5 cm apart, ignored); only the
-    intrinsics differ. Nearest-neighbour lookup keeps holes as holes; pixels the depth
-    camera does not see are 0.
-    """
-    height, width = depth.shape[1:]
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    # Colour pixel -> ray -> depth-camera pixel at the same direction (z-depth is unchanged).
-    du = np.rint((u - colour_k[2]) / colour_k[0] * depth_k[0] + depth_k[2]).astype(np.int64)
-    dv = np.rint((v - colour_k[3]) / colour_k[1] * depth_k[1] + depth_k[3]).astype(np.int64)
-    inside = (du >= 0) & (du < width) & (dv >= 0) & (dv < height)
-    out = np.zeros_like(depth)
-    out[:, inside] = depth[:, dv[inside], du[inside]]
-    return out
 
 
 def scores(depth: np.ndarray, gt: np.ndarray, poses, intrinsics) -> dict:
@@ -205,11 +185,11 @@ def speed(hf_model: str | None) -> dict[str, float]:
 def colour_focal_check(focals=range(495, 606, 10), gaps=(4, 8, 16)) -> dict[int, float]:
     """Mean colour disagreement on 7-Scenes for each candidate colour focal length.
 
-    3D points from the sensor depth (depth camera, the reader's intrinsics) are projected
+    3D points from the raw sensor depth (depth camera, fx = 585) are projected
     into the colour images of frames i and i+gap (ground-truth poses) with a candidate
     colour focal; the right focal makes the two colours agree best.
     """
-    dataset = open_dataset(DATA / FOLDERS["7scenes"]).select(stride=2)
+    dataset = open_dataset(DATA / FOLDERS["7scenes"], colour_intrinsics=DEPTH_INTRINSICS).select(stride=2)
     rgb = torch.from_numpy(dataset.load_rgb_batch()).permute(0, 3, 1, 2).float() / 255.0
     depth = torch.from_numpy(dataset.load_depth_batch())[:, ::4, ::4]
     poses = torch.from_numpy(dataset.poses).float()
@@ -307,7 +287,7 @@ def main() -> None:
     parser.add_argument("--preset", choices=("fast", "paper"), default="fast", help="MedeaConfig.fast() or paper defaults")
     parser.add_argument("--variants", nargs="*", default=["none", "S8", "S4", "M8", "M4"], choices=list(VARIANTS))
     parser.add_argument("--colour-focal7", type=float, default=0.0,
-                        help="7-Scenes colour focal (px) if not the depth camera's 585; 0: the reader's")
+                        help="7-Scenes colour focal (px) overriding the reader's 525; 0: the reader's")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--hf-model", help="a local Hugging Face depth model folder to time as well")
     parser.add_argument("--no-speed", action="store_true")

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from recon.errors import ReconInputError
 from recon.eval.trajectory import path_length
 from recon.io.datasets import KINDS, detect_dataset, detect_kind, open_dataset
+from recon.io.datasets.base import register_depth
 from recon.poses.formats import invert_poses, make_poses, write_poses
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -141,8 +142,10 @@ def test_7scenes(tmp_path):
     ds = open_dataset(tmp_path)
     assert ds.kind == "7scenes" and len(ds) == 3 and (ds.width, ds.height) == (W, H)
     assert ds.frame_ids == ["frame-000000", "frame-000001", "frame-000002"]
-    assert ds.intrinsics == (100.0, 101.0, 4.0, 3.0)
+    assert ds.depth_intrinsics == (100.0, 101.0, 4.0, 3.0)  # the file holds the depth camera's
+    np.testing.assert_allclose(ds.intrinsics, (100.0 * 525 / 585, 101.0 * 525 / 585, 4.0, 3.0))
     np.testing.assert_allclose(ds.poses, poses, atol=1e-12)
+    ds = open_dataset(tmp_path, colour_intrinsics=(100.0, 101.0, 4.0, 3.0))  # registered: raw depth
     depth = ds.depth(1)
     assert depth.dtype == np.float32 and depth.shape == (H, W)
     assert depth[0, 0] == 0 and depth[0, 1] == 0  # 0 and 65535 are invalid
@@ -151,7 +154,32 @@ def test_7scenes(tmp_path):
     assert rgb.dtype == np.uint8 and rgb.shape == (H, W, 3)
     np.testing.assert_array_equal(rgb, _rgb(2))  # RGB, not BGR
     (tmp_path / "camera-intrinsics.txt").unlink()
-    assert open_dataset(tmp_path).intrinsics == (585.0, 585.0, 320.0, 240.0)
+    ds = open_dataset(tmp_path)
+    assert ds.depth_intrinsics == (585.0, 585.0, 320.0, 240.0)
+    np.testing.assert_allclose(ds.intrinsics, (525.0, 525.0, 320.0, 240.0))
+
+
+def test_depth_registration_into_the_colour_camera():
+    """A depth camera with a longer focal sees a magnified image: registering it into the
+    colour camera must put each scene point at the pixel the colour camera sees it at."""
+    h, w = 48, 64
+    depth_k, colour_k = (70.0, 70.0, 32.0, 24.0), (50.0, 50.0, 32.0, 24.0)
+    # A tilted plane z = 2 + 0.5 x (x in metres): z-depth is a function of the ray only.
+    def plane_depth(k):
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        slope = (u - k[2]) / k[0]
+        return (2.0 / (1.0 - 0.5 * slope)).astype(np.float32)
+    seen_by_depth, seen_by_colour = plane_depth(depth_k), plane_depth(colour_k)
+    seen_by_depth[20:24, 30:34] = 0  # a hole stays a hole
+    registered = register_depth(seen_by_depth[None], depth_k, colour_k)[0]
+    # Colour pixels whose ray leaves the depth camera's narrower view are invalid.
+    inside = registered > 0
+    assert 0.4 < inside.mean() < 0.6
+    # The hole's centre (31.5, 21.5) on the depth camera is colour pixel (31.6, 22.2).
+    assert (registered[22, 31:33] == 0).all()
+    good = inside & (seen_by_colour > 0)
+    # Nearest lookup: error bounded by half a depth-camera pixel of slope.
+    np.testing.assert_allclose(registered[good], seen_by_colour[good], rtol=0.01)
 
 
 def test_tum_association_interpolation_and_intrinsics(tmp_path):
@@ -315,7 +343,7 @@ def _real(name: str) -> Path:
 def test_real_7scenes():
     ds = open_dataset(_real("7scenes-redkitchen"))
     assert ds.kind == "7scenes" and len(ds) == 400 and (ds.width, ds.height) == (640, 480)
-    assert ds.intrinsics == (585.0, 585.0, 320.0, 240.0)
+    np.testing.assert_allclose(ds.intrinsics, (525.0, 525.0, 320.0, 240.0))  # colour camera
     assert ds.pose_valid.all() and np.isfinite(ds.poses).all()
     assert 2.5 < path_length(ds.poses) < 3.5  # about 7 mm per frame
     depth = ds.depth(0)

@@ -46,6 +46,9 @@ class RGBDDataset:
     distortion: lens distortion (k1, k2, p1, p2, k3) of the colour images when known; the
         images are returned as stored (not undistorted).
     resize_rgb: resize colour images to (width, height) on load (ScanNet colour -> depth size).
+    depth_intrinsics: (fx, fy, cx, cy) of the depth camera when its images are not registered
+        to the colour camera (7-Scenes); ``depth(i)`` then re-registers them into the colour
+        camera (:func:`register_depth`). None: depth is already pixel-aligned with colour.
     """
 
     kind: str
@@ -65,6 +68,7 @@ class RGBDDataset:
     frame_intrinsics: np.ndarray | None = None
     distortion: tuple[float, ...] | None = None
     resize_rgb: bool = False
+    depth_intrinsics: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)
@@ -135,6 +139,8 @@ class RGBDDataset:
                 f"{self.depth_paths[i]}: depth is {depth.shape[1]}x{depth.shape[0]}, "
                 f"expected {self.width}x{self.height}"
             )
+        if self.depth_intrinsics is not None and tuple(self.depth_intrinsics) != tuple(self.intrinsics):
+            depth = register_depth(depth, self.depth_intrinsics, self.intrinsics)
         return depth
 
     def load_rgb_batch(self, indices: Sequence[int] | None = None) -> np.ndarray:
@@ -195,6 +201,24 @@ class RGBDDataset:
             f"size={self.width}x{self.height}, intrinsics={tuple(round(v, 3) for v in self.intrinsics)}, "
             f"depth={'yes' if self.has_depth else 'no'}, poses={poses})"
         )
+
+
+def register_depth(depth: np.ndarray, depth_k, colour_k) -> np.ndarray:
+    """Depth (..., H, W) seen by the depth camera -> the same z-depth on the colour camera's pixels.
+
+    depth_k, colour_k: (fx, fy, cx, cy) of the two cameras. Both are taken to share the pose
+    (on a Kinect v1 they are ~2.5 cm apart, which is ignored); only the intrinsics differ.
+    Nearest-neighbour lookup keeps holes as holes; pixels the depth camera does not see are 0.
+    """
+    height, width = depth.shape[-2:]
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    # Colour pixel -> viewing ray -> depth-camera pixel on the same ray (z-depth is unchanged).
+    du = np.rint((u - colour_k[2]) / colour_k[0] * depth_k[0] + depth_k[2]).astype(np.int64)
+    dv = np.rint((v - colour_k[3]) / colour_k[1] * depth_k[1] + depth_k[3]).astype(np.int64)
+    inside = (du >= 0) & (du < width) & (dv >= 0) & (dv < height)
+    out = np.zeros_like(depth)
+    out[..., inside] = depth[..., dv[inside], du[inside]]
+    return out
 
 
 # ------------------------------------------------------------------------------------

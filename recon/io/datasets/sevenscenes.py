@@ -2,8 +2,15 @@
 
 Owns the 7-Scenes layout: frames keyed by their ``frame-NNNNNN`` stem, depth uint16
 millimetres with 0 and 65535 invalid, per-frame 4x4 camera-to-world poses, intrinsics from
-``camera-intrinsics.txt`` when present, else the usual fx = fy = 585, cx = 320, cy = 240.
-Those intrinsics are the depth camera's; colour and depth are not exactly registered.
+``camera-intrinsics.txt`` when present, else the published fx = fy = 585, cx = 320, cy = 240.
+
+Those intrinsics are the *depth* camera's. The colour images are not registered to the
+depth and have a shorter focal length, fx = fy ~ 525 (the value other 7-Scenes work uses
+for the RGB camera, and what colour agreement between frames under the ground-truth poses
+points to: ``benchmarks/priors.py --check-focal``). The reader reports the colour camera's
+intrinsics (the depth camera's with the focal scaled by 525/585, unless given) and
+re-registers the sensor depth into it, so that colour, depth and intrinsics agree as in
+every other layout.
 """
 
 from __future__ import annotations
@@ -15,7 +22,9 @@ from recon.poses.formats import read_matrix_folder
 
 from .base import RGBDDataset, image_size, intrinsics_from_K, natural_key, read_matrix_txt
 
-DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+DEPTH_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+# Kinect v1: colour focal / depth focal (525 px / 585 px at 640x480).
+COLOUR_FOCAL_RATIO = 525.0 / 585.0
 INVALID_DEPTH = (65535,)
 
 
@@ -29,8 +38,13 @@ def is_7scenes(root: Path) -> bool:
     return any(root.glob("frame-*.color.*")) or any(root.glob("frame-*.depth.png"))
 
 
-def open_7scenes(root) -> RGBDDataset:
-    """Open a 7-Scenes sequence folder (e.g. ``redkitchen/seq-01``)."""
+def open_7scenes(root, colour_intrinsics=None) -> RGBDDataset:
+    """Open a 7-Scenes sequence folder (e.g. ``redkitchen/seq-01``).
+
+    colour_intrinsics: (fx, fy, cx, cy) of the colour camera; None: the depth camera's with
+    the focal lengths scaled by COLOUR_FOCAL_RATIO. Passing the depth camera's intrinsics
+    gives the raw, unregistered depth.
+    """
     root = Path(root)
     if not root.is_dir():
         raise ReconInputError(f"{root}: folder not found")
@@ -62,7 +76,11 @@ def open_7scenes(root) -> RGBDDataset:
         poses, valid = data.poses, data.valid
 
     intr_path = root / "camera-intrinsics.txt"
-    intrinsics = intrinsics_from_K(read_matrix_txt(intr_path, (3, 3))) if intr_path.is_file() else DEFAULT_INTRINSICS
+    depth_intrinsics = intrinsics_from_K(read_matrix_txt(intr_path, (3, 3))) if intr_path.is_file() else DEPTH_INTRINSICS
+    if colour_intrinsics is None:
+        fx, fy, cx, cy = depth_intrinsics
+        colour_intrinsics = (fx * COLOUR_FOCAL_RATIO, fy * COLOUR_FOCAL_RATIO, cx, cy)
+    intrinsics = tuple(float(v) for v in colour_intrinsics)
     width, height = image_size(color[ids[0]])
     return RGBDDataset(
         kind="7scenes",
@@ -78,4 +96,5 @@ def open_7scenes(root) -> RGBDDataset:
         pose_valid=valid,
         depth_scale=1000.0,
         depth_invalid=INVALID_DEPTH,
+        depth_intrinsics=depth_intrinsics,
     )
