@@ -759,7 +759,7 @@ def main() -> None:
         sys.exit(f"report: no recordings (none found in {DATA}; pass dataset folders)")
     default_step, named_steps = parse_steps(args.step)
     start = time.perf_counter()
-    payload = {"command": "python benchmarks/report.py " + " ".join(sys.argv[1:]),
+    payload = {"command": " ".join(["python benchmarks/report.py", *sys.argv[1:]]),
                "date": datetime.datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
                "machine": machine(), "preset": PRESET, "ablation_base": args.ablation_base, "max_depth": MAX_DEPTH,
                "goals": GOALS, "paper": {"table1": PAPER_T1, "table2": PAPER_T2, "ablation": PAPER_ABLATION,
