@@ -1,4 +1,4 @@
-"""`recon eval` on an output folder made from a synthetic 7-Scenes-style recording with known errors."""
+"""`recon eval` on an output folder made from a synthetic ScanNet-style recording with known errors."""
 
 from __future__ import annotations
 
@@ -17,15 +17,17 @@ from recon.synthetic import render_sequence
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    """A 7-Scenes layout (colour, depth in mm, 4x4 poses, intrinsics) of the synthetic room."""
+    """A ScanNet-export layout (colour, depth in mm, 4x4 poses, intrinsics) of the synthetic room."""
     seq = render_sequence(num_frames=12, width=160, height=120, seed=5)
-    root = tmp_path_factory.mktemp("sevenscenes")
+    root = tmp_path_factory.mktemp("scannet")
+    for sub in ("color", "depth", "pose", "intrinsic"):
+        (root / sub).mkdir()
     fx, fy, cx, cy = seq.intrinsics
-    np.savetxt(root / "camera-intrinsics.txt", [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    np.savetxt(root / "intrinsic" / "intrinsic_depth.txt", [[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     for i in range(len(seq.rgb)):
-        cv2.imwrite(str(root / f"frame-{i:06d}.color.png"), seq.rgb[i][..., ::-1])
-        cv2.imwrite(str(root / f"frame-{i:06d}.depth.png"), np.round(seq.depth[i] * 1000).astype(np.uint16))
-        np.savetxt(root / f"frame-{i:06d}.pose.txt", seq.poses[i])
+        cv2.imwrite(str(root / "color" / f"{i}.png"), seq.rgb[i][..., ::-1])
+        cv2.imwrite(str(root / "depth" / f"{i}.png"), np.round(seq.depth[i] * 1000).astype(np.uint16))
+        np.savetxt(root / "pose" / f"{i}.txt", seq.poses[i])
     return seq, root
 
 

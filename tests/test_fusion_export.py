@@ -77,14 +77,14 @@ def test_automatic_parameters_follow_the_rule(room, fused):
     assert fused.max_depth == pytest.approx(1.1 * np.percentile(sample, 99), rel=1e-6)
     assert fused.voxel_size == pytest.approx(np.median(sample[sample <= fused.max_depth]) / 200, rel=1e-6)
     assert fused.voxel_size == pytest.approx(np.median(valid) / 200, rel=0.02)
-    assert fused.trunc == pytest.approx(4 * fused.voxel_size)
+    assert fused.trunc == pytest.approx(FusionOptions.trunc_voxels * fused.voxel_size)
     assert auto_voxel_size(2.0) == pytest.approx(0.01)
     assert auto_voxel_size(0.3) == 0.005 and auto_voxel_size(40.0) == 0.05
     # A constant 2 m depth: voxel 1 cm, max depth 2.2 m.
     flat = np.full((2, 24, 32), 2.0, np.float32)
     poses = np.stack([np.eye(4)] * 2)
     r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5), FusionOptions(**QUIET))
-    assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.01, 0.04, 2.2))
+    assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.01, 0.08, 2.2))
     # Overrides win.
     r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5), FusionOptions(voxel_size=0.02, trunc=0.05, max_depth=3.0, **QUIET))
     assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.02, 0.05, 3.0))
@@ -102,7 +102,7 @@ def test_block_estimate_and_budget(room, fused, caplog):
         r = fuse(room.depth[frames], room.rgb[frames], room.poses[frames], room.intrinsics, FusionOptions(block_count=budget, **QUIET))
     assert any("budget" in rec.message for rec in caplog.records)
     assert r.block_estimate <= budget and r.blocks_used <= 1.2 * budget
-    assert r.voxel_size > 1.5 * fused.voxel_size and r.trunc == pytest.approx(4 * r.voxel_size)
+    assert r.voxel_size > 1.5 * fused.voxel_size and r.trunc == pytest.approx(FusionOptions.trunc_voxels * r.voxel_size)
     assert len(r.mesh.triangles) > 1000
 
 

@@ -166,18 +166,22 @@ class FrameSource(ABC):
     path: Path
     native_size: tuple[int, int]
     selection: Selection
+    # Set by every subclass's constructor.
+    _fps: float
+    _size: tuple[int, int]
+    selected: np.ndarray  # (count,) indices of the selected frames, where known up front
 
     @property
-    @abstractmethod
-    def fps(self) -> float: ...
+    def fps(self) -> float:
+        return self._fps
 
     @property
-    @abstractmethod
-    def size(self) -> tuple[int, int]: ...
+    def size(self) -> tuple[int, int]:
+        return self._size
 
     @property
-    @abstractmethod
-    def count(self) -> int: ...
+    def count(self) -> int:
+        return len(self.selected)
 
     @property
     def count_is_exact(self) -> bool:
@@ -331,18 +335,6 @@ class ImageFolderSource(FrameSource):
                 raise _mixed_sizes(path, size, first, first_size)
 
     @property
-    def fps(self) -> float:
-        return self._fps
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self._size
-
-    @property
-    def count(self) -> int:
-        return len(self.selected)
-
-    @property
     def description(self) -> str:
         return (
             f"image folder {self.path} ({len(self.files)} images, {self.native_size[0]}x{self.native_size[1]}) "
@@ -397,18 +389,6 @@ class DatasetSource(FrameSource):
         self.dataset = dataset.subset(self.selected)
         self.native_size = (dataset.width, dataset.height)
         self._size = working_size(self.native_size, width, self.path)
-
-    @property
-    def fps(self) -> float:
-        return self._fps
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self._size
-
-    @property
-    def count(self) -> int:
-        return len(self.selected)
 
     @property
     def description(self) -> str:

@@ -111,14 +111,6 @@ class VideoSource(FrameSource):
     # ------------------------------------------------------------------ facts
 
     @property
-    def fps(self) -> float:
-        return self._fps
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self._size
-
-    @property
     def count_is_exact(self) -> bool:
         return False
 

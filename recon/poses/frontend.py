@@ -53,9 +53,13 @@ class FrontendConfig:
 
     ba_stride: BA grid = working resolution / ba_stride (DROID: 8); flow runs at twice
         the BA resolution and is pooled.
-    keyframe_flow: a frame becomes a keyframe when the mean flow from the last keyframe
-        exceeds this many pixels at working resolution (scaled for other widths as if the
-        frames were 640 px wide).
+    keyframe_flow: a frame becomes a keyframe when the mean *parallax* flow from the last
+        keyframe (its flow minus the flow its tracked rotation alone explains) exceeds this
+        many pixels at working resolution (scaled for other widths as if the frames were
+        640 px wide). Rotation adds no depth information, only cost: under near-pure
+        rotation (TUM fr1/rpy) plain mean flow made 88 of 100 frames keyframes.
+    keyframe_max_flow: ... or when the mean flow itself exceeds this many pixels, so that a
+        rotating camera still gets keyframes before the overlap runs out.
     temporal_radius: each new keyframe is linked (both directions) to this many previous
         keyframes.
     proximity_edges, proximity_max_flow, proximity_min_overlap, proximity_nms: up to that
@@ -87,6 +91,7 @@ class FrontendConfig:
 
     ba_stride: int = 8
     keyframe_flow: float = 16.0
+    keyframe_max_flow: float = 48.0
     temporal_radius: int = 3
     proximity_edges: int = 2
     proximity_max_flow: float = 64.0
@@ -225,8 +230,21 @@ class _Tracker:
         self.rel[index] = T @ lie.inv(self.graph.poses([kf])[0])
         self.status[index] = "tracked"
         motion = fl.mean_magnitude(fwd, cf) * self.geo.px_scale
-        if motion > self.cfg.keyframe_flow:
+        parallax = fl.mean_magnitude(fwd - self._rotation_flow(T, kf, fwd.shape[:2]), cf) * self.geo.px_scale
+        if parallax > self.cfg.keyframe_flow or motion > self.cfg.keyframe_max_flow:
             self._add_keyframe(index, frame, gray, T, kf, (fwd, bwd, cf, cb))
+
+    def _rotation_flow(self, T: torch.Tensor, kf: int, shape: tuple[int, int]) -> np.ndarray:
+        """(h, w, 2) flow from keyframe kf to a frame at world-to-camera pose T that the
+        rotation between them alone would cause (the infinite homography K R K^-1)."""
+        h, w = shape
+        rel = (T @ lie.inv(self.graph.poses([kf])[0])).numpy()
+        fx, fy, cx, cy = pj.scale_intrinsics(self.intrinsics, w / self.geo.width, h / self.geo.height)
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        H = K @ rel[:3, :3] @ np.linalg.inv(K)
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        x = np.stack([u, v, np.ones_like(u)], -1) @ H.T
+        return (x[..., :2] / x[..., 2:3] - np.stack([u, v], -1)).astype(np.float32)
 
     def _relocalise(self, index: int, gray: np.ndarray, T0: torch.Tensor):
         """Try older keyframes (most recent first) when the reference keyframe fails."""
