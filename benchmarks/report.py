@@ -72,7 +72,7 @@ from priors import MAX_DEPTH, VARIANTS, medea_config, oracles  # noqa: E402
 from recon.eval.depth import METRIC_NAMES, depth_metrics, multiview_inconsistency  # noqa: E402
 from recon.eval.evaluate import reference_tsdf_mesh  # noqa: E402
 from recon.eval.mesh import mesh_metrics  # noqa: E402
-from recon.eval.trajectory import ate_rmse, path_length, scale_error  # noqa: E402
+from recon.eval.trajectory import ate_rmse, path_length, pose_alignment, scale_error  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import detect_kind, open_dataset  # noqa: E402
 from recon.medea import adjust_sequence  # noqa: E402
@@ -214,22 +214,6 @@ def run_medea(rgb, prior, poses, intrinsics, variant: str, extra: dict | None, q
             "seconds_per_frame": wall / len(rgb), "stage_seconds": dict(result.seconds),
             "epochs": {stage: int(h.epochs) for stage, h in result.history.items()}}
     return depth.astype(np.float32, copy=False), info
-
-
-def pose_alignment(est: np.ndarray, gt: np.ndarray, scale: float) -> dict:
-    """x -> s R x + t taking the estimate's world onto the ground truth's, from whole poses.
-
-    R is the rotation nearest to sum_i R_gt_i R_est_i^T (the camera orientations), t the
-    mean of c_gt_i - s R c_est_i. Umeyama on camera centres alone (`ate_rmse`) leaves the
-    rotation about a nearly straight path, or everything for a camera that mostly rotates
-    (TUM fr1/rpy), undetermined: fine for ATE, wrong by degrees for a mesh 2-3 m away.
-    """
-    m = np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3])
-    u, _, vt = np.linalg.svd(m)
-    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rot = u @ fix @ vt
-    trans = (gt[:, :3, 3] - scale * est[:, :3, 3] @ rot.T).mean(0)
-    return {"scale": float(scale), "rotation": rot, "translation": trans}
 
 
 def mesh_scores(mesh, reference, points: int, alignment=None) -> dict:
@@ -507,9 +491,7 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
             mesh = fuse(depth, None, est_poses, intrinsics, options).mesh
             keys = []
             for mode in ("sim3", "se3"):
-                scale = ate_rmse(est_poses, gt_poses, "sim3")["scale"] if mode == "sim3" else 1.0
-                alignment = pose_alignment(est_poses, gt_poses, scale)
-                fit = alignment
+                alignment = fit = pose_alignment(est_poses, gt_poses, mode)
                 rows_c[f"{key}/{mode}"] = {"label": f"{label}, {'Sim(3)' if mode == 'sim3' else 'SE(3)'}-aligned",
                                            "poses": "estimated", "align": mode, "align_scale": fit["scale"],
                                            **mesh_scores(mesh, reference, points, alignment),

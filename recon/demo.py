@@ -131,16 +131,17 @@ def mesh_scores(mesh, seq: SyntheticSequence, stride: int = 2) -> dict:
 
 
 def aligned_mesh(mesh, poses: np.ndarray, gt_poses: np.ndarray):
-    """A copy of `mesh` moved by the similarity that takes the camera centres onto gt's."""
+    """A copy of `mesh` moved by the similarity that takes the cameras onto gt's (orientations
+    and centres: :func:`recon.eval.trajectory.pose_alignment`), and that similarity."""
     import copy
 
-    from .eval.trajectory import align
+    from .eval.trajectory import pose_alignment
 
-    rot, trans, scale = align(poses, gt_poses, "sim3")
+    fit = pose_alignment(poses, gt_poses, "sim3")
     moved = copy.deepcopy(mesh)
     vertices = np.asarray(moved.vertices)
-    moved.vertices = type(moved.vertices)(scale * vertices @ rot.T + trans)
-    return moved, {"rotation": rot, "translation": trans, "scale": scale}
+    moved.vertices = type(moved.vertices)(fit["scale"] * vertices @ fit["rotation"].T + fit["translation"])
+    return moved, fit
 
 
 def evaluate(result: PipelineResult, seq: SyntheticSequence, compare_prior: bool = True, estimated: bool = False) -> dict:

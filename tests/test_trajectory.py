@@ -7,7 +7,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
-from recon.eval.trajectory import align, apply_similarity, ate_rmse, path_length, rpe, scale_error, umeyama
+from recon.eval.trajectory import (
+    align,
+    apply_similarity,
+    ate_rmse,
+    path_length,
+    pose_alignment,
+    rpe,
+    scale_error,
+    umeyama,
+)
 
 
 def _poses(rotations, positions):
@@ -147,3 +156,22 @@ def test_path_length_and_align_none():
     assert path_length(square[:1]) == 0.0
     r, t, s = align(square, square + 1, mode="none")
     assert np.allclose(r, np.eye(3)) and np.allclose(t, 0) and s == 1.0
+
+
+def test_pose_alignment_recovers_similarity_even_for_a_rotating_camera():
+    rot = Rotation.from_rotvec([0.3, -1.2, 0.5]).as_matrix()
+    t, s = np.array([1.0, -2.0, 0.5]), 0.8
+    gt = _random_trajectory()
+    est = apply_similarity(gt, rot.T, -(rot.T @ t) / s, 1.0 / s)  # the inverse map
+    fit = pose_alignment(est, gt, "sim3")
+    np.testing.assert_allclose(fit["rotation"], rot, atol=1e-9)
+    np.testing.assert_allclose(fit["translation"], t, atol=1e-9)
+    assert fit["scale"] == pytest.approx(s)
+    # A camera turning on the spot: centres alone fix no rotation, orientations do.
+    spin = _poses(Rotation.from_rotvec(np.outer(np.linspace(0, 0.5, 20), [0.2, 1.0, 0.1])).as_matrix(),
+                  np.full((20, 3), 0.5) + np.random.default_rng(2).normal(scale=1e-4, size=(20, 3)))
+    moved = apply_similarity(spin, rot, t, 1.0)
+    fit = pose_alignment(spin, moved, "se3")
+    np.testing.assert_allclose(fit["rotation"], rot, atol=1e-9)
+    assert fit["scale"] == 1.0
+    assert pose_alignment(spin, moved, "none")["scale"] == 1.0

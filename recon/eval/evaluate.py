@@ -11,8 +11,9 @@ frames they belong to) and the three evaluations, each built from the metric mod
 * mesh: accuracy, completeness, chamfer, precision, recall, F-score at 5 cm against a
   reference mesh: a given mesh file, or a TSDF of the sensor depth fused with the
   ground-truth poses over the same frames and voxel size. When the poses were estimated,
-  the mesh is first brought into the ground truth's frame with the trajectory's Sim(3)
-  alignment (``mesh_align="auto"``).
+  the mesh is first brought into the ground truth's frame by a Sim(3) fitted to the
+  camera orientations and centres (``mesh_align="auto"``; see
+  :func:`recon.eval.trajectory.pose_alignment`).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import open3d as o3d
 from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
 from recon.eval.mesh import DEFAULT_THRESHOLD, mesh_metrics
-from recon.eval.trajectory import ate_rmse, rpe, scale_error
+from recon.eval.trajectory import ate_rmse, pose_alignment, rpe, scale_error
 from recon.export.writers import DEPTH_DIR, MESH_PLY, REPORT_JSON, TRAJECTORY, read_depth_png_mm
 from recon.io.datasets import open_dataset
 from recon.io.datasets.base import natural_key
@@ -186,7 +187,7 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
         if mode == "auto":
             mode = "none" if pose_source in ("gt", "ground truth", "dataset") or "ground" in pose_source else "sim3"
         if mode != "none":
-            alignment = ate_rmse(out.poses, dataset.poses[out.indices], mode)
+            alignment = pose_alignment(out.poses, dataset.poses[out.indices], mode)
         result["mesh_align"] = mode
     if out.mesh is not None and len(out.mesh.triangles) > 0:
         if options.reference_mesh is not None:

@@ -98,6 +98,28 @@ def align(est, gt, mode: AlignMode = "sim3") -> tuple[np.ndarray, np.ndarray, fl
     return umeyama(est_p, gt_p, with_scale=mode == "sim3")
 
 
+def pose_alignment(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
+    """x -> s R x + t taking the estimate's world onto the ground truth's, from whole poses,
+    for moving geometry (a mesh) rather than scoring a trajectory.
+
+    R is the rotation nearest to sum_i R_gt_i R_est_i^T (the camera orientations), s the
+    Sim(3) Umeyama scale of the centres (1 for "se3"), t the mean of c_gt_i - s R c_est_i.
+    Umeyama on camera centres alone (:func:`ate_rmse`) leaves the rotation about a nearly
+    straight path undetermined, and everything for a camera that mostly rotates (TUM
+    fr1/rpy): harmless for ATE, degrees off for a mesh 2-3 m away.
+    Returns {"scale", "rotation" (3, 3), "translation" (3,)}.
+    """
+    est, gt, valid = _matched(est_poses, gt_poses)
+    est, gt = est[valid], gt[valid]
+    if mode == "none":
+        return {"scale": 1.0, "rotation": np.eye(3), "translation": np.zeros(3)}
+    scale = align(est, gt, "sim3")[2] if mode == "sim3" else 1.0
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3]))
+    rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    trans = (gt[:, :3, 3] - scale * est[:, :3, 3] @ rot.T).mean(0)
+    return {"scale": float(scale), "rotation": rot, "translation": trans}
+
+
 def ate_rmse(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
     """Absolute trajectory error of camera centres after aligning est to gt.
 
