@@ -72,7 +72,7 @@ from priors import MAX_DEPTH, VARIANTS, medea_config, oracles  # noqa: E402
 from recon.eval.depth import METRIC_NAMES, depth_metrics, multiview_inconsistency  # noqa: E402
 from recon.eval.evaluate import reference_tsdf_mesh  # noqa: E402
 from recon.eval.mesh import mesh_metrics  # noqa: E402
-from recon.eval.trajectory import ate_rmse, path_length, pose_alignment, scale_error  # noqa: E402
+from recon.eval.trajectory import ate_rmse, move_points, path_length, pose_alignment, scale_error  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import detect_kind, open_dataset  # noqa: E402
 from recon.medea import adjust_sequence  # noqa: E402
@@ -217,10 +217,8 @@ def run_medea(rgb, prior, poses, intrinsics, variant: str, extra: dict | None, q
 
 
 def mesh_scores(mesh, reference, points: int, alignment=None) -> dict:
-    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    if alignment is not None:
-        vertices = alignment["scale"] * vertices @ alignment["rotation"].T + alignment["translation"]
-    out = mesh_metrics((vertices, triangles), reference, num_points=points).to_dict()
+    triangles = np.asarray(mesh.triangles)
+    out = mesh_metrics((move_points(mesh.vertices, alignment), triangles), reference, num_points=points).to_dict()
     out["triangles"] = int(len(triangles))
     return out
 
@@ -463,7 +461,7 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
     sensor_valid = gt[(gt > 0) & (gt <= MAX_DEPTH)]
     voxel = auto_voxel_size(float(np.median(sensor_valid)))
     points = 20_000 if quick else args.mesh_points
-    reference = reference_tsdf_mesh(dataset, np.arange(n), voxel, MAX_DEPTH, False)
+    reference = reference_tsdf_mesh(dataset, np.arange(n), voxel, MAX_DEPTH, False, gt)
     rows_c: dict = {}
     options = FusionOptions(voxel_size=voxel, max_depth=MAX_DEPTH, progress=False)
     sources = [("prior", "prior (FastDepth)", "gt"), ("gt/S", "MEDeA-S [fast]", "gt"), ("gt/M", "MEDeA-M [fast]", "gt"),

@@ -135,12 +135,11 @@ def aligned_mesh(mesh, poses: np.ndarray, gt_poses: np.ndarray):
     and centres: :func:`recon.eval.trajectory.pose_alignment`), and that similarity."""
     import copy
 
-    from .eval.trajectory import pose_alignment
+    from .eval.trajectory import move_points, pose_alignment
 
     fit = pose_alignment(poses, gt_poses, "sim3")
     moved = copy.deepcopy(mesh)
-    vertices = np.asarray(moved.vertices)
-    moved.vertices = type(moved.vertices)(fit["scale"] * vertices @ fit["rotation"].T + fit["translation"])
+    moved.vertices = type(moved.vertices)(move_points(moved.vertices, fit))
     return moved, fit
 
 

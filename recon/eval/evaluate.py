@@ -30,7 +30,7 @@ import open3d as o3d
 from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
 from recon.eval.mesh import DEFAULT_THRESHOLD, mesh_metrics
-from recon.eval.trajectory import ate_rmse, pose_alignment, rpe, scale_error
+from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
 from recon.export.writers import DEPTH_DIR, MESH_PLY, REPORT_JSON, TRAJECTORY, read_depth_png_mm
 from recon.io.datasets import open_dataset
 from recon.io.datasets.base import natural_key
@@ -142,23 +142,20 @@ def evaluate_trajectory(poses: np.ndarray, gt_poses: np.ndarray) -> dict:
     return out
 
 
-def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, max_depth: float, progress: bool):
-    """TSDF mesh of the dataset's sensor depth with its ground-truth poses over `indices`."""
+def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, max_depth: float, progress: bool,
+                        depth: np.ndarray | None = None):
+    """TSDF mesh of the dataset's sensor depth with its ground-truth poses over `indices`.
+
+    depth: that sensor depth (len(indices), H, W) when the caller has already read it.
+    """
     from recon.fusion import FusionOptions, fuse
 
     if not dataset.has_depth or not dataset.has_poses:
         raise ReconInputError(f"{dataset.root}: needs sensor depth and poses for a reference mesh (or pass --reference-mesh)")
-    depth = dataset.load_depth_batch(indices)
+    if depth is None:
+        depth = dataset.load_depth_batch(indices)
     options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress)
     return fuse(depth, None, dataset.poses[indices], dataset.intrinsics, options).mesh
-
-
-def _aligned_mesh(mesh, alignment: dict | None) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, triangles) of the mesh, moved by the trajectory alignment x -> s R x + t."""
-    vertices = np.asarray(mesh.vertices)
-    if alignment is not None:
-        vertices = alignment["scale"] * vertices @ alignment["rotation"].T + alignment["translation"]
-    return vertices, np.asarray(mesh.triangles)
 
 
 def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict:
@@ -177,8 +174,9 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
         )
     result: dict = {"output": str(out.path), "dataset": {"path": str(gt_path), "kind": dataset.kind, "frames": len(dataset)},
                     "frames": int(len(out.indices)), "options": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(options).items()}}
-    if out.depth is not None and dataset.has_depth:
-        result["depth"] = evaluate_depth(out.depth, dataset.load_depth_batch(out.indices), options)
+    gt_depth = dataset.load_depth_batch(out.indices) if dataset.has_depth and out.depth is not None else None
+    if gt_depth is not None:
+        result["depth"] = evaluate_depth(out.depth, gt_depth, options)
     alignment = None
     if out.poses is not None and dataset.has_poses:
         result["trajectory"] = evaluate_trajectory(out.poses, dataset.poses[out.indices])
@@ -196,10 +194,9 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
                 raise ReconInputError(f"{options.reference_mesh}: no triangles in the reference mesh")
         else:
             voxel = out.report.get("fusion", {}).get("voxel_size")
-            reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress)
-        result["mesh"] = mesh_metrics(
-            _aligned_mesh(out.mesh, alignment), reference, options.threshold, options.mesh_points
-        ).to_dict()
+            reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
+        mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
+        result["mesh"] = mesh_metrics(mesh, reference, options.threshold, options.mesh_points).to_dict()
     return result
 
 

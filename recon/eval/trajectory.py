@@ -120,6 +120,14 @@ def pose_alignment(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
     return {"scale": float(scale), "rotation": rot, "translation": trans}
 
 
+def move_points(points: np.ndarray, alignment: dict | None) -> np.ndarray:
+    """Points (M, 3) moved by x -> s R x + t (a :func:`pose_alignment` result); None: unchanged."""
+    points = np.asarray(points)
+    if alignment is None:
+        return points
+    return alignment["scale"] * points @ alignment["rotation"].T + alignment["translation"]
+
+
 def ate_rmse(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
     """Absolute trajectory error of camera centres after aligning est to gt.
 

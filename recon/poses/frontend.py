@@ -230,21 +230,21 @@ class _Tracker:
         self.rel[index] = T @ lie.inv(self.graph.poses([kf])[0])
         self.status[index] = "tracked"
         motion = fl.mean_magnitude(fwd, cf) * self.geo.px_scale
-        parallax = fl.mean_magnitude(fwd - self._rotation_flow(T, kf, fwd.shape[:2]), cf) * self.geo.px_scale
+        parallax = fl.mean_magnitude(fwd - self._rotation_flow(self.rel[index], fwd.shape[:2]), cf) * self.geo.px_scale
         if parallax > self.cfg.keyframe_flow or motion > self.cfg.keyframe_max_flow:
             self._add_keyframe(index, frame, gray, T, kf, (fwd, bwd, cf, cb))
 
-    def _rotation_flow(self, T: torch.Tensor, kf: int, shape: tuple[int, int]) -> np.ndarray:
-        """(h, w, 2) flow from keyframe kf to a frame at world-to-camera pose T that the
-        rotation between them alone would cause (the infinite homography K R K^-1)."""
+    def _rotation_flow(self, rel: torch.Tensor, shape: tuple[int, int]) -> np.ndarray:
+        """(h, w, 2) flow from a keyframe to a frame at relative pose `rel` (keyframe camera ->
+        frame camera, (4, 4)) that the rotation alone would cause: the reprojection of points
+        at infinity (inverse depth 0), i.e. the infinite homography K R K^-1."""
         h, w = shape
-        rel = (T @ lie.inv(self.graph.poses([kf])[0])).numpy()
-        fx, fy, cx, cy = pj.scale_intrinsics(self.intrinsics, w / self.geo.width, h / self.geo.height)
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        H = K @ rel[:3, :3] @ np.linalg.inv(K)
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        x = np.stack([u, v, np.ones_like(u)], -1) @ H.T
-        return (x[..., :2] / x[..., 2:3] - np.stack([u, v], -1)).astype(np.float32)
+        intr = torch.tensor(pj.scale_intrinsics(self.intrinsics, w / self.geo.width, h / self.geo.height),
+                            dtype=torch.float64)
+        uv = pj.pixel_grid(h, w)
+        at_infinity = pj.backproject(uv, torch.zeros(h, w, dtype=torch.float64), intr)
+        moved, _ = pj.project(pj.transform(rel[None], at_infinity[None])[0], intr)
+        return (moved - uv).numpy().astype(np.float32)
 
     def _relocalise(self, index: int, gray: np.ndarray, T0: torch.Tensor):
         """Try older keyframes (most recent first) when the reference keyframe fails."""

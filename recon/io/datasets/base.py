@@ -9,6 +9,7 @@ the reader modules (``tum``, ``sevenscenes``, ``scannet``, ``arkitscenes``, ``re
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -210,15 +211,23 @@ def register_depth(depth: np.ndarray, depth_k, colour_k) -> np.ndarray:
     (on a Kinect v1 they are ~2.5 cm apart, which is ignored); only the intrinsics differ.
     Nearest-neighbour lookup keeps holes as holes; pixels the depth camera does not see are 0.
     """
-    height, width = depth.shape[-2:]
+    inside, dv, du = _registration_lookup(depth.shape[-2:], tuple(map(float, depth_k)), tuple(map(float, colour_k)))
+    out = np.zeros_like(depth)
+    out[..., inside] = depth[..., dv, du]
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _registration_lookup(shape, depth_k, colour_k) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(inside (H, W) bool, dv (M,), du (M,)): the depth-camera pixel of each colour pixel
+    that has one. The same for every frame of a sequence, so it is computed once."""
+    height, width = shape
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     # Colour pixel -> viewing ray -> depth-camera pixel on the same ray (z-depth is unchanged).
     du = np.rint((u - colour_k[2]) / colour_k[0] * depth_k[0] + depth_k[2]).astype(np.int64)
     dv = np.rint((v - colour_k[3]) / colour_k[1] * depth_k[1] + depth_k[3]).astype(np.int64)
     inside = (du >= 0) & (du < width) & (dv >= 0) & (dv < height)
-    out = np.zeros_like(depth)
-    out[..., inside] = depth[..., dv[inside], du[inside]]
-    return out
+    return inside, dv[inside], du[inside]
 
 
 # ------------------------------------------------------------------------------------
