@@ -123,13 +123,68 @@ def _chunks(num_edges: int, pixels: int) -> list[slice]:
 
 
 def edge_residuals(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, dtype: torch.dtype | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residual vectors (E, P, 2) = target - projection and validity (E, P)."""
-    uv, valid = pj.reproject(T_cw, disps, intr, edges.ii, edges.jj)
+    """Residual vectors (E, P, 2) = target - projection and validity (E, P), computed in
+    dtype (default: the poses' dtype)."""
+    dtype = dtype or T_cw.dtype
+    uv, valid = pj.reproject(T_cw.to(dtype), disps.to(dtype), intr.to(dtype), edges.ii, edges.jj)
     num = len(edges)
-    r = (edges.target - uv).reshape(num, -1, 2)
+    r = (edges.target.to(dtype) - uv).reshape(num, -1, 2)
     return r, valid.reshape(num, -1)
+
+
+@dataclass
+class _Residuals:
+    """Residual norms (E, P) and validity (E, P) of one BA state: evaluated once per state
+    and shared by the robust threshold, the cost and the final statistics."""
+
+    norm: torch.Tensor
+    valid: torch.Tensor
+
+    @classmethod
+    def of(cls, T_cw, disps, intr, edges: Edges, dtype: torch.dtype) -> "_Residuals":
+        if not len(edges):
+            empty = torch.zeros(0, disps[0].numel(), dtype=dtype)
+            return cls(empty, empty.bool())
+        r, valid = edge_residuals(T_cw, disps, intr, edges, dtype)
+        return cls(r.norm(dim=-1), valid)
+
+    def cost(self, edges: Edges, huber: float) -> float:
+        if not len(edges):
+            return 0.0
+        w = edges.weight.reshape(len(edges), -1) * self.valid
+        return float((w * huber_cost(self.norm.double(), huber)).sum())
+
+    def adaptive_huber(self, edges: Edges, opts: "BAOptions") -> float:
+        """huber_auto x the median over confident pixels, clipped to [huber_min, huber] (the
+        residual norm of 2-D Gaussian noise has median 1.18 sigma)."""
+        conf = (edges.weight.reshape(len(edges), -1) > 0.5) & self.valid
+        if not conf.any():
+            return opts.huber
+        med = float(self.norm[conf].median())
+        return float(min(max(opts.huber_auto * med, opts.huber_min), opts.huber))
+
+    def stats(self, edges: Edges, inlier: float) -> tuple[float, float]:
+        """Confidence-weighted RMS residual (BA pixels) and the weight fraction within `inlier` px."""
+        if not len(edges):
+            return float("nan"), float("nan")
+        w = edges.weight.reshape(len(edges), -1)
+        total = float(w.sum())
+        if total <= 0:
+            return float("nan"), 0.0
+        wv = w * self.valid
+        rn = self.norm.double()
+        rmse = float(((wv * rn.clamp(max=10 * inlier) ** 2).sum() / max(float(wv.sum()), 1e-9)).sqrt())
+        return rmse, float((wv * (rn < inlier)).sum()) / total
+
+
+def prior_cost(disps: torch.Tensor, prior: torch.Tensor | None, prior_w: torch.Tensor | None) -> float:
+    """The tie of inverse depth (K, H, W) to the prior: 0.5 sum prior_w log(d / d0)^2."""
+    if prior is None:
+        return 0.0
+    rel = torch.log(disps.clamp(min=MIN_DISP) / prior.clamp(min=MIN_DISP))
+    return float(0.5 * (prior_w * rel * rel).sum())
 
 
 def total_cost(
@@ -142,15 +197,8 @@ def total_cost(
     opts: BAOptions,
 ) -> float:
     """The BA objective: robust reprojection cost plus the prior tie."""
-    cost = 0.0
-    if len(edges):
-        r, valid = edge_residuals(T_cw, disps, intr, edges)
-        w = edges.weight.reshape(len(edges), -1) * valid
-        cost += float((w * huber_cost(r.norm(dim=-1), opts.huber)).sum())
-    if prior is not None:
-        rel = torch.log(disps.clamp(min=MIN_DISP) / prior.clamp(min=MIN_DISP))
-        cost += float(0.5 * (prior_w * rel * rel).sum())
-    return cost
+    res = _Residuals.of(T_cw, disps, intr, edges, opts.pixel_dtype)
+    return res.cost(edges, opts.huber) + prior_cost(disps, prior, prior_w)
 
 
 def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -200,7 +248,7 @@ def _normal_equations(
         out["Hjj"][sl] = (wJj.transpose(1, 2) @ Jj.reshape(n, 2 * P, 6)).to(dt)
         out["vj"][sl] = (wJj.transpose(1, 2) @ r.reshape(n, 2 * P, 1))[..., 0].to(dt)
         wJz = Jz * wgt[..., None]  # (n, P, 2)
-        out["Ej"][sl] = (Jj * wJz[..., None]).sum(2)
+        out["Ej"][sl] = Jj[..., 0, :] * wJz[..., 0:1] + Jj[..., 1, :] * wJz[..., 1:2]
         out["C"].index_add_(0, ii, (wJz * Jz).sum(-1).to(dt))
         out["w"].index_add_(0, ii, (wJz * r).sum(-1).to(dt))
     # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
@@ -213,26 +261,56 @@ def _normal_equations(
     return out
 
 
-def _same_source_pairs(ii: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """All ordered pairs (a, b) of edge indices (M,) with ii[a] == ii[b] (a == b included)."""
-    same = ii[:, None] == ii[None, :]
-    a, b = same.nonzero(as_tuple=True)
-    return a, b
+@dataclass
+class _Couplings:
+    """Per-keyframe pose-depth couplings, the layout the Schur complement works in.
+
+    The depth of pixel p of keyframe k couples to pose k (through every edge leaving k) and
+    to pose jj[e] of each edge e leaving k. B (K, 6 (n + 1), P) stacks those Jacobian
+    products for each keyframe: slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1
+    the s-th edge leaving k (Ej), zero-padded to the largest out-degree n. pose (K, n + 1)
+    is the pose each slot belongs to (padding points at k itself with zero coupling).
+    """
+
+    B: torch.Tensor
+    pose: torch.Tensor
+
+    @property
+    def slots(self) -> int:
+        return self.pose.shape[1]
+
+
+def _couplings(sys: dict, edges: Edges, num_kf: int) -> _Couplings:
+    ii, jj = edges.ii, edges.jj
+    Ej = sys["Ej"]
+    E, P, _ = Ej.shape
+    K = num_kf
+    order = torch.argsort(ii, stable=True)
+    counts = torch.bincount(ii, minlength=K)
+    first = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(E) - first[ii[order]] + 1
+    n = int(counts.max()) if E else 0
+    B = torch.zeros(K, n + 1, 6, P, dtype=Ej.dtype)
+    Et = torch.zeros(K, P, 6, dtype=Ej.dtype).index_add_(0, ii, sys["Ei"])
+    B[:, 0] = Et.transpose(1, 2)
+    B[ii[order], slot] = Ej[order].transpose(1, 2)
+    pose = torch.arange(K)[:, None].repeat(1, n + 1)
+    pose[ii[order], slot] = jj[order]
+    return _Couplings(B.reshape(K, 6 * (n + 1), P), pose)
 
 
 def _reduced_system(
     sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Schur complement over the depths: blocks S (K, K, 6, 6), gradient g (K, 6), Et (K, P, 6).
+) -> tuple[torch.Tensor, torch.Tensor, _Couplings]:
+    """Schur complement over the depths: blocks S (K, K, 6, 6), gradient g (K, 6) and the
+    couplings (for the back-substitution).
 
-    For the depth of pixel p of keyframe k, the coupling to pose k is the sum Et[k, p] of
-    Ei over k's outgoing edges, and to pose jj[e] it is Ej[e, p]; so S loses
-    Et Q Et^T on (k, k), Et Q Ej^T on (k, jj[e]) and Ej[a] Q Ej[b]^T on (jj[a], jj[b]) for
-    every pair of edges leaving the same keyframe.
+    Eliminating keyframe k's depths (diagonal Hessian 1 / Q) subtracts B_k Q_k B_k^T from
+    the poses it couples to and B_k Q_k w_k from their gradient: one batched product over
+    keyframes covers pose k, every edge target and every pair of edges leaving k.
     """
     ii, jj = edges.ii, edges.jj
     dt = Q.dtype
-    px = sys["Ej"].dtype
     K = num_kf
     S = torch.zeros(K * K, 6, 6, dtype=dt)
     S.index_add_(0, ii * K + ii, sys["Hii"])
@@ -243,25 +321,17 @@ def _reduced_system(
     g.index_add_(0, ii, sys["vi"])
     g.index_add_(0, jj, sys["vj"])
 
-    P = Q.shape[1]
-    Qp, Qw = Q.to(px), (Q * wz).to(px)
-    Et = torch.zeros(K, P, 6, dtype=px)
-    Et.index_add_(0, ii, sys["Ei"])
-    EtQ = Et * Qp[..., None]
-    S.index_add_(0, torch.arange(K) * (K + 1), -(EtQ.transpose(1, 2) @ Et).to(dt))
-    g -= (Et.transpose(1, 2) @ Qw[..., None])[..., 0].to(dt)
-    Ej = sys["Ej"]
-    cross = (EtQ[ii].transpose(1, 2) @ Ej).to(dt)  # (E, 6, 6): Et[ii] Q Ej^T
-    S.index_add_(0, ii * K + jj, -cross)
-    S.index_add_(0, jj * K + ii, -cross.transpose(1, 2))
-    g.index_add_(0, jj, -(Ej.transpose(1, 2) @ Qw[ii][..., None])[..., 0].to(dt))
-    a, b = _same_source_pairs(ii)
-    step = max(1, CHUNK_PIXELS // max(P, 1))
-    for s in range(0, a.numel(), step):
-        aa, bb = a[s : s + step], b[s : s + step]
-        blk = (Ej[aa] * Qp[ii[aa]][..., None]).transpose(1, 2) @ Ej[bb]
-        S.index_add_(0, jj[aa] * K + jj[bb], -blk.to(dt))
-    return S.reshape(K, K, 6, 6), g, Et
+    cpl = _couplings(sys, edges, K)
+    B, m = cpl.B, cpl.slots
+    Qp = Q.to(B.dtype)
+    blocks = ((B * Qp[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (K, 6m, 6m)
+    blocks = blocks.reshape(K, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+    rows = cpl.pose[:, :, None].expand(K, m, m)
+    cols = cpl.pose[:, None, :].expand(K, m, m)
+    S.index_add_(0, (rows * K + cols).reshape(-1), -blocks)
+    gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (K, 6m)
+    g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
+    return S.reshape(K, K, 6, 6), g, cpl
 
 
 def ba_step(
@@ -298,7 +368,7 @@ def ba_step(
     if fixed_disp is not None:
         # A held depth has infinite stiffness: it drops out of the Schur complement.
         Q[fixed_disp] = 0.0
-    S, g, Et = _reduced_system(sys, edges, Q, wz, K)
+    S, g, cpl = _reduced_system(sys, edges, Q, wz, K)
 
     free = (~fixed).nonzero(as_tuple=True)[0]
     dx = torch.zeros(K, 6, dtype=T_cw.dtype)
@@ -308,10 +378,9 @@ def ba_step(
         diag = Sf.diagonal()
         Sf = Sf + torch.diag(lm * diag + opts.eps)
         dx[free] = _solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
-    # Back-substitution: dz = Q (w - Et^T dx_k - sum_e Ej^T dx_jj).
-    px = sys["Ej"].dtype
-    rhs = wz - (Et @ dx.to(px)[..., None])[..., 0].to(wz.dtype)
-    rhs.index_add_(0, edges.ii, -(sys["Ej"] @ dx.to(px)[edges.jj][..., None])[..., 0].to(wz.dtype))
+    # Back-substitution: dz = Q (w - B^T dx) over the poses each keyframe's depths couple to.
+    dx_slots = dx[cpl.pose].reshape(K, -1, 1).to(cpl.B.dtype)
+    rhs = wz - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
     dz = (Q * rhs).reshape(K, height, width)
     T_new = lie.se3_exp(dx) @ T_cw
     d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
@@ -346,21 +415,24 @@ def bundle_adjust(
     report = BAReport()
     lm = opts.lm
     sys = None
-    step_opts = opts
+    huber = opts.huber
     cost = float("nan")
+    res = _Residuals.of(T_cw, disps, intr, edges, opts.pixel_dtype)
     for _ in range(opts.iters):
         if sys is None:
             # The robust threshold follows the residuals as they shrink; both sides of the
             # accept test below use the same threshold.
-            if opts.huber_auto > 0:
-                step_opts = replace(opts, huber=adaptive_huber(T_cw, disps, intr, edges, opts))
-            cost = total_cost(T_cw, disps, intr, edges, prior, prior_w, step_opts)
+            if opts.huber_auto > 0 and len(edges):
+                huber = res.adaptive_huber(edges, opts)
+            cost = res.cost(edges, huber) + prior_cost(disps, prior, prior_w)
             if not report.costs:
                 report.costs.append(cost)
-        T_new, d_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed, step_opts, lm, sys, fixed_disp)
-        new_cost = total_cost(T_new, d_new, intr, edges, prior, prior_w, step_opts)
+        T_new, d_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed, replace(opts, huber=huber), lm,
+                                    sys, fixed_disp)
+        res_new = _Residuals.of(T_new, d_new, intr, edges, opts.pixel_dtype)
+        new_cost = res_new.cost(edges, huber) + prior_cost(d_new, prior, prior_w)
         if new_cost <= cost:
-            T_cw, disps = T_new, d_new
+            T_cw, disps, res = T_new, d_new, res_new
             report.costs.append(new_cost)
             lm = max(lm / 3.0, 1e-7)
             sys = None
@@ -369,40 +441,9 @@ def bundle_adjust(
             lm *= 10.0
             if lm > 1e4:
                 break
-    opts = step_opts
-    report.rmse, report.inlier_fraction = residual_stats(T_cw, disps, intr, edges, max(opts.huber, 0.5))
-    report.huber = opts.huber
+    report.rmse, report.inlier_fraction = res.stats(edges, max(huber, 0.5))
+    report.huber = huber
     return T_cw, disps, report
-
-
-def adaptive_huber(T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions) -> float:
-    """Huber threshold from the current residuals: huber_auto x median over confident pixels,
-    clipped to [huber_min, huber] (the residual norm of 2-D Gaussian noise has median 1.18 sigma)."""
-    if not len(edges):
-        return opts.huber
-    r, valid = edge_residuals(T_cw, disps, intr, edges)
-    conf = (edges.weight.reshape(len(edges), -1) > 0.5) & valid
-    if not conf.any():
-        return opts.huber
-    med = float(r.norm(dim=-1)[conf].median())
-    return float(min(max(opts.huber_auto * med, opts.huber_min), opts.huber))
-
-
-def residual_stats(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, inlier: float
-) -> tuple[float, float]:
-    """Confidence-weighted RMS residual (BA pixels) and the weight fraction within `inlier` px."""
-    if not len(edges):
-        return float("nan"), float("nan")
-    r, valid = edge_residuals(T_cw, disps, intr, edges)
-    w = edges.weight.reshape(len(edges), -1)
-    rn = r.norm(dim=-1)
-    total = float(w.sum())
-    if total <= 0:
-        return float("nan"), 0.0
-    ok = valid & (rn < inlier)
-    rmse = float(((w * valid * rn.clamp(max=10 * inlier) ** 2).sum() / max(float((w * valid).sum()), 1e-9)).sqrt())
-    return rmse, float((w * ok).sum()) / total
 
 
 def align_frames(
