@@ -7,6 +7,7 @@ This module owns everything between images and BA targets:
 * ``dis_flow`` / ``flow_pair``: DIS flow in both directions (optionally seeded with a
   predicted flow, which is what makes long-baseline proximity edges work);
 * ``fb_confidence``: how well the backward flow returns to the start pixel;
+* ``photo_confidence``: whether the pixels the flow joins look alike;
 * ``pool_edge``: flow-resolution flow + confidence -> BA-resolution targets + weights.
 
 Coordinates: flows are (H, W, 2) = (du, dv) in pixels of the grid they were computed on;
@@ -39,6 +40,11 @@ class FlowConfig:
         motions are less precise but not wrong).
     spread_sigma: within a pooled block, a flow spread (std, pixels at the flow resolution)
         of this much halves the weight: blocks straddling a depth edge mix two motions.
+    photo_sigma: mean absolute grey-level difference (0-255, over 3x3 pixels) between a
+        pixel and where its flow lands at which the confidence halves. Forward-backward
+        agreement alone trusts a flow that is zero both ways, which is what DIS returns
+        between unrelated images (a cut, a blurred or corrupt frame); the images then
+        disagree. Wide enough for exposure changes and blur between neighbouring frames.
     """
 
     finest_scale: int = 0
@@ -49,6 +55,7 @@ class FlowConfig:
     fb_sigma: float = 0.75
     fb_rel: float = 0.05
     spread_sigma: float = 1.0
+    photo_sigma: float = 24.0
 
 
 _DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
@@ -87,14 +94,16 @@ def dis_flow(a: np.ndarray, b: np.ndarray, cfg: FlowConfig, init: np.ndarray | N
     return _dis(cfg, a.shape[:2]).calc(a, b, flow)
 
 
+def _sample_along(image: np.ndarray, flow: np.ndarray, **border) -> np.ndarray:
+    """image (h, w[, c]) float32 sampled bilinearly at ``p + flow(p)`` (flow (h, w, 2))."""
+    h, w = flow.shape[:2]
+    coords = np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0).astype(np.float32) + flow
+    return cv2.remap(image, coords[..., 0], coords[..., 1], cv2.INTER_LINEAR, **border)
+
+
 def warp_flow(flow: np.ndarray, by: np.ndarray) -> np.ndarray:
     """flow (h, w, 2) sampled bilinearly at ``p + by(p)`` (by (h, w, 2)); outside -> NaN."""
-    h, w = flow.shape[:2]
-    grid = np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0).astype(np.float32)
-    coords = grid + by
-    out = cv2.remap(flow, coords[..., 0], coords[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(np.nan, np.nan))
-    return out
+    return _sample_along(flow, by, borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan))
 
 
 def fb_confidence(fwd: np.ndarray, bwd: np.ndarray, cfg: FlowConfig) -> np.ndarray:
@@ -112,6 +121,14 @@ def fb_confidence(fwd: np.ndarray, bwd: np.ndarray, cfg: FlowConfig) -> np.ndarr
     return conf.astype(np.float32)
 
 
+def photo_confidence(a: np.ndarray, b: np.ndarray, flow: np.ndarray, cfg: FlowConfig) -> np.ndarray:
+    """Confidence (h, w) in [0, 1] that flow (h, w, 2) from grey image a to b joins pixels
+    that look alike: 1 / (1 + (e / photo_sigma)^2) with e the 3x3 mean of |a(p) - b(p + flow(p))|."""
+    warped = _sample_along(b.astype(np.float32), flow, borderMode=cv2.BORDER_REPLICATE)
+    err = cv2.blur(np.abs(a.astype(np.float32) - warped), (3, 3))
+    return (1.0 / (1.0 + (err / cfg.photo_sigma) ** 2)).astype(np.float32)
+
+
 def flow_pair(
     a: np.ndarray,
     b: np.ndarray,
@@ -119,10 +136,13 @@ def flow_pair(
     init_ab: np.ndarray | None = None,
     init_ba: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Flows a->b, b->a (h, w, 2) and their confidences (h, w)."""
+    """Flows a->b, b->a (h, w, 2) and their confidences (h, w): forward-backward agreement
+    times photometric agreement."""
     fwd = dis_flow(a, b, cfg, init_ab)
     bwd = dis_flow(b, a, cfg, init_ba)
-    return fwd, bwd, fb_confidence(fwd, bwd, cfg), fb_confidence(bwd, fwd, cfg)
+    cf = fb_confidence(fwd, bwd, cfg) * photo_confidence(a, b, fwd, cfg)
+    cb = fb_confidence(bwd, fwd, cfg) * photo_confidence(b, a, bwd, cfg)
+    return fwd, bwd, cf, cb
 
 
 def pool_edge(flow: np.ndarray, conf: np.ndarray, factor: int, cfg: FlowConfig) -> tuple[torch.Tensor, torch.Tensor]:
