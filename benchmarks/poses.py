@@ -93,6 +93,7 @@ def evaluate(res, gt: np.ndarray, true_intr) -> dict:
         "keyframes": len(res.keyframes),
         "lost_frames": len(res.diagnostics.get("lost_frames", [])),
         "focal": res.intrinsics[0],
+        "lens_k1": res.diagnostics.get("lens_k1"),
     }
     if true_intr is not None:
         out["focal_error_pct"] = 100 * (res.intrinsics[0] / true_intr[0] - 1)

@@ -47,6 +47,7 @@ from .fusion import FusionOptions
 from viewer.output_folder import RECORDING
 
 from .io.frames import DatasetSource, FrameBatch, FrameSource, ImageFolderSource, open_source, resize_intrinsics
+from .lens import undistort_features, undistort_images, worth_undistorting
 
 STAGES = ("decode", "prior", "poses", "medea", "fusion", "export", "logging")
 POSE_CHOICES = ("auto", "gt", "estimate")
@@ -313,6 +314,7 @@ class PoseStage:
     source: str
     info: dict = field(default_factory=dict)
     keep: np.ndarray | None = None  # frames kept (ground truth may lack poses for some)
+    lens_k1: float = 0.0  # radial term the poses were estimated with (recon.lens)
 
 
 def plan_poses(config: PipelineConfig, source: FrameSource):
@@ -361,7 +363,8 @@ def estimated_poses(config: PipelineConfig, frames: FrameBatch, prior_depth, int
     )
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50}}
-    return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info)
+    return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info,
+                     lens_k1=float(result.diagnostics.get("lens_k1", 0.0)))
 
 
 def adjust_depth(config: PipelineConfig, frames: FrameBatch, prior, poses, intrinsics):
@@ -497,6 +500,17 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         print("note: camera intrinsics unknown; assuming NYU Depth v2's field of view "
               "(pass --intrinsics or --fov for a better mesh)", file=sys.stderr)
     intrinsics = tuple(float(v) for v in intrinsics)
+    undistorted = worth_undistorting(intrinsics, source.size, pose_stage.lens_k1)
+    if undistorted:
+        # The poses belong to the pinhole camera of the estimated lens: so must the images.
+        k1 = pose_stage.lens_k1
+        say(f"undistorting frames and prior (lens k1 {k1:+.4f})")
+        with timer.stage("poses"):
+            frames = FrameBatch(frames.indices, frames.timestamps, undistort_images(frames.rgb, intrinsics, k1))
+            prior_depth = undistort_images(prior_depth, intrinsics, k1, nearest=True)
+            if features is not None:
+                features = undistort_features(features, intrinsics, source.size, k1)
+            prior.depth, prior.features = prior_depth, features
 
     medea_result = None
     if config.adjust:
@@ -538,7 +552,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         "frames": {"count": len(frames), "indices": frames.indices.tolist(), "names": names,
                    "working_size": list(source.size)},
         "intrinsics": {"values": list(intrinsics), "source": intrinsics_from},
-        "poses": {"source": pose_stage.source, **pose_stage.info},
+        "poses": {"source": pose_stage.source, **pose_stage.info, "lens_k1": pose_stage.lens_k1,
+                  "frames_undistorted": undistorted},
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,
                   "features": None if features is None else list(features.shape[1:])},
         "medea": medea_summary(medea_result),

@@ -3,6 +3,9 @@ tracking loss; and the geometry it rests on (Lie maps, Jacobians, Schur-compleme
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -11,6 +14,7 @@ from recon.errors import ReconInputError
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
 from recon.poses import TrackingLostError, estimate_poses, intrinsics_from_fov
 from recon.poses import ba, lie
+from recon.poses.frontend import FrontendConfig
 from recon.poses import projective as pj
 from recon.synthetic import render_sequence, simulate_prior
 
@@ -56,6 +60,67 @@ def test_projection_jacobians_match_finite_differences():
     assert torch.allclose((moved - proj) / eps, Jz, atol=1e-3)
 
 
+def test_undistort_inverts_the_lens_and_its_derivatives_match_finite_differences():
+    intr = torch.tensor([80.0, 82.0, 39.5, 29.5], dtype=torch.float64)
+    uv = pj.pixel_grid(60, 80)
+    eps = 1e-6
+    for k1 in (-0.15, 0.0, 0.1):
+        pinhole, d_k1 = pj.undistort(uv, intr, k1)
+        assert torch.allclose(pj.distort(pinhole, intr, k1), uv, atol=1e-6)
+        moved = pj.undistort(uv, intr, k1 + eps)[0]
+        assert torch.allclose((moved - pinhole) / eps, d_k1, atol=1e-4)
+    # Moving the source pixels moves their projections by ray_jacobian (depth held).
+    g = torch.Generator().manual_seed(3)
+    Tij = lie.se3_exp(torch.randn(2, 6, generator=g, dtype=torch.float64) * 0.1)
+    src = torch.rand(50, 2, generator=g, dtype=torch.float64) * torch.tensor([80.0, 60.0])
+    dray = torch.randn(50, 2, generator=g, dtype=torch.float64)
+    disp = 0.2 + torch.rand(2, 50, generator=g, dtype=torch.float64)
+    X = pj.backproject(src, disp, intr)
+    proj, _ = pj.project(pj.transform(Tij, X), intr)
+    moved, _ = pj.project(pj.transform(Tij, pj.backproject(src + eps * dray, disp, intr)), intr)
+    assert torch.allclose((moved - proj) / eps, pj.ray_jacobian(Tij, X, intr, dray), atol=1e-4)
+
+
+def _exact_edges(seq, ids, h, w, k1=0.0):
+    """BA-grid poses, depth, intrinsics and exact flow edges (measured through a lens k1)."""
+    intr = torch.tensor(pj.scale_intrinsics(seq.intrinsics, w / seq.rgb.shape[2]), dtype=torch.float64)
+    s = seq.rgb.shape[2] // w
+    depth = torch.from_numpy(np.stack([seq.depth[i][s // 2 :: s, s // 2 :: s] for i in ids])).double()
+    T_gt = torch.from_numpy(np.linalg.inv(seq.poses[ids]))
+    ii, jj = zip(*[(a, b) for a in range(len(ids)) for b in range(len(ids)) if a != b and abs(a - b) <= 2])
+    ii, jj = torch.tensor(ii), torch.tensor(jj)
+    # A lens moves the pixels themselves too: the BA pixel at recorded position p sees the
+    # pinhole ray of undistort(p), whose depth is read there.
+    source, _ = pj.undistort(pj.pixel_grid(h, w), intr, k1)
+    grid_depth = torch.nn.functional.grid_sample(
+        depth[:, None], (source / torch.tensor([w - 1.0, h - 1.0]) * 2 - 1)[None].expand(len(ids), -1, -1, -1),
+        mode="nearest", padding_mode="border", align_corners=True)[:, 0]
+    target, valid = pj.reproject(T_gt, 1.0 / grid_depth, intr, ii, jj, source)
+    edges = ba.Edges(ii, jj, pj.distort(target, intr, k1), valid.double())
+    return intr, grid_depth, T_gt, edges
+
+
+def test_dense_ba_calibrates_the_lens_radial_term(room):
+    """Flow measured through a barrel lens (k1 = -0.08): the BA, started as a pinhole camera
+    from perturbed poses, finds k1 and the poses; held at k1 = 0 it cannot."""
+    torch.set_num_threads(1)
+    seq, _ = room
+    intr, depth, T_gt, edges = _exact_edges(seq, [0, 4, 8, 12, 16], 30, 40, k1=-0.08)
+    noise = lie.se3_exp(torch.randn(5, 6, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 0.01)
+    noise[0] = torch.eye(4)
+    disp = 1.0 / depth
+    weight = torch.full_like(depth, 0.01)
+    errors = {}
+    for calibrate in (True, False):
+        T, _, report = ba.bundle_adjust(noise @ T_gt, disp.clone(), intr, edges, disp, weight,
+                                        opts=ba.BAOptions(iters=20, calibrate_k1=calibrate))
+        errors[calibrate] = float((lie.inv(T) - lie.inv(T_gt))[:, :3, 3].norm(dim=-1).max())
+        if calibrate:
+            assert abs(report.k1 + 0.08) < 0.004, report.k1
+    assert errors[True] < 2e-3, errors  # metres
+    assert errors[False] > 2 * errors[True], errors
+
+
 def test_dense_ba_recovers_poses_and_depth_from_exact_flow(room):
     """Exact targets from ground truth; perturbed poses and prior depths converge back."""
     torch.set_num_threads(1)  # small tensors: threads only add synchronisation
@@ -95,6 +160,26 @@ def test_frontend_synthetic_accuracy_and_metric_scale(room):
     # Rotations are right too (ATE looks at camera centres only).
     assert rpe(res.poses, seq.poses, delta=10)["rot_rmse_deg"] < 0.5  # the true 10-frame rotation is ~4 deg
     assert res.keyframe_depth is not None and res.keyframe_depth.shape[0] == len(res.keyframes)
+
+
+def test_frontend_calibrates_a_barrel_lens(room):
+    """The room filmed through a barrel lens (k1 = -0.1, 4 % at the corners): the front end
+    finds k1 and keeps the path and scale; as a pinhole camera the scale is 19 % off."""
+    seq, prior = room
+    height, width = seq.rgb.shape[1:3]
+    # The recorded pixel p shows what the pinhole camera sees at undistort(p).
+    src, _ = pj.undistort(pj.pixel_grid(height, width), torch.tensor(seq.intrinsics, dtype=torch.float64), -0.1)
+    mx, my = src[..., 0].float().numpy(), src[..., 1].float().numpy()
+    rgb = np.stack([cv2.remap(f, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT) for f in seq.rgb])
+    depth = np.stack([cv2.remap(d, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT) for d in prior])
+    length = path_length(seq.poses)
+    res = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False)
+    assert abs(res.diagnostics["lens_k1"] + 0.1) < 0.02, res.diagnostics["lens_k1"]
+    assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * length
+    assert scale_error(res.poses, seq.poses) <= 0.10
+    pinhole = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False,
+                             config=replace(FrontendConfig(), calibrate_lens=False))
+    assert scale_error(pinhole.poses, seq.poses) > 0.10
 
 
 def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(room):

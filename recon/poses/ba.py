@@ -16,6 +16,10 @@ This module owns the least-squares problem of the front end and its solvers:
   **Schur complement**; the reduced camera system (6 per free pose) is assembled with
   scatter-adds and solved densely (Cholesky) in float64, then the depths are
   back-substituted pixel by pixel. Levenberg-Marquardt damping with step acceptance.
+* **lens self-calibration** (``BAOptions.calibrate_k1``): flow is measured on the
+  recorded images, and both ends of every correspondence are undistorted with the lens'
+  radial term k1 (``projective.undistort``) before the residual is taken; k1 can be one
+  more unknown, node K of the reduced system (padded to a pose's six rows).
 * **motion-only alignment** (:func:`align_frames`): Gauss-Newton on one pose per frame
   against fixed keyframes (their pose and BA depth), batched over frames.
 
@@ -36,6 +40,8 @@ from recon.poses import projective as pj
 # measurable from a hand-held video, and nearer than 5 cm nothing is in focus.
 MIN_DISP = 1e-3
 MAX_DISP = 20.0
+# |k1| beyond this is a fisheye, which one radial term cannot describe.
+MAX_K1 = 0.5
 # Residual pixels processed per chunk when building the normal equations; bounds the
 # memory of the per-pixel Jacobians (~ 200 bytes per pixel-edge).
 CHUNK_PIXELS = 400_000
@@ -48,22 +54,44 @@ class Edges:
     ii, jj: (E,) int64 keyframe indices (source, target).
     target: (E, H, W, 2) float64 pixel coordinates in jj of every BA pixel of ii.
     weight: (E, H, W) float64 confidence in [0, 1] (0 = no measurement).
+    source: (H, W, 2) coordinates of the BA pixels themselves, shared by all keyframes (one
+        camera); None for the pixel grid. Set by :meth:`undistorted`, which moves both
+        ends into the pinhole image of a lens.
     """
 
     ii: torch.Tensor
     jj: torch.Tensor
     target: torch.Tensor
     weight: torch.Tensor
+    source: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.ii.numel())
 
+    def source_pixels(self, dtype: torch.dtype) -> torch.Tensor:
+        """(P, 2) coordinates of the BA pixels, in dtype."""
+        if self.source is not None:
+            return self.source.reshape(-1, 2).to(dtype)
+        height, width = self.target.shape[1:3]
+        return pj.pixel_grid(height, width, dtype=dtype).reshape(-1, 2)
+
     def select(self, mask: torch.Tensor) -> "Edges":
-        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask])
+        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask], self.source)
 
     def remap(self, index: torch.Tensor) -> "Edges":
         """The same edges with keyframe ids replaced by index[id] (e.g. global -> window)."""
-        return Edges(index[self.ii], index[self.jj], self.target, self.weight)
+        return Edges(index[self.ii], index[self.jj], self.target, self.weight, self.source)
+
+    def undistorted(self, intr: torch.Tensor, k1: float) -> "Edges":
+        """The same measurements in the pinhole image of a lens with radial term k1 (edges
+        measured on the recorded images, source None)."""
+        if k1 == 0.0:
+            return self
+        height, width = self.target.shape[1:3]
+        grid = pj.pixel_grid(height, width, dtype=self.target.dtype)
+        intr = intr.to(self.target.dtype)
+        return Edges(self.ii, self.jj, pj.undistort(self.target, intr, k1)[0], self.weight,
+                     pj.undistort(grid, intr, k1)[0])
 
 
 @dataclass
@@ -84,6 +112,14 @@ class BAOptions:
     eps: absolute damping added to every pose and depth diagonal entry.
     pixel_dtype: dtype of the per-pixel Jacobians (float32 halves the time; the reduced
         camera system and the poses stay float64).
+    calibrate_k1: also estimate the lens' radial term k1 (``projective.undistort``), one
+        unknown shared by all keyframes; the edges must then be measured on the recorded
+        images (``Edges.source`` None).
+    k1_prior_weight: tie of k1 to its starting value, 0.5 w C (k1 - k1_0)^2 with C the total
+        flow confidence of the edges (so that its strength does not depend on the size of
+        the problem): 1e-3 makes k1 = 0.1 cost as much as every pixel being off by 0.003 px,
+        nothing against what a lens does to the flow, but it holds k1 where the motion says
+        nothing about the lens.
     """
 
     iters: int = 6
@@ -94,17 +130,21 @@ class BAOptions:
     lm: float = 1e-4
     eps: float = 1e-6
     pixel_dtype: torch.dtype = torch.float32
+    calibrate_k1: bool = False
+    k1_prior_weight: float = 1e-3
 
 
 @dataclass
 class BAReport:
-    """What one BA call did: cost per accepted iteration, rejected steps, final stats."""
+    """What one BA call did: cost per accepted iteration, rejected steps, final stats and
+    the lens' radial term (estimated when calibrating, else as given)."""
 
     costs: list[float] = field(default_factory=list)
     rejected: int = 0
     rmse: float = float("nan")
     inlier_fraction: float = float("nan")
     huber: float = float("nan")
+    k1: float = 0.0
 
 
 def huber_weights(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
@@ -123,12 +163,15 @@ def _chunks(num_edges: int, pixels: int) -> list[slice]:
 
 
 def edge_residuals(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, dtype: torch.dtype | None = None
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, dtype: torch.dtype | None = None,
+    k1: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Residual vectors (E, P, 2) = target - projection and validity (E, P), computed in
-    dtype (default: the poses' dtype)."""
+    dtype (default: the poses' dtype), the edges undistorted with k1 first."""
     dtype = dtype or T_cw.dtype
-    uv, valid = pj.reproject(T_cw.to(dtype), disps.to(dtype), intr.to(dtype), edges.ii, edges.jj)
+    edges = Edges(edges.ii, edges.jj, edges.target.to(dtype), edges.weight, edges.source).undistorted(intr, k1)
+    uv, valid = pj.reproject(T_cw.to(dtype), disps.to(dtype), intr.to(dtype), edges.ii, edges.jj,
+                             edges.source_pixels(dtype))
     num = len(edges)
     r = (edges.target.to(dtype) - uv).reshape(num, -1, 2)
     return r, valid.reshape(num, -1)
@@ -143,11 +186,11 @@ class _Residuals:
     valid: torch.Tensor
 
     @classmethod
-    def of(cls, T_cw, disps, intr, edges: Edges, dtype: torch.dtype) -> "_Residuals":
+    def of(cls, T_cw, disps, intr, edges: Edges, dtype: torch.dtype, k1: float = 0.0) -> "_Residuals":
         if not len(edges):
             empty = torch.zeros(0, disps[0].numel(), dtype=dtype)
             return cls(empty, empty.bool())
-        r, valid = edge_residuals(T_cw, disps, intr, edges, dtype)
+        r, valid = edge_residuals(T_cw, disps, intr, edges, dtype, k1)
         return cls(r.norm(dim=-1), valid)
 
     def cost(self, edges: Edges, huber: float) -> float:
@@ -195,9 +238,11 @@ def total_cost(
     prior: torch.Tensor | None,
     prior_w: torch.Tensor | None,
     opts: BAOptions,
+    k1: float = 0.0,
 ) -> float:
-    """The BA objective: robust reprojection cost plus the prior tie."""
-    res = _Residuals.of(T_cw, disps, intr, edges, opts.pixel_dtype)
+    """The BA objective: robust reprojection cost plus the prior tie (the edges undistorted
+    with k1)."""
+    res = _Residuals.of(T_cw, disps, intr, edges, opts.pixel_dtype, k1)
     return res.cost(edges, opts.huber) + prior_cost(disps, prior, prior_w)
 
 
@@ -210,15 +255,20 @@ def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 
 def _normal_equations(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions,
+    k1: float | None = None,
 ) -> dict:
     """Per-edge pose blocks, per-pixel depth terms and pose-depth couplings of the robust GN system.
 
+    k1 None: the edges are already in the pinhole image. k1 a number: the edges are raw
+    measurements, undistorted here with k1, which is one more unknown.
     Returns (K keyframes, E edges, P pixels):
         Hii, Hij, Hjj: (E, 6, 6) blocks of J^T W J for (ii, ii), (ii, jj), (jj, jj);
         vi, vj: (E, 6) J^T W r for the two poses;
         C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
-        Ei, Ej: (E, P, 6) pose-depth couplings J_pose^T W J_depth.
+        Ei, Ej: (E, P, 6) pose-depth couplings J_pose^T W J_depth;
+    and with k1: Hkk, vk () for k1 itself, Hki, Hkj (E, 6) its couplings to the poses and
+    Ek (K, P) to the depths.
     """
     num_kf = disps.shape[0]
     height, width = disps.shape[-2:]
@@ -226,9 +276,14 @@ def _normal_equations(
     E = len(edges)
     dt = T_cw.dtype
     px = opts.pixel_dtype
-    uv = pj.pixel_grid(height, width, dtype=px).reshape(1, P, 2)
+    calibrate = k1 is not None
     Tij = lie.relative(T_cw, edges.ii, edges.jj)
     Tij_px, intr_px = Tij.to(px), intr.to(px)
+    if calibrate:
+        uv, duv = pj.undistort(edges.source_pixels(px), intr_px, k1)
+    else:
+        uv = edges.source_pixels(px)
+    uv = uv[None]
     out = {
         "Hjj": torch.empty(E, 6, 6, dtype=dt),
         "vj": torch.empty(E, 6, dtype=dt),
@@ -236,13 +291,19 @@ def _normal_equations(
         "C": torch.zeros(num_kf, P, dtype=dt),
         "w": torch.zeros(num_kf, P, dtype=dt),
     }
+    if calibrate:
+        out.update(Hkk=torch.zeros((), dtype=dt), vk=torch.zeros((), dtype=dt), Hkj=torch.empty(E, 6, dtype=dt),
+                   Ek=torch.zeros(num_kf, P, dtype=dt))
     flat_disp = disps.reshape(num_kf, P).to(px)
     for sl in _chunks(E, P):
         ii = edges.ii[sl]
         n = ii.numel()
         Xi = pj.backproject(uv, flat_disp[ii], intr_px)
         proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij_px[sl], Xi, intr_px)
-        r = edges.target[sl].reshape(n, P, 2).to(px) - proj
+        target = edges.target[sl].reshape(n, P, 2).to(px)
+        if calibrate:
+            target, dtarget = pj.undistort(target, intr_px, k1)
+        r = target - proj
         wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(r.norm(dim=-1), opts.huber)
         wJj = (Jj * wgt[..., None, None]).reshape(n, 2 * P, 6)
         out["Hjj"][sl] = (wJj.transpose(1, 2) @ Jj.reshape(n, 2 * P, 6)).to(dt)
@@ -251,6 +312,14 @@ def _normal_equations(
         out["Ej"][sl] = Jj[..., 0, :] * wJz[..., 0:1] + Jj[..., 1, :] * wJz[..., 1:2]
         out["C"].index_add_(0, ii, (wJz * Jz).sum(-1).to(dt))
         out["w"].index_add_(0, ii, (wJz * r).sum(-1).to(dt))
+        if calibrate:
+            # k1 moves the source ray and the measured target: d(proj - target) / d k1.
+            Jk = pj.ray_jacobian(Tij_px[sl], Xi, intr_px, duv) - dtarget  # (n, P, 2)
+            wJk = Jk * wgt[..., None]
+            out["Hkk"] += (wJk * Jk).sum().to(dt)
+            out["vk"] += (wJk * r).sum().to(dt)
+            out["Hkj"][sl] = (wJk.reshape(n, 1, 2 * P) @ Jj.reshape(n, 2 * P, 6))[:, 0].to(dt)
+            out["Ek"].index_add_(0, ii, (wJk * Jz).sum(-1).to(dt))
     # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
     A = lie.adjoint(Tij)
     At = A.transpose(1, 2)
@@ -258,6 +327,8 @@ def _normal_equations(
     out["Hii"] = At @ out["Hjj"] @ A
     out["vi"] = -(At @ out["vj"][..., None])[..., 0]
     out["Ei"] = -(out["Ej"] @ A.to(px))
+    if calibrate:
+        out["Hki"] = -(out["Hkj"][:, None, :] @ A)[:, 0]
     return out
 
 
@@ -266,10 +337,11 @@ class _Couplings:
     """Per-keyframe pose-depth couplings, the layout the Schur complement works in.
 
     The depth of pixel p of keyframe k couples to pose k (through every edge leaving k) and
-    to pose jj[e] of each edge e leaving k. B (K, 6 (n + 1), P) stacks those Jacobian
-    products for each keyframe: slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1
-    the s-th edge leaving k (Ej), zero-padded to the largest out-degree n. pose (K, n + 1)
-    is the pose each slot belongs to (padding points at k itself with zero coupling).
+    to pose jj[e] of each edge e leaving k. B (K, 6 m, P) stacks those Jacobian products for
+    each keyframe: slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1 the s-th
+    edge leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
+    node K, padded to a pose's 6 rows, in one last slot. pose (K, m) is the node each slot
+    belongs to (padding points at k itself with zero coupling).
     """
 
     B: torch.Tensor
@@ -290,20 +362,25 @@ def _couplings(sys: dict, edges: Edges, num_kf: int) -> _Couplings:
     first = torch.cumsum(counts, 0) - counts
     slot = torch.arange(E) - first[ii[order]] + 1
     n = int(counts.max()) if E else 0
-    B = torch.zeros(K, n + 1, 6, P, dtype=Ej.dtype)
+    m = n + 1 + ("Ek" in sys)
+    B = torch.zeros(K, m, 6, P, dtype=Ej.dtype)
     Et = torch.zeros(K, P, 6, dtype=Ej.dtype).index_add_(0, ii, sys["Ei"])
     B[:, 0] = Et.transpose(1, 2)
     B[ii[order], slot] = Ej[order].transpose(1, 2)
-    pose = torch.arange(K)[:, None].repeat(1, n + 1)
+    pose = torch.arange(K)[:, None].repeat(1, m)
     pose[ii[order], slot] = jj[order]
-    return _Couplings(B.reshape(K, 6 * (n + 1), P), pose)
+    if "Ek" in sys:
+        B[:, -1, 0] = sys["Ek"].to(Ej.dtype)
+        pose[:, -1] = K
+    return _Couplings(B.reshape(K, 6 * m, P), pose)
 
 
 def _reduced_system(
     sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int
 ) -> tuple[torch.Tensor, torch.Tensor, _Couplings]:
-    """Schur complement over the depths: blocks S (K, K, 6, 6), gradient g (K, 6) and the
-    couplings (for the back-substitution).
+    """Schur complement over the depths: blocks S (N, N, 6, 6), gradient g (N, 6) and the
+    couplings (for the back-substitution). N = K poses, plus k1 as node K (its first row)
+    when the system has it.
 
     Eliminating keyframe k's depths (diagonal Hessian 1 / Q) subtracts B_k Q_k B_k^T from
     the poses it couples to and B_k Q_k w_k from their gradient: one batched product over
@@ -312,14 +389,23 @@ def _reduced_system(
     ii, jj = edges.ii, edges.jj
     dt = Q.dtype
     K = num_kf
-    S = torch.zeros(K * K, 6, 6, dtype=dt)
-    S.index_add_(0, ii * K + ii, sys["Hii"])
-    S.index_add_(0, ii * K + jj, sys["Hij"])
-    S.index_add_(0, jj * K + ii, sys["Hij"].transpose(1, 2))
-    S.index_add_(0, jj * K + jj, sys["Hjj"])
-    g = torch.zeros(K, 6, dtype=dt)
+    N = K + ("Hkk" in sys)
+    S = torch.zeros(N * N, 6, 6, dtype=dt)
+    S.index_add_(0, ii * N + ii, sys["Hii"])
+    S.index_add_(0, ii * N + jj, sys["Hij"])
+    S.index_add_(0, jj * N + ii, sys["Hij"].transpose(1, 2))
+    S.index_add_(0, jj * N + jj, sys["Hjj"])
+    g = torch.zeros(N, 6, dtype=dt)
     g.index_add_(0, ii, sys["vi"])
     g.index_add_(0, jj, sys["vj"])
+    if N > K:
+        for pose, H in ((ii, sys["Hki"]), (jj, sys["Hkj"])):
+            row = torch.zeros(len(edges), 6, 6, dtype=dt)
+            row[:, 0] = H
+            S.index_add_(0, K * N + pose, row)
+            S.index_add_(0, pose * N + K, row.transpose(1, 2))
+        S[K * N + K, 0, 0] += sys["Hkk"]
+        g[K, 0] += sys["vk"]
 
     cpl = _couplings(sys, edges, K)
     B, m = cpl.B, cpl.slots
@@ -328,10 +414,10 @@ def _reduced_system(
     blocks = blocks.reshape(K, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
     rows = cpl.pose[:, :, None].expand(K, m, m)
     cols = cpl.pose[:, None, :].expand(K, m, m)
-    S.index_add_(0, (rows * K + cols).reshape(-1), -blocks)
+    S.index_add_(0, (rows * N + cols).reshape(-1), -blocks)
     gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (K, 6m)
     g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
-    return S.reshape(K, K, 6, 6), g, cpl
+    return S.reshape(N, N, 6, 6), g, cpl
 
 
 def ba_step(
@@ -346,14 +432,18 @@ def ba_step(
     lm: float,
     sys: dict | None = None,
     fixed_disp: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    k1: float | None = None,
+    k1_tie: tuple[float, float] = (0.0, 0.0),
+) -> tuple[torch.Tensor, torch.Tensor, float | None, dict]:
     """One damped Gauss-Newton step. Returns the proposed poses (K, 4, 4), inverse depths
-    (K, H, W) and the normal equations used (reusable for a re-damped retry)."""
+    (K, H, W), k1 (when estimated: k1 given, edges raw, tied to k1_tie = (start, weight)
+    by 0.5 weight (k1 - start)^2; else None) and the normal equations used (reusable for a
+    re-damped retry)."""
     K = disps.shape[0]
     height, width = disps.shape[-2:]
     P = height * width
     if sys is None:
-        sys = _normal_equations(T_cw, disps, intr, edges, opts)
+        sys = _normal_equations(T_cw, disps, intr, edges, opts, k1)
     C = sys["C"].clone()
     wz = sys["w"].clone()
     if prior is not None:
@@ -369,9 +459,14 @@ def ba_step(
         # A held depth has infinite stiffness: it drops out of the Schur complement.
         Q[fixed_disp] = 0.0
     S, g, cpl = _reduced_system(sys, edges, Q, wz, K)
+    if k1 is not None:
+        start, weight = k1_tie
+        S[K, K, 0, 0] += weight
+        g[K, 0] += weight * (start - k1)
+        fixed = torch.cat([fixed, fixed.new_zeros(1)])
 
     free = (~fixed).nonzero(as_tuple=True)[0]
-    dx = torch.zeros(K, 6, dtype=T_cw.dtype)
+    dx = torch.zeros(S.shape[0], 6, dtype=T_cw.dtype)
     if free.numel():
         Sf = S[free][:, free].permute(0, 2, 1, 3).reshape(6 * free.numel(), 6 * free.numel())
         Sf = 0.5 * (Sf + Sf.T)
@@ -382,9 +477,10 @@ def ba_step(
     dx_slots = dx[cpl.pose].reshape(K, -1, 1).to(cpl.B.dtype)
     rhs = wz - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
     dz = (Q * rhs).reshape(K, height, width)
-    T_new = lie.se3_exp(dx) @ T_cw
+    T_new = lie.se3_exp(dx[:K]) @ T_cw
     d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
-    return T_new, d_new, sys
+    k1_new = None if k1 is None else float(min(max(k1 + float(dx[K, 0]), -MAX_K1), MAX_K1))
+    return T_new, d_new, k1_new, sys
 
 
 def bundle_adjust(
@@ -397,42 +493,59 @@ def bundle_adjust(
     fixed: torch.Tensor | None = None,
     opts: BAOptions | None = None,
     fixed_disp: torch.Tensor | None = None,
+    k1: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, BAReport]:
     """Levenberg-Marquardt dense BA.
 
     T_cw: (K, 4, 4) float64 world-to-camera poses; disps: (K, H, W) inverse depth;
-    intr: (4,) BA-grid intrinsics; edges: the frame graph; prior: (K, H, W) prior inverse
-    depth (or None); prior_w: (K, H, W) per-pixel tie weight (0 where the prior is invalid);
-    fixed: (K,) bool poses held constant (at least one, or the gauge is free);
-    fixed_disp: (K,) bool keyframes whose depth is held (old keyframes around a window).
-    Returns the refined poses, inverse depths and a report.
+    intr: (4,) BA-grid intrinsics; edges: the frame graph, measured on the recorded images;
+    prior: (K, H, W) prior inverse depth (or None); prior_w: (K, H, W) per-pixel tie
+    weight (0 where the prior is invalid); fixed: (K,) bool poses held constant (at least
+    one, or the gauge is free); fixed_disp: (K,) bool keyframes whose depth is held (old
+    keyframes around a window); k1: the lens' radial term (0: pinhole), the start of its
+    estimate when ``opts.calibrate_k1``.
+    Returns the refined poses, inverse depths and a report (with k1).
     """
     opts = opts or BAOptions()
     K = disps.shape[0]
     if fixed is None:
         fixed = torch.zeros(K, dtype=torch.bool)
         fixed[0] = True
+    calibrate = opts.calibrate_k1
+    k1_tie = (k1, opts.k1_prior_weight * float(edges.weight.sum()) if calibrate else 0.0)
+    if not calibrate:
+        edges = edges.undistorted(intr, k1)
+
+    def objective(res: _Residuals, d: torch.Tensor, k: float, huber: float) -> float:
+        lens = 0.5 * k1_tie[1] * (k - k1_tie[0]) ** 2
+        return res.cost(edges, huber) + prior_cost(d, prior, prior_w) + lens
+
+    def residuals(T: torch.Tensor, d: torch.Tensor, k: float) -> _Residuals:
+        return _Residuals.of(T, d, intr, edges, opts.pixel_dtype, k if calibrate else 0.0)
+
     report = BAReport()
     lm = opts.lm
     sys = None
     huber = opts.huber
     cost = float("nan")
-    res = _Residuals.of(T_cw, disps, intr, edges, opts.pixel_dtype)
+    res = residuals(T_cw, disps, k1)
     for _ in range(opts.iters):
         if sys is None:
             # The robust threshold follows the residuals as they shrink; both sides of the
             # accept test below use the same threshold.
             if opts.huber_auto > 0 and len(edges):
                 huber = res.adaptive_huber(edges, opts)
-            cost = res.cost(edges, huber) + prior_cost(disps, prior, prior_w)
+            cost = objective(res, disps, k1, huber)
             if not report.costs:
                 report.costs.append(cost)
-        T_new, d_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed, replace(opts, huber=huber), lm,
-                                    sys, fixed_disp)
-        res_new = _Residuals.of(T_new, d_new, intr, edges, opts.pixel_dtype)
-        new_cost = res_new.cost(edges, huber) + prior_cost(d_new, prior, prior_w)
+        T_new, d_new, k1_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed,
+                                            replace(opts, huber=huber), lm, sys, fixed_disp,
+                                            k1 if calibrate else None, k1_tie)
+        k1_new = k1 if k1_new is None else k1_new
+        res_new = residuals(T_new, d_new, k1_new)
+        new_cost = objective(res_new, d_new, k1_new, huber)
         if new_cost <= cost:
-            T_cw, disps, res = T_new, d_new, res_new
+            T_cw, disps, k1, res = T_new, d_new, k1_new, res_new
             report.costs.append(new_cost)
             lm = max(lm / 3.0, 1e-7)
             sys = None
@@ -443,6 +556,7 @@ def bundle_adjust(
                 break
     report.rmse, report.inlier_fraction = res.stats(edges, max(huber, 0.5))
     report.huber = huber
+    report.k1 = k1
     return T_cw, disps, report
 
 
@@ -456,22 +570,25 @@ def align_frames(
     weight: torch.Tensor,
     iters: int = 8,
     huber: float = 1.0,
+    k1: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Motion-only Gauss-Newton: world-to-camera poses of M frames against fixed keyframes.
 
     T_init: (M, 4, 4) initial poses of the frames; for each of L measurements:
     T_kf (L, 4, 4) the keyframe's pose, disp_kf (L, H, W) its inverse depth, frame (L,)
     which of the M frames it observes, target (L, H, W, 2) where the keyframe's pixels
-    land in that frame, weight (L, H, W). Returns poses (M, 4, 4), the weighted RMS
+    land in that frame (recorded pixels), weight (L, H, W); k1 the lens' radial term.
+    Returns poses (M, 4, 4), the weighted RMS
     residual (M,) in BA pixels and the fraction (M,) of confidence weight within `huber`.
     """
     M = T_init.shape[0]
     L = T_kf.shape[0]
     height, width = disp_kf.shape[-2:]
     P = height * width
-    uv = pj.pixel_grid(height, width, dtype=T_init.dtype).reshape(1, P, 2)
+    pinhole = Edges(frame, frame, target, weight).undistorted(intr, k1)
+    uv = pinhole.source_pixels(T_init.dtype).reshape(1, P, 2)
     Xk = pj.backproject(uv, disp_kf.reshape(L, P), intr)
-    tgt = target.reshape(L, P, 2)
+    tgt = pinhole.target.reshape(L, P, 2)
     w0 = weight.reshape(L, P)
     T = T_init.clone()
     eye = torch.eye(6, dtype=T.dtype)

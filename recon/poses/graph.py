@@ -169,13 +169,17 @@ def select_proximity(
 
 
 def predicted_flow(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, i: int, j: int, flow_size: tuple[int, int]
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, i: int, j: int, flow_size: tuple[int, int],
+    k1: float = 0.0,
 ) -> np.ndarray:
     """Flow (hf, wf, 2) float32 from keyframe i to j at the flow resolution predicted by the
-    current poses and BA depth (a seed for DIS); points behind j keep zero flow."""
-    uv, valid = pj.reproject(T_cw, disps, intr, torch.tensor([i]), torch.tensor([j]))
+    current poses and BA depth, between the recorded images of a lens with radial term k1
+    (a seed for DIS); points behind j keep zero flow."""
     height, width = disps.shape[-2:]
-    flow = (uv[0] - pj.pixel_grid(height, width, dtype=uv.dtype)) * valid[0, ..., None]
+    grid = pj.pixel_grid(height, width, dtype=disps.dtype)
+    source, _ = pj.undistort(grid, intr, k1)
+    uv, valid = pj.reproject(T_cw, disps, intr, torch.tensor([i]), torch.tensor([j]), source)
+    flow = (pj.distort(uv[0], intr, k1) - grid) * valid[0, ..., None]
     wf, hf = flow_size
     scale = np.array([wf / width, hf / height], dtype=np.float32)
     up = cv2.resize(flow.numpy().astype(np.float32), (wf, hf), interpolation=cv2.INTER_LINEAR)
