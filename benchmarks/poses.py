@@ -48,15 +48,9 @@ def fastdepth(rgb: np.ndarray, intrinsics) -> tuple[np.ndarray, float]:
 def undistort_radial(rgb: np.ndarray, prior: np.ndarray, intrinsics, k1: float) -> tuple[np.ndarray, np.ndarray]:
     """Frames (N, H, W, 3) and prior (N, H, W) resampled as if taken through a lens with
     radial coefficient k1 removed (same pinhole intrinsics). Diagnostic for --k1 only."""
-    import cv2
+    from recon.lens import undistort_images
 
-    fx, fy, cx, cy = intrinsics
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-    size = (rgb.shape[2], rgb.shape[1])
-    mx, my = cv2.initUndistortRectifyMap(K, np.array([k1, 0, 0, 0.0]), None, K, size, cv2.CV_32FC1)
-    rgb = np.stack([cv2.remap(im, mx, my, cv2.INTER_LINEAR) for im in rgb])
-    prior = np.stack([cv2.remap(p, mx, my, cv2.INTER_NEAREST) for p in prior])
-    return rgb, prior
+    return undistort_images(rgb, intrinsics, k1), undistort_images(prior, intrinsics, k1, nearest=True)
 
 
 def load_case(name: str, k1: float = 0.0):

@@ -78,7 +78,7 @@ def test_undistort_inverts_the_lens_and_its_derivatives_match_finite_differences
     X = pj.backproject(src, disp, intr)
     proj, _ = pj.project(pj.transform(Tij, X), intr)
     moved, _ = pj.project(pj.transform(Tij, pj.backproject(src + eps * dray, disp, intr)), intr)
-    assert torch.allclose((moved - proj) / eps, pj.ray_jacobian(Tij, X, intr, dray), atol=1e-4)
+    assert torch.allclose((moved - proj) / eps, pj.ray_jacobian(Tij, pj.transform(Tij, X), intr, dray), atol=1e-4)
 
 
 def _exact_edges(seq, ids, h, w, k1=0.0):
@@ -126,14 +126,7 @@ def test_dense_ba_recovers_poses_and_depth_from_exact_flow(room):
     torch.set_num_threads(1)  # small tensors: threads only add synchronisation
     seq, prior = room
     ids = [0, 4, 8, 12]
-    h, w = 30, 40
-    intr = torch.tensor(pj.scale_intrinsics(seq.intrinsics, w / 320), dtype=torch.float64)
-    depth = torch.from_numpy(np.stack([seq.depth[i][4::8, 4::8] for i in ids])).double()
-    T_gt = torch.from_numpy(np.linalg.inv(seq.poses[ids]))
-    ii, jj = zip(*[(a, b) for a in range(4) for b in range(4) if a != b and abs(a - b) <= 2])
-    ii, jj = torch.tensor(ii), torch.tensor(jj)
-    target, valid = pj.reproject(T_gt, 1.0 / depth, intr, ii, jj)
-    edges = ba.Edges(ii, jj, target, valid.double())
+    intr, depth, T_gt, edges = _exact_edges(seq, ids, 30, 40)
     noise = lie.se3_exp(torch.randn(4, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 0.01)
     noise[0] = torch.eye(4)
     prior_disp = 1.0 / torch.from_numpy(np.stack([prior[i][4::8, 4::8] for i in ids])).double()

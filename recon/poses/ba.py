@@ -87,6 +87,8 @@ class Edges:
         measured on the recorded images, source None)."""
         if k1 == 0.0:
             return self
+        if self.source is not None:
+            raise ValueError("these edges are already in a pinhole image; undistorting them again would bend them twice")
         height, width = self.target.shape[1:3]
         grid = pj.pixel_grid(height, width, dtype=self.target.dtype)
         intr = intr.to(self.target.dtype)
@@ -298,8 +300,8 @@ def _normal_equations(
     for sl in _chunks(E, P):
         ii = edges.ii[sl]
         n = ii.numel()
-        Xi = pj.backproject(uv, flat_disp[ii], intr_px)
-        proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij_px[sl], Xi, intr_px)
+        Xj = pj.transform(Tij_px[sl], pj.backproject(uv, flat_disp[ii], intr_px))
+        proj, valid, Jj, Jz = pj.project_with_jacobians(Tij_px[sl], Xj, intr_px)
         target = edges.target[sl].reshape(n, P, 2).to(px)
         if calibrate:
             target, dtarget = pj.undistort(target, intr_px, k1)
@@ -314,7 +316,7 @@ def _normal_equations(
         out["w"].index_add_(0, ii, (wJz * r).sum(-1).to(dt))
         if calibrate:
             # k1 moves the source ray and the measured target: d(proj - target) / d k1.
-            Jk = pj.ray_jacobian(Tij_px[sl], Xi, intr_px, duv) - dtarget  # (n, P, 2)
+            Jk = pj.ray_jacobian(Tij_px[sl], Xj, intr_px, duv) - dtarget  # (n, P, 2)
             wJk = Jk * wgt[..., None]
             out["Hkk"] += (wJk * Jk).sum().to(dt)
             out["vk"] += (wJk * r).sum().to(dt)

@@ -82,9 +82,9 @@ class FrontendConfig:
         flow is measured on the frames as recorded and undistorted in the BA.
     calibrate_lens: estimate k1 (starting from lens_k1) in a BA over all keyframes once
         ``calibrate_after`` keyframes exist (``calibrate_iters`` LM iterations; tracking
-        goes on with it) and again in the final global BA. A lens the model ignores makes the BA trade rotation for
-        translation: on 7-Scenes (whose colour images are not undistorted) rotations came
-        out ~11 % short and the path ~20 % long.
+        goes on with it) and again in the final global BA. A lens the model ignores makes
+        the BA trade rotation for translation: on 7-Scenes (whose colour images are not
+        undistorted) rotations came out ~11 % short and the path ~20 % long.
     lost_inlier: a frame whose alignment keeps less than this fraction of the flow
         confidence within the robust threshold counts as lost.
     max_lost: consecutive lost frames (after relocalisation attempts) that stop tracking.

@@ -138,8 +138,15 @@ def reproject_with_jacobians(
     T_ij as ``exp(-Ad(T_ij) xi_i)``); callers apply it per edge to the summed normal
     equations instead of per pixel, which is what keeps dense BA cheap.
     """
+    return project_with_jacobians(Tij, transform(Tij, Xi), intr)
+
+
+def project_with_jacobians(
+    Tij: torch.Tensor, Xj: torch.Tensor, intr: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`reproject_with_jacobians` for points already moved into camera j: Xj (E, P, 4)
+    = Tij Xi (for callers that need Xj again, e.g. :func:`ray_jacobian`)."""
     fx, fy, cx, cy = intr.unbind(-1)
-    Xj = transform(Tij, Xi)
     uv, valid = project(Xj, intr)
     X, Y, Z, W = Xj.unbind(-1)
     iz = 1.0 / torch.where(valid, Z, torch.ones_like(Z))
@@ -166,12 +173,11 @@ def reproject_with_jacobians(
     return uv, valid, Jj, Jz
 
 
-def ray_jacobian(Tij: torch.Tensor, Xi: torch.Tensor, intr: torch.Tensor, dray: torch.Tensor) -> torch.Tensor:
-    """Derivative (E, P, 2) of the projections of Xi (E, P, 4) into camera j (Tij (E, 4, 4))
-    when their pinhole source pixels move by dray (P, 2) (per unit of some parameter, e.g.
-    k1): the source ray (x, y, 1) moves by dray / (fx, fy), depth d held."""
+def ray_jacobian(Tij: torch.Tensor, Xj: torch.Tensor, intr: torch.Tensor, dray: torch.Tensor) -> torch.Tensor:
+    """Derivative (E, P, 2) of the projections of points Xj = Tij Xi (E, P, 4) in camera j
+    (Tij (E, 4, 4)) when their pinhole source pixels move by dray (P, 2) (per unit of some
+    parameter, e.g. k1): the source ray (x, y, 1) moves by dray / (fx, fy), depth d held."""
     fx, fy, _, _ = intr.unbind(-1)
-    Xj = transform(Tij, Xi)
     X, Y, Z, _ = Xj.unbind(-1)
     iz = 1.0 / torch.where(Z > 1e-6, Z, torch.ones_like(Z))
     R = Tij[:, None, :3, :3]
