@@ -47,7 +47,8 @@ def test_projection_jacobians_match_finite_differences():
     uv = torch.rand(3, 50, 2, generator=g, dtype=torch.float64) * torch.tensor([80.0, 60.0])
     disp = 0.2 + torch.rand(3, 50, generator=g, dtype=torch.float64)
     X = pj.backproject(uv, disp, intr)
-    proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij, X, intr)
+    proj, valid, Jj, Jz = pj.reproject_with_jacobians(Tij, X.transpose(1, 2), intr)
+    proj, Jj, Jz = proj.transpose(1, 2), Jj.permute(0, 3, 1, 2), Jz.transpose(1, 2)  # planes -> per pixel
     assert valid.all()
     eps = 1e-6
     for k in range(6):
@@ -78,7 +79,8 @@ def test_undistort_inverts_the_lens_and_its_derivatives_match_finite_differences
     X = pj.backproject(src, disp, intr)
     proj, _ = pj.project(pj.transform(Tij, X), intr)
     moved, _ = pj.project(pj.transform(Tij, pj.backproject(src + eps * dray, disp, intr)), intr)
-    assert torch.allclose((moved - proj) / eps, pj.ray_jacobian(Tij, pj.transform(Tij, X), intr, dray), atol=1e-4)
+    Jray = pj.ray_jacobian(Tij, pj.transform(Tij, X).transpose(1, 2), intr, dray.T)
+    assert torch.allclose((moved - proj) / eps, Jray.transpose(1, 2), atol=1e-4)
 
 
 def _exact_edges(seq, ids, h, w, k1=0.0):

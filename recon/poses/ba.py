@@ -256,6 +256,16 @@ def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lstsq(S, g[:, None]).solution[:, 0]
 
 
+def _pixel_sums(J: torch.Tensor, wgt: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """J^T W J (E, 6, 6) and J^T W r (E, 6) summed over pixels, of Jacobian planes J
+    (E, 2, 6, P), weights (E, P) and residuals r (E, 2, P): one matrix product per residual
+    row (u, v)."""
+    wJ = J * wgt[:, None, None]
+    JtJ = wJ[:, 0] @ J[:, 0].transpose(1, 2) + wJ[:, 1] @ J[:, 1].transpose(1, 2)
+    Jtr = (wJ[:, 0] @ r[:, 0, :, None] + wJ[:, 1] @ r[:, 1, :, None])[..., 0]
+    return JtJ, Jtr
+
+
 def _normal_equations(
     T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions,
     k1: float | None = None,
@@ -268,9 +278,9 @@ def _normal_equations(
         Hii, Hij, Hjj: (E, 6, 6) blocks of J^T W J for (ii, ii), (ii, jj), (jj, jj);
         vi, vj: (E, 6) J^T W r for the two poses;
         C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
-        Ei, Ej: (E, P, 6) pose-depth couplings J_pose^T W J_depth;
+        Ei, Ej: (E, 6, P) pose-depth couplings J_pose^T W J_depth;
     and with k1: Hkk, vk () for k1 itself, Hki, Hkj (E, 6) its couplings to the poses and
-    Ek (K, P) to the depths.
+    Ek (K, P) to the depths. Per-pixel terms are planes (pixels last, ``projective``).
     """
     num_kf = disps.shape[0]
     height, width = disps.shape[-2:]
@@ -283,13 +293,14 @@ def _normal_equations(
     Tij_px, intr_px = Tij.to(px), intr.to(px)
     if calibrate:
         uv, duv = pj.undistort(edges.source_pixels(px), intr_px, k1)
+        duv = duv.T
     else:
         uv = edges.source_pixels(px)
     uv = uv[None]
     out = {
         "Hjj": torch.empty(E, 6, 6, dtype=dt),
         "vj": torch.empty(E, 6, dtype=dt),
-        "Ej": torch.empty(E, P, 6, dtype=px),
+        "Ej": torch.empty(E, 6, P, dtype=px),
         "C": torch.zeros(num_kf, P, dtype=dt),
         "w": torch.zeros(num_kf, P, dtype=dt),
     }
@@ -300,35 +311,35 @@ def _normal_equations(
     for sl in _chunks(E, P):
         ii = edges.ii[sl]
         n = ii.numel()
-        Xj = pj.transform(Tij_px[sl], pj.backproject(uv, flat_disp[ii], intr_px))
+        Xj = Tij_px[sl] @ pj.backproject(uv, flat_disp[ii], intr_px).transpose(1, 2)
         proj, valid, Jj, Jz = pj.project_with_jacobians(Tij_px[sl], Xj, intr_px)
         target = edges.target[sl].reshape(n, P, 2).to(px)
         if calibrate:
             target, dtarget = pj.undistort(target, intr_px, k1)
-        r = target - proj
-        wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(r.norm(dim=-1), opts.huber)
-        wJj = (Jj * wgt[..., None, None]).reshape(n, 2 * P, 6)
-        out["Hjj"][sl] = (wJj.transpose(1, 2) @ Jj.reshape(n, 2 * P, 6)).to(dt)
-        out["vj"][sl] = (wJj.transpose(1, 2) @ r.reshape(n, 2 * P, 1))[..., 0].to(dt)
-        wJz = Jz * wgt[..., None]  # (n, P, 2)
-        out["Ej"][sl] = Jj[..., 0, :] * wJz[..., 0:1] + Jj[..., 1, :] * wJz[..., 1:2]
-        out["C"].index_add_(0, ii, (wJz * Jz).sum(-1).to(dt))
-        out["w"].index_add_(0, ii, (wJz * r).sum(-1).to(dt))
+            dtarget = dtarget.transpose(1, 2)
+        r = target.transpose(1, 2) - proj  # (n, 2, P)
+        wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), opts.huber)
+        JtJ, Jtr = _pixel_sums(Jj, wgt, r)
+        out["Hjj"][sl], out["vj"][sl] = JtJ.to(dt), Jtr.to(dt)
+        wJz = Jz * wgt[:, None]  # (n, 2, P)
+        out["Ej"][sl] = Jj[:, 0] * wJz[:, None, 0] + Jj[:, 1] * wJz[:, None, 1]
+        out["C"].index_add_(0, ii, (wJz * Jz).sum(1).to(dt))
+        out["w"].index_add_(0, ii, (wJz * r).sum(1).to(dt))
         if calibrate:
             # k1 moves the source ray and the measured target: d(proj - target) / d k1.
-            Jk = pj.ray_jacobian(Tij_px[sl], Xj, intr_px, duv) - dtarget  # (n, P, 2)
-            wJk = Jk * wgt[..., None]
+            Jk = pj.ray_jacobian(Tij_px[sl], Xj, intr_px, duv) - dtarget  # (n, 2, P)
+            wJk = Jk * wgt[:, None]
             out["Hkk"] += (wJk * Jk).sum().to(dt)
             out["vk"] += (wJk * r).sum().to(dt)
-            out["Hkj"][sl] = (wJk.reshape(n, 1, 2 * P) @ Jj.reshape(n, 2 * P, 6))[:, 0].to(dt)
-            out["Ek"].index_add_(0, ii, (wJk * Jz).sum(-1).to(dt))
+            out["Hkj"][sl] = (Jj[:, 0] @ wJk[:, 0, :, None] + Jj[:, 1] @ wJk[:, 1, :, None])[..., 0].to(dt)
+            out["Ek"].index_add_(0, ii, (wJk * Jz).sum(1).to(dt))
     # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
     A = lie.adjoint(Tij)
     At = A.transpose(1, 2)
     out["Hij"] = -(At @ out["Hjj"])
     out["Hii"] = At @ out["Hjj"] @ A
     out["vi"] = -(At @ out["vj"][..., None])[..., 0]
-    out["Ei"] = -(out["Ej"] @ A.to(px))
+    out["Ei"] = -(At.to(px) @ out["Ej"])
     if calibrate:
         out["Hki"] = -(out["Hkj"][:, None, :] @ A)[:, 0]
     return out
@@ -339,50 +350,56 @@ class _Couplings:
     """Per-keyframe pose-depth couplings, the layout the Schur complement works in.
 
     The depth of pixel p of keyframe k couples to pose k (through every edge leaving k) and
-    to pose jj[e] of each edge e leaving k. B (K, 6 m, P) stacks those Jacobian products for
-    each keyframe: slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1 the s-th
-    edge leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
-    node K, padded to a pose's 6 rows, in one last slot. pose (K, m) is the node each slot
+    to pose jj[e] of each edge e leaving k. B (L, 6 m, P) stacks those Jacobian products for
+    each keyframe whose depths are free (rows (L,): their ids; a held depth couples to
+    nothing): slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1 the s-th edge
+    leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
+    node K, padded to a pose's 6 rows, in one last slot. pose (L, m) is the node each slot
     belongs to (padding points at k itself with zero coupling).
     """
 
     B: torch.Tensor
     pose: torch.Tensor
+    rows: torch.Tensor
 
     @property
     def slots(self) -> int:
         return self.pose.shape[1]
 
 
-def _couplings(sys: dict, edges: Edges, num_kf: int) -> _Couplings:
-    ii, jj = edges.ii, edges.jj
-    Ej = sys["Ej"]
-    E, P, _ = Ej.shape
+def _couplings(sys: dict, edges: Edges, num_kf: int, rows: torch.Tensor) -> _Couplings:
     K = num_kf
+    L = rows.numel()
+    local = torch.full((K,), -1, dtype=torch.int64)
+    local[rows] = torch.arange(L)
+    keep = local[edges.ii] >= 0
+    ii, jj = local[edges.ii[keep]], edges.jj[keep]
+    Ej, Ei = sys["Ej"][keep], sys["Ei"][keep]
+    E, _, P = Ej.shape
     order = torch.argsort(ii, stable=True)
-    counts = torch.bincount(ii, minlength=K)
+    counts = torch.bincount(ii, minlength=L)
     first = torch.cumsum(counts, 0) - counts
     slot = torch.arange(E) - first[ii[order]] + 1
     n = int(counts.max()) if E else 0
     m = n + 1 + ("Ek" in sys)
-    B = torch.zeros(K, m, 6, P, dtype=Ej.dtype)
-    Et = torch.zeros(K, P, 6, dtype=Ej.dtype).index_add_(0, ii, sys["Ei"])
-    B[:, 0] = Et.transpose(1, 2)
-    B[ii[order], slot] = Ej[order].transpose(1, 2)
-    pose = torch.arange(K)[:, None].repeat(1, m)
+    B = torch.zeros(L, m, 6, P, dtype=Ej.dtype)
+    B[:, 0] = torch.zeros(L, 6, P, dtype=Ej.dtype).index_add_(0, ii, Ei)
+    B[ii[order], slot] = Ej[order]
+    pose = rows[:, None].repeat(1, m)
     pose[ii[order], slot] = jj[order]
     if "Ek" in sys:
-        B[:, -1, 0] = sys["Ek"].to(Ej.dtype)
+        B[:, -1, 0] = sys["Ek"][rows].to(Ej.dtype)
         pose[:, -1] = K
-    return _Couplings(B.reshape(K, 6 * m, P), pose)
+    return _Couplings(B.reshape(L, 6 * m, P), pose, rows)
 
 
 def _reduced_system(
-    sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int
+    sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int, free_disp: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, _Couplings]:
     """Schur complement over the depths: blocks S (N, N, 6, 6), gradient g (N, 6) and the
     couplings (for the back-substitution). N = K poses, plus k1 as node K (its first row)
-    when the system has it.
+    when the system has it. free_disp (K,) bool: keyframes whose depths are eliminated
+    (the others are held and drop out).
 
     Eliminating keyframe k's depths (diagonal Hessian 1 / Q) subtracts B_k Q_k B_k^T from
     the poses it couples to and B_k Q_k w_k from their gradient: one batched product over
@@ -409,15 +426,15 @@ def _reduced_system(
         S[K * N + K, 0, 0] += sys["Hkk"]
         g[K, 0] += sys["vk"]
 
-    cpl = _couplings(sys, edges, K)
-    B, m = cpl.B, cpl.slots
-    Qp = Q.to(B.dtype)
-    blocks = ((B * Qp[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (K, 6m, 6m)
-    blocks = blocks.reshape(K, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
-    rows = cpl.pose[:, :, None].expand(K, m, m)
-    cols = cpl.pose[:, None, :].expand(K, m, m)
+    cpl = _couplings(sys, edges, K, free_disp.nonzero(as_tuple=True)[0])
+    B, m, L = cpl.B, cpl.slots, cpl.rows.numel()
+    Q, wz = Q[cpl.rows], wz[cpl.rows]
+    blocks = ((B * Q.to(B.dtype)[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (L, 6m, 6m)
+    blocks = blocks.reshape(L, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+    rows = cpl.pose[:, :, None].expand(L, m, m)
+    cols = cpl.pose[:, None, :].expand(L, m, m)
     S.index_add_(0, (rows * N + cols).reshape(-1), -blocks)
-    gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (K, 6m)
+    gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (L, 6m)
     g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
     return S.reshape(N, N, 6, 6), g, cpl
 
@@ -457,10 +474,9 @@ def ba_step(
         wz += pw * torch.log(d0 / d) / d
     C = C * (1.0 + lm) + opts.eps
     Q = 1.0 / C
-    if fixed_disp is not None:
-        # A held depth has infinite stiffness: it drops out of the Schur complement.
-        Q[fixed_disp] = 0.0
-    S, g, cpl = _reduced_system(sys, edges, Q, wz, K)
+    # A held depth has infinite stiffness: it drops out of the Schur complement.
+    free_disp = torch.ones(K, dtype=torch.bool) if fixed_disp is None else ~fixed_disp
+    S, g, cpl = _reduced_system(sys, edges, Q, wz, K, free_disp)
     if k1 is not None:
         start, weight = k1_tie
         S[K, K, 0, 0] += weight
@@ -476,9 +492,9 @@ def ba_step(
         Sf = Sf + torch.diag(lm * diag + opts.eps)
         dx[free] = _solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
     # Back-substitution: dz = Q (w - B^T dx) over the poses each keyframe's depths couple to.
-    dx_slots = dx[cpl.pose].reshape(K, -1, 1).to(cpl.B.dtype)
-    rhs = wz - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
-    dz = (Q * rhs).reshape(K, height, width)
+    dx_slots = dx[cpl.pose].reshape(cpl.rows.numel(), -1, 1).to(cpl.B.dtype)
+    rhs = wz[cpl.rows] - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
+    dz = torch.zeros_like(Q).index_copy_(0, cpl.rows, Q[cpl.rows] * rhs).reshape(K, height, width)
     T_new = lie.se3_exp(dx[:K]) @ T_cw
     d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
     k1_new = None if k1 is None else float(min(max(k1 + float(dx[K, 0]), -MAX_K1), MAX_K1))
@@ -590,18 +606,20 @@ def align_frames(
     pinhole = Edges(frame, frame, target, weight).undistorted(intr, k1)
     uv = pinhole.source_pixels(T_init.dtype).reshape(1, P, 2)
     Xk = pj.backproject(uv, disp_kf.reshape(L, P), intr)
+    Xk_planes = Xk.transpose(1, 2)
     tgt = pinhole.target.reshape(L, P, 2)
+    tgt_planes = tgt.transpose(1, 2)
     w0 = weight.reshape(L, P)
     T = T_init.clone()
     eye = torch.eye(6, dtype=T.dtype)
     for _ in range(iters):
         Tkf_to_f = T[frame] @ lie.inv(T_kf)
-        proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk, intr)
-        r = tgt - proj
-        wgt = w0 * valid * huber_weights(r.norm(dim=-1), huber)
-        wJ = (Jf * wgt[..., None, None]).reshape(L, 2 * P, 6)
-        H = torch.zeros(M, 6, 6, dtype=T.dtype).index_add_(0, frame, wJ.transpose(1, 2) @ Jf.reshape(L, 2 * P, 6))
-        g = torch.zeros(M, 6, dtype=T.dtype).index_add_(0, frame, (wJ.transpose(1, 2) @ r.reshape(L, 2 * P, 1))[..., 0])
+        proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk_planes, intr)
+        r = tgt_planes - proj
+        wgt = w0 * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), huber)
+        JtJ, Jtr = _pixel_sums(Jf, wgt, r)
+        H = torch.zeros(M, 6, 6, dtype=T.dtype).index_add_(0, frame, JtJ)
+        g = torch.zeros(M, 6, dtype=T.dtype).index_add_(0, frame, Jtr)
         H = H + eye * (1e-4 * H.diagonal(dim1=1, dim2=2).mean(-1, keepdim=True)[..., None] + 1e-9)
         dx = torch.linalg.solve(H, g[..., None])[..., 0]
         T = lie.se3_exp(dx) @ T
