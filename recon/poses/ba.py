@@ -278,7 +278,9 @@ def _normal_equations(
         Hii, Hij, Hjj: (E, 6, 6) blocks of J^T W J for (ii, ii), (ii, jj), (jj, jj);
         vi, vj: (E, 6) J^T W r for the two poses;
         C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
-        Ei, Ej: (E, 6, P) pose-depth couplings J_pose^T W J_depth;
+        Ej: (E, 6, P) pose-depth couplings J_pose^T W J_depth for pose jj (pose ii's are
+            -Ad(T_ij)^T Ej, formed per keyframe in ``_couplings``);
+        Tij: (E, 4, 4) the relative poses the system was linearised at;
     and with k1: Hkk, vk () for k1 itself, Hki, Hkj (E, 6) its couplings to the poses and
     Ek (K, P) to the depths. Per-pixel terms are planes (pixels last, ``projective``).
     """
@@ -338,8 +340,8 @@ def _normal_equations(
     At = A.transpose(1, 2)
     out["Hij"] = -(At @ out["Hjj"])
     out["Hii"] = At @ out["Hjj"] @ A
+    out["Tij"] = Tij
     out["vi"] = -(At @ out["vj"][..., None])[..., 0]
-    out["Ei"] = -(At.to(px) @ out["Ej"])
     if calibrate:
         out["Hki"] = -(out["Hkj"][:, None, :] @ A)[:, 0]
     return out
@@ -352,8 +354,8 @@ class _Couplings:
     The depth of pixel p of keyframe k couples to pose k (through every edge leaving k) and
     to pose jj[e] of each edge e leaving k. B (L, 6 m, P) stacks those Jacobian products for
     each keyframe whose depths are free (rows (L,): their ids; a held depth couples to
-    nothing): slot 0 is pose k (the sum of Ei over k's edges), slot s >= 1 the s-th edge
-    leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
+    nothing): slot 0 is pose k (the sum over k's edges of -Ad(T_ij)^T Ej), slot s >= 1 the
+    s-th edge leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
     node K, padded to a pose's 6 rows, in one last slot. pose (L, m) is the node each slot
     belongs to (padding points at k itself with zero coupling).
     """
@@ -373,20 +375,27 @@ def _couplings(sys: dict, edges: Edges, num_kf: int, rows: torch.Tensor) -> _Cou
     local = torch.full((K,), -1, dtype=torch.int64)
     local[rows] = torch.arange(L)
     keep = local[edges.ii] >= 0
+    Ej, T_ij = sys["Ej"], sys["Tij"]
+    if not bool(keep.all()):  # the window BA: edges leaving held depths couple to nothing
+        Ej, T_ij = Ej[keep], T_ij[keep]
     ii, jj = local[edges.ii[keep]], edges.jj[keep]
-    Ej, Ei = sys["Ej"][keep], sys["Ei"][keep]
     E, _, P = Ej.shape
     order = torch.argsort(ii, stable=True)
     counts = torch.bincount(ii, minlength=L)
     first = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(E) - first[ii[order]] + 1
+    slot = torch.empty(E, dtype=torch.int64)
+    slot[order] = torch.arange(E) - first[ii[order]] + 1
     n = int(counts.max()) if E else 0
     m = n + 1 + ("Ek" in sys)
     B = torch.zeros(L, m, 6, P, dtype=Ej.dtype)
-    B[:, 0] = torch.zeros(L, 6, P, dtype=Ej.dtype).index_add_(0, ii, Ei)
-    B[ii[order], slot] = Ej[order]
+    B[ii, slot] = Ej
+    # Pose k enters each edge only through T_kj: its coupling is -Ad(T_kj)^T times the
+    # edge's, summed over k's edges as one product over the slots.
+    A = torch.zeros(L, m, 6, 6, dtype=Ej.dtype)
+    A[ii, slot] = -lie.adjoint(T_ij).transpose(1, 2).to(Ej.dtype)
+    B[:, 0] = A.permute(0, 2, 1, 3).reshape(L, 6, 6 * m) @ B.reshape(L, 6 * m, P)
     pose = rows[:, None].repeat(1, m)
-    pose[ii[order], slot] = jj[order]
+    pose[ii, slot] = jj
     if "Ek" in sys:
         B[:, -1, 0] = sys["Ek"][rows].to(Ej.dtype)
         pose[:, -1] = K
