@@ -38,11 +38,20 @@ def worth_undistorting(intrinsics, size: tuple[int, int], k1: float) -> bool:
     return largest_shift(intrinsics, size, k1) >= MIN_SHIFT_PX
 
 
-def _source_map(width: int, height: int, intrinsics, k1: float) -> tuple[np.ndarray, np.ndarray]:
-    """Recorded (x, y) float32 maps (height, width) of every pinhole pixel."""
+def _source_map(width: int, height: int, intrinsics, k1: float, recording: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) float32 maps (height, width): for every pinhole pixel its recorded position
+    (``distort``), or with recording=True for every recorded pixel its pinhole position
+    (``undistort``)."""
     intr = torch.tensor(intrinsics, dtype=torch.float64)
-    src = pj.distort(pj.pixel_grid(height, width), intr, k1)
+    grid = pj.pixel_grid(height, width)
+    src = pj.undistort(grid, intr, k1)[0] if recording else pj.distort(grid, intr, k1)
     return src[..., 0].float().numpy(), src[..., 1].float().numpy()
+
+
+def _remap(images: np.ndarray, maps: tuple[np.ndarray, np.ndarray], nearest: bool, **border) -> np.ndarray:
+    mode = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return np.stack([cv2.remap(im, *maps, mode, **border) for im in images])
 
 
 def undistort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = False) -> np.ndarray:
@@ -50,9 +59,18 @@ def undistort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = 
     their pixels. nearest: no interpolation (depth, where mixing across edges invents
     surfaces)."""
     height, width = images.shape[1:3]
-    mx, my = _source_map(width, height, intrinsics, k1)
-    mode = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    return np.stack([cv2.remap(im, mx, my, mode, borderMode=cv2.BORDER_CONSTANT, borderValue=0) for im in images])
+    return _remap(images, _source_map(width, height, intrinsics, k1), nearest,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def distort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = False) -> np.ndarray:
+    """The inverse of :func:`undistort_images`: what a camera with radial term k1 records of
+    pinhole frames (N, H, W[, C]) (recorded pixel p shows the pinhole image at
+    ``undistort(p)``; reflected at the border, so that a simulated recording has no black
+    margin). For simulating lenses in tests and benchmarks."""
+    height, width = images.shape[1:3]
+    return _remap(images, _source_map(width, height, intrinsics, k1, recording=True), nearest,
+                  borderMode=cv2.BORDER_REFLECT)
 
 
 def undistort_features(features: np.ndarray, intrinsics, size: tuple[int, int], k1: float) -> np.ndarray:

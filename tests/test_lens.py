@@ -2,34 +2,25 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
-from recon.lens import largest_shift, undistort_features, undistort_images, worth_undistorting
+from recon.lens import distort_images, largest_shift, undistort_features, undistort_images, worth_undistorting
 from recon.poses import projective as pj
 from recon.synthetic import render_sequence
-
-
-def _record_through_lens(images: np.ndarray, intrinsics, k1: float, mode=cv2.INTER_LINEAR) -> np.ndarray:
-    """What a camera with radial term k1 records: pixel p shows the pinhole image at undistort(p)."""
-    height, width = images.shape[1:3]
-    src, _ = pj.undistort(pj.pixel_grid(height, width), torch.tensor(intrinsics, dtype=torch.float64), k1)
-    mx, my = src[..., 0].float().numpy(), src[..., 1].float().numpy()
-    return np.stack([cv2.remap(im, mx, my, mode, borderMode=cv2.BORDER_REFLECT) for im in images])
 
 
 def test_undistorting_recorded_frames_gives_back_the_pinhole_images():
     seq = render_sequence(2, 320, 240, seed=0)
     k1 = -0.1
-    recorded = _record_through_lens(seq.rgb, seq.intrinsics, k1)
+    recorded = distort_images(seq.rgb, seq.intrinsics, k1)
     restored = undistort_images(recorded, seq.intrinsics, k1)
     inner = (slice(None), slice(30, -30), slice(40, -40))
     before = np.abs(recorded[inner].astype(float) - seq.rgb[inner]).mean()
     after = np.abs(restored[inner].astype(float) - seq.rgb[inner]).mean()
     assert after < 0.35 * before, (before, after)
     # Depth: nearest sampling keeps values that exist in the recorded map.
-    depth = _record_through_lens(seq.depth, seq.intrinsics, k1, cv2.INTER_NEAREST)
+    depth = distort_images(seq.depth, seq.intrinsics, k1, nearest=True)
     depth_u = undistort_images(depth, seq.intrinsics, k1, nearest=True)
     assert np.isin(depth_u[depth_u > 0], depth).all()
     rel = np.abs(depth_u[inner] - seq.depth[inner]) / seq.depth[inner]

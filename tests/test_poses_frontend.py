@@ -5,13 +5,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import pytest
 import torch
 
 from recon.errors import ReconInputError
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
+from recon.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses, intrinsics_from_fov
 from recon.poses import ba, lie
 from recon.poses.frontend import FrontendConfig
@@ -161,12 +161,8 @@ def test_frontend_calibrates_a_barrel_lens(room):
     """The room filmed through a barrel lens (k1 = -0.1, 4 % at the corners): the front end
     finds k1 and keeps the path and scale; as a pinhole camera the scale is 19 % off."""
     seq, prior = room
-    height, width = seq.rgb.shape[1:3]
-    # The recorded pixel p shows what the pinhole camera sees at undistort(p).
-    src, _ = pj.undistort(pj.pixel_grid(height, width), torch.tensor(seq.intrinsics, dtype=torch.float64), -0.1)
-    mx, my = src[..., 0].float().numpy(), src[..., 1].float().numpy()
-    rgb = np.stack([cv2.remap(f, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT) for f in seq.rgb])
-    depth = np.stack([cv2.remap(d, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT) for d in prior])
+    rgb = distort_images(seq.rgb, seq.intrinsics, -0.1)
+    depth = distort_images(prior, seq.intrinsics, -0.1, nearest=True)
     length = path_length(seq.poses)
     res = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False)
     assert abs(res.diagnostics["lens_k1"] + 0.1) < 0.02, res.diagnostics["lens_k1"]

@@ -1,5 +1,6 @@
 """The pycolmap SfM fallback on the synthetic room: accuracy, metric scale from the prior,
-dense registration of the frames COLMAP did not see, and its failure message."""
+dense registration of the frames COLMAP did not see, the lens' radial term, and its failure
+message."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 
 from recon.eval.trajectory import ate_rmse, path_length, scale_error
+from recon.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses
 from recon.synthetic import render_sequence, simulate_prior
 
@@ -24,6 +26,21 @@ def test_sfm_synthetic_accuracy_and_metric_scale():
     assert d["frame_status"].count("aligned") == 19
     length = path_length(seq.poses)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * length
+    assert scale_error(res.poses, seq.poses) <= 0.10
+    assert abs(d["lens_k1"]) < 0.01  # a pinhole camera
+
+
+def test_sfm_estimates_the_lens_radial_term():
+    """The room filmed through a barrel lens (k1 = -0.1): COLMAP's SIMPLE_RADIAL camera finds
+    it, and the frames it did not see are registered through it."""
+    seq = render_sequence(30, 320, 240, seed=0)
+    prior = simulate_prior(seq.depth, seed=1)
+    rgb = distort_images(seq.rgb, seq.intrinsics, -0.1)
+    depth = distort_images(prior, seq.intrinsics, -0.1, nearest=True)
+    res = estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3)
+    assert abs(res.diagnostics["lens_k1"] + 0.1) < 0.02, res.diagnostics["lens_k1"]
+    assert res.diagnostics["frame_status"].count("aligned") == 19
+    assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * path_length(seq.poses)
     assert scale_error(res.poses, seq.poses) <= 0.10
 
 

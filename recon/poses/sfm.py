@@ -2,8 +2,10 @@
 frames, metric scale from the depth prior.
 
 This module owns the pycolmap pipeline: every k-th frame is written to a temporary folder,
-SIFT features are extracted (one shared camera: PINHOLE with the given intrinsics, or
-SIMPLE_PINHOLE with the focal refined by BA when they are unknown), matched sequentially
+SIFT features are extracted (one shared camera: SIMPLE_RADIAL, so that COLMAP's BA
+estimates the lens' radial term k1 as the front end does; the focal length is held when
+given and refined when unknown; PINHOLE without a lens term when given intrinsics have
+fx != fy, which SIMPLE_RADIAL cannot hold), matched sequentially
 (with vocabulary-tree loop detection when a tree file is given: none ships with pycolmap
 and nothing is downloaded), and mapped incrementally (or globally, GLOMAP, when asked). The
 largest model is kept. Its scale is fixed to metres by the robust median ratio of prior
@@ -59,6 +61,8 @@ class SfMConfig:
     num_threads: threads for feature extraction, matching and mapping.
     correction_grid: (rows, cols) of the per-keyframe prior correction from SfM points
         (the keyframe depth used to register the other frames).
+    calibrate_lens: estimate the radial term k1 in COLMAP's bundle adjustment (reported as
+        ``lens_k1``, used to register the other frames and by the pipeline to undistort).
     frontend: flow / alignment settings used to register the remaining frames.
     """
 
@@ -71,6 +75,7 @@ class SfMConfig:
     min_registered: float = 0.5
     num_threads: int = 2
     correction_grid: tuple[int, int] = (3, 4)
+    calibrate_lens: bool = True
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
 
 
@@ -104,13 +109,16 @@ def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workd
     height, width = frames[0].shape[:2]
     db = workdir / "database.db"
     reader = pycolmap.ImageReaderOptions()
+    lens = cfg.calibrate_lens
     if intrinsics is not None:
-        reader.camera_model = "PINHOLE"
         # COLMAP puts pixel centres at +0.5, recon at integers.
         fx, fy, cx, cy = intrinsics
-        reader.camera_params = ",".join(f"{v:.6f}" for v in (fx, fy, cx + 0.5, cy + 0.5))
+        lens = lens and abs(fx - fy) <= 1e-3 * fx
+        params = (fx, cx + 0.5, cy + 0.5, 0.0) if lens else (fx, fy, cx + 0.5, cy + 0.5)
+        reader.camera_model = "SIMPLE_RADIAL" if lens else "PINHOLE"
+        reader.camera_params = ",".join(f"{v:.6f}" for v in params)
     else:
-        reader.camera_model = "SIMPLE_PINHOLE"
+        reader.camera_model = "SIMPLE_RADIAL" if lens else "SIMPLE_PINHOLE"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = max(width, height)
@@ -137,7 +145,7 @@ def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workd
         opts.num_threads = cfg.num_threads
         opts.ba_refine_focal_length = intrinsics is None
         opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
+        opts.ba_refine_extra_params = lens
         models = pycolmap.incremental_mapping(db, image_dir, out, opts)
     else:
         raise ReconInputError(f"SfM mapper must be 'incremental' or 'global', got {cfg.mapper!r}")
@@ -146,8 +154,10 @@ def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workd
     return max(models.values(), key=lambda r: r.num_reg_images())
 
 
-def _model_poses(rec) -> tuple[dict[int, np.ndarray], tuple[float, float, float, float]]:
-    """World-to-camera 4x4 poses {frame index: T_cw} and the camera's (fx, fy, cx, cy)."""
+def _model_poses(rec) -> tuple[dict[int, np.ndarray], tuple[float, float, float, float], float]:
+    """World-to-camera 4x4 poses {frame index: T_cw}, the camera's (fx, fy, cx, cy) and its
+    radial term k1 (0 for the pinhole models; SIMPLE_RADIAL's k is OpenCV's k1, as
+    ``projective.undistort``)."""
     poses = {}
     for image in rec.images.values():
         if not image.has_pose:
@@ -158,7 +168,8 @@ def _model_poses(rec) -> tuple[dict[int, np.ndarray], tuple[float, float, float,
     cam = next(iter(rec.cameras.values()))
     p = np.asarray(cam.params, dtype=np.float64)
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model.name.startswith("SIMPLE") else (p[0], p[1], p[2], p[3])
-    return poses, (float(fx), float(fy), float(cx) - 0.5, float(cy) - 0.5)
+    k1 = float(p[3]) if cam.model.name == "SIMPLE_RADIAL" else 0.0
+    return poses, (float(fx), float(fy), float(cx) - 0.5, float(cy) - 0.5), k1
 
 
 def _depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray], grid: tuple[int, int]
@@ -241,7 +252,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         raise TrackingLostError(
             f"SfM registered only {registered} of {len(kf_ids)} keyframes (need {cfg.min_registered:.0%}); "
             "the video may lack texture or overlap", frame=None)
-    T_model, intr = _model_poses(rec)
+    T_model, intr, k1 = _model_poses(rec)
     ratios = _depth_ratios(rec, prior, frames_list, cfg.correction_grid)
     if not ratios:
         raise TrackingLostError("SfM: no triangulated point has a valid prior depth; cannot fix the metric scale")
@@ -260,7 +271,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         for i in kf_reg]))
     jobs = [i for i in range(n) if i not in set(kf_reg)]
     aligned = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_list[i], geo.flow_size), kf_frames, kf_gray,
-                                 T_kf, disp_kf, geo.ba_intrinsics(intr), fcfg, progress=progress)
+                                 T_kf, disp_kf, geo.ba_intrinsics(intr), fcfg, progress=progress, k1=k1)
     T_all = np.zeros((n, 4, 4))
     status = ["sfm"] * n
     for i in kf_reg:
@@ -284,6 +295,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         "loop_detection": bool(cfg.vocab_tree_path),
         "frame_status": status,
         "lost_frames": [i for i, s in enumerate(status) if s == "interpolated"],
+        "lens_k1": k1,
     }
     if intr_in is None:
         diagnostics["focal_estimate"] = {"focal": intr[0], "source": "COLMAP bundle adjustment"}
