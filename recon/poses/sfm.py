@@ -91,7 +91,9 @@ def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: Sf
     """Run extraction, matching and mapping; returns the largest reconstruction (or None)."""
     pycolmap = _import_pycolmap()
     level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(level, 1)  # COLMAP's INFO lines would flood the console
+    # COLMAP's INFO lines would flood the console, and so would its warnings: Ceres reports
+    # every rejected LM step (hundreds on a rotating camera once the lens term is refined).
+    pycolmap.logging.minloglevel = max(level, 2)
     try:
         return _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg, workdir)
     finally:
