@@ -94,9 +94,7 @@ def _exact_edges(seq, ids, h, w, k1=0.0):
     # A lens moves the pixels themselves too: the BA pixel at recorded position p sees the
     # pinhole ray of undistort(p), whose depth is read there.
     source, _ = pj.undistort(pj.pixel_grid(h, w), intr, k1)
-    grid_depth = torch.nn.functional.grid_sample(
-        depth[:, None], (source / torch.tensor([w - 1.0, h - 1.0]) * 2 - 1)[None].expand(len(ids), -1, -1, -1),
-        mode="nearest", padding_mode="border", align_corners=True)[:, 0]
+    grid_depth = torch.from_numpy(distort_images(depth.numpy(), intr.tolist(), k1, nearest=True))
     target, valid = pj.reproject(T_gt, 1.0 / grid_depth, intr, ii, jj, source)
     edges = ba.Edges(ii, jj, pj.distort(target, intr, k1), valid.double())
     return intr, grid_depth, T_gt, edges

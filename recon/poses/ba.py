@@ -193,7 +193,7 @@ class _Residuals:
             empty = torch.zeros(0, disps[0].numel(), dtype=dtype)
             return cls(empty, empty.bool())
         r, valid = edge_residuals(T_cw, disps, intr, edges, dtype, k1)
-        return cls(r.norm(dim=-1), valid)
+        return cls(torch.hypot(r[..., 0], r[..., 1]), valid)
 
     def cost(self, edges: Edges, huber: float) -> float:
         if not len(edges):
