@@ -14,6 +14,7 @@ from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
 from recon.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses, intrinsics_from_fov
 from recon.poses import ba, lie
+from recon.poses import flow as fl
 from recon.poses.frontend import FrontendConfig
 from recon.poses import projective as pj
 from recon.synthetic import render_sequence, simulate_prior
@@ -98,6 +99,17 @@ def _exact_edges(seq, ids, h, w, k1=0.0):
     target, valid = pj.reproject(T_gt, 1.0 / grid_depth, intr, ii, jj, source)
     edges = ba.Edges(ii, jj, pj.distort(target, intr, k1), valid.double())
     return intr, grid_depth, T_gt, edges
+
+
+def test_dis_flow_does_not_depend_on_earlier_calls(room):
+    """A seeded DIS call must not change a later unseeded one (OpenCV keeps state in the
+    instance; shared instances made front-end results depend on what ran before)."""
+    seq, _ = room
+    cfg = fl.FlowConfig()
+    a, b, c = (fl.prepare_gray(seq.rgb[i], (320, 240)) for i in (0, 3, 9))
+    first = fl.dis_flow(a, b, cfg)
+    fl.dis_flow(a, c, cfg, init=2.0 * first + 5.0)
+    np.testing.assert_array_equal(fl.dis_flow(a, b, cfg), first)
 
 
 def test_dense_ba_calibrates_the_lens_radial_term(room):

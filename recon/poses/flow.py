@@ -61,10 +61,15 @@ class FlowConfig:
 _DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
 
 
-def _dis(cfg: FlowConfig, shape: tuple[int, int]) -> cv2.DISOpticalFlow:
-    """One DIS instance per parameter set and image shape (creating one allocates buffers;
-    reusing one on a larger image than it was first used on crashes OpenCV 4.x)."""
-    key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters, tuple(shape))
+def _dis(cfg: FlowConfig, shape: tuple[int, int], seeded: bool) -> cv2.DISOpticalFlow:
+    """One DIS instance per parameter set, image shape and use (creating one allocates
+    buffers; reusing one on a larger image than it was first used on crashes OpenCV 4.x).
+
+    seeded: calls with an initial flow get their own instance. A call with an initial
+    flow leaves state behind in OpenCV 5.0's DIS that changes the next unseeded call on
+    the same instance (median 0.13 px, up to 100 px on TUM frames), so a shared instance
+    made every flow depend on what ran before it."""
+    key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters, tuple(shape), seeded)
     if key not in _DIS_CACHE:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
         dis.setFinestScale(cfg.finest_scale)
@@ -91,7 +96,7 @@ def dis_flow(a: np.ndarray, b: np.ndarray, cfg: FlowConfig, init: np.ndarray | N
     prediction lets it find motions far beyond its search range.
     """
     flow = None if init is None else np.ascontiguousarray(init, dtype=np.float32)
-    return _dis(cfg, a.shape[:2]).calc(a, b, flow)
+    return _dis(cfg, a.shape[:2], flow is not None).calc(a, b, flow)
 
 
 def _sample_along(image: np.ndarray, flow: np.ndarray, **border) -> np.ndarray:
@@ -124,9 +129,31 @@ def fb_confidence(fwd: np.ndarray, bwd: np.ndarray, cfg: FlowConfig) -> np.ndarr
 def photo_confidence(a: np.ndarray, b: np.ndarray, flow: np.ndarray, cfg: FlowConfig) -> np.ndarray:
     """Confidence (h, w) in [0, 1] that flow (h, w, 2) from grey image a to b joins pixels
     that look alike: 1 / (1 + (e / photo_sigma)^2) with e the 3x3 mean of |a(p) - b(p + flow(p))|."""
-    warped = _sample_along(b.astype(np.float32), flow, borderMode=cv2.BORDER_REPLICATE)
-    err = cv2.blur(np.abs(a.astype(np.float32) - warped), (3, 3))
+    err = cv2.blur(np.abs(a.astype(np.float32) - _matched(b, flow)), (3, 3))
     return (1.0 / (1.0 + (err / cfg.photo_sigma) ** 2)).astype(np.float32)
+
+
+def _matched(b: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """Grey image b (h, w) sampled where flow (h, w, 2) sends each pixel, float32."""
+    return _sample_along(b.astype(np.float32), flow, borderMode=cv2.BORDER_REPLICATE)
+
+
+def match_correlation(a: np.ndarray, b: np.ndarray, flow: np.ndarray, conf: np.ndarray) -> float:
+    """Confidence-weighted correlation coefficient between grey image a (h, w) and b
+    sampled along flow (h, w, 2): near 1 when the flow joins matching structure, near 0
+    between unrelated images. Pixelwise confidence cannot tell that apart: a smooth flow
+    between two unrelated low-contrast images (noise, a cut) is forward-backward
+    consistent, and their grey levels are close enough to look photometrically plausible."""
+    w = conf.astype(np.float64)
+    total = w.sum()
+    if total <= 0:
+        return 0.0
+    x = a.astype(np.float64)
+    y = _matched(b, flow).astype(np.float64)
+    x = x - (w * x).sum() / total
+    y = y - (w * y).sum() / total
+    cov = (w * x * y).sum()
+    return float(cov / max(np.sqrt((w * x * x).sum() * (w * y * y).sum()), 1e-9))
 
 
 def flow_pair(
