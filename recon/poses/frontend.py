@@ -61,7 +61,11 @@ class FrontendConfig:
     keyframe_max_flow: ... or when the mean flow itself exceeds this many pixels, so that a
         rotating camera still gets keyframes before the overlap runs out.
     temporal_radius: each new keyframe is linked (both directions) to this many previous
-        keyframes.
+        keyframes. Linking across the whole window (radius >= window) ties it to a held
+        keyframe as well, which holds the drift: on 7-Scenes (Sim(3) ATE at keyframe_flow
+        15 / 16 / 17) radius 4 with window 6 gave 3.27 / 3.05 / 3.63 cm, radius 5 with
+        window 5 3.14 / 2.90 / 3.15 and radius 6 with window 5 3.01 / 2.79 / 3.05, at
+        about the same cost as radius 4 on TUM fr1/rpy for radius 5 and ~10 % more for 6.
     proximity_edges, proximity_max_flow, proximity_min_overlap, proximity_nms: up to that
         many extra links to older keyframes that, by the current poses and depths, see the
         same region (mean induced flow below proximity_max_flow working-resolution pixels
@@ -72,8 +76,8 @@ class FrontendConfig:
         only once the later keyframes are in place). On 7-Scenes this and temporal radius 4
         took the Sim(3) ATE from 5.5 to 4.6 cm.
     min_edge_weight: an edge whose mean flow confidence is below this is dropped.
-    window: keyframes optimised by the sliding-window BA while tracking (6 is as accurate
-        as 8 on 7-Scenes and TUM and 10 % faster).
+    window: keyframes optimised by the sliding-window BA while tracking (see
+        temporal_radius).
     window_iters, global_iters: LM iterations of the window and final global BA. Two per
         window are as accurate as four on 7-Scenes and TUM (the window is re-optimised as it
         slides, and the global BA finishes the job) at 60 % of the tracking time.
@@ -105,23 +109,23 @@ class FrontendConfig:
     calib_tol, calib_iters: golden-section bracket width on log f at which the search stops
         (0.01 = 1 %), and LM iterations per evaluated focal length.
     align_chunk: non-keyframes aligned per batch at the end (memory bound).
-    torch_threads: intra-op threads while tracking (restored after). The tensors are small
-        (thousands of BA pixels), so thread synchronisation costs more than it saves: one
-        thread is 2-20x faster on a 2-core machine, most of all when other work shares it.
-        None leaves torch's setting alone.
+    torch_threads: intra-op threads while tracking (restored after); None leaves torch's
+        setting alone. The BA's pixel-plane products are large enough for threads to pay:
+        on the 2-core machine two threads took TUM fr1/rpy from 0.23-0.28 to 0.20-0.21 s
+        per frame and 7-Scenes from 0.126 to 0.103. Set 1 when other work shares the cores.
     """
 
     ba_stride: int = 8
     keyframe_flow: float = 16.0
     keyframe_max_flow: float = 48.0
-    temporal_radius: int = 4
+    temporal_radius: int = 5
     proximity_edges: int = 2
     proximity_max_flow: float = 96.0
     proximity_min_overlap: float = 0.5
     proximity_nms: int = 2
     final_proximity_edges: int = 4
     min_edge_weight: float = 0.15
-    window: int = 6
+    window: int = 5
     window_iters: int = 2
     global_iters: int = 8
     prior_weight: float = 0.002
@@ -139,7 +143,7 @@ class FrontendConfig:
     calib_tol: float = 0.01
     calib_iters: int = 6
     align_chunk: int = 64
-    torch_threads: int | None = 1
+    torch_threads: int | None = None
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
     ba: ba.BAOptions = field(default_factory=ba.BAOptions)
 
