@@ -61,11 +61,11 @@ class FrontendConfig:
     keyframe_max_flow: ... or when the mean flow itself exceeds this many pixels, so that a
         rotating camera still gets keyframes before the overlap runs out.
     temporal_radius: each new keyframe is linked (both directions) to this many previous
-        keyframes. Linking across the whole window (radius >= window) ties it to a held
-        keyframe as well, which holds the drift: on 7-Scenes (Sim(3) ATE at keyframe_flow
-        15 / 16 / 17) radius 4 with window 6 gave 3.27 / 3.05 / 3.63 cm, radius 5 with
-        window 5 3.14 / 2.90 / 3.15 and radius 6 with window 5 3.01 / 2.79 / 3.05, at
-        about the same cost as radius 4 on TUM fr1/rpy for radius 5 and ~10 % more for 6.
+        keyframes. Linking across the whole window (radius >= window) ties it to held
+        keyframes as well, which holds the drift: on 7-Scenes (Sim(3) ATE at keyframe_flow
+        15 / 16 / 17) radius 4 with window 6 gave 3.24 / 3.06 / 3.50 cm, radius 5 with
+        window 5 3.30 / 2.90 / 3.38 and radius 6 with window 5 2.85 / 2.86 / 3.17; on TUM
+        fr1/rpy radius 5 costs what radius 4 did, radius 6 ~10 % more (1.60 cm).
     proximity_edges, proximity_max_flow, proximity_min_overlap, proximity_nms: up to that
         many extra links to older keyframes that, by the current poses and depths, see the
         same region (mean induced flow below proximity_max_flow working-resolution pixels
@@ -118,7 +118,7 @@ class FrontendConfig:
     ba_stride: int = 8
     keyframe_flow: float = 16.0
     keyframe_max_flow: float = 48.0
-    temporal_radius: int = 5
+    temporal_radius: int = 6
     proximity_edges: int = 2
     proximity_max_flow: float = 96.0
     proximity_min_overlap: float = 0.5
