@@ -164,6 +164,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "default %(default)s")
     g.add_argument("--pose-method", choices=["auto", "frontend", "sfm"], default="auto",
                    help="pose estimator (default %(default)s)")
+    g.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
+                   help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
+                        "(repeatable); `--pose-option list` prints every setting with its default")
 
     g = parser.add_argument_group("depth prior")
     g.add_argument("--prior", choices=["fastdepth", "sensor", "folder"], default=d.prior,
@@ -201,6 +204,27 @@ def fusion_options_from_args(args: argparse.Namespace):
     )
 
 
+class _PoseOptionAction(argparse.Action):
+    """Collects --pose-option values; `list` prints the settings and exits while parsing,
+    as --help does, so that it needs no input or output folder."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values == "list":
+            from .poses import pose_option_table
+
+            print("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
+                  "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
+            print(pose_option_table())
+            parser.exit()
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
+def pose_options_from_args(args: argparse.Namespace) -> dict:
+    from .poses import parse_pose_option
+
+    return dict(parse_pose_option(text) for text in args.pose_option)
+
+
 def pipeline_config_from_args(args: argparse.Namespace):
     from .pipeline import PipelineConfig
 
@@ -211,7 +235,8 @@ def pipeline_config_from_args(args: argparse.Namespace):
         max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
-        poses=args.poses, pose_method=args.pose_method, prior=args.prior, prior_path=args.prior_path,
+        poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
+        prior=args.prior, prior_path=args.prior_path,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
         fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
         progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,

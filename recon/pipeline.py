@@ -34,7 +34,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -70,6 +70,8 @@ class PipelineConfig:
     poses: "auto", "gt" (dataset ground truth), "estimate", or a pose file / folder
         (TUM, COLMAP, nerfstudio, 7-Scenes/ScanNet matrices, Open3D .log).
     pose_method: estimator, "auto" | "frontend" | "sfm".
+    pose_options: fields of the estimators' configs (``recon.poses.frontend.FrontendConfig``,
+        ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
     prior: "fastdepth", "sensor" (a dataset's depth) or "folder" (prior_path holds one
         depth map per frame, matched by name). weights: FastDepth weights location.
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
@@ -95,6 +97,7 @@ class PipelineConfig:
     fov: float | None = None
     poses: str = "auto"
     pose_method: str = "auto"
+    pose_options: dict[str, Any] = field(default_factory=dict)
     prior: str = "fastdepth"
     prior_path: Path | None = None
     weights: Path | None = None
@@ -124,6 +127,10 @@ class PipelineConfig:
             k = np.asarray(self.intrinsics, dtype=np.float64)
             if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
                 raise ReconInputError(f"intrinsics must be four numbers fx,fy,cx,cy with fx, fy > 0, got {self.intrinsics}")
+        if self.pose_options:
+            from .poses import check_pose_options
+
+            check_pose_options(self.pose_options)
         if int(self.frame_budget) < 2:
             raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
         self.fusion.validate()
@@ -359,7 +366,7 @@ def camera_poses(config: PipelineConfig, plan, source: FrameSource, frames: Fram
 def estimated_poses(config: PipelineConfig, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
     result = _pose_estimator()(
         frames.rgb, prior_depth, intrinsics=intrinsics, method=config.pose_method, device=config.device,
-        progress=config.progress,
+        progress=config.progress, **config.pose_options,
     )
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50}}

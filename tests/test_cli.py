@@ -211,6 +211,40 @@ def test_bad_pose_file(tmp_path, capsys):
     assert "frame" in msg and not (tmp_path / "out").exists()
 
 
+def test_pose_options_reach_the_estimator(demo, tmp_path, capsys):
+    """--pose-option sets FrontendConfig fields: a correlation floor no frame can pass, with
+    no lost frames allowed, stops tracking at the first frame after the keyframe, saying why."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    result = tmp_path / "result"
+    msg = _run_fails(capsys, ["run", str(out / "input/synthetic.mp4"), "-o", str(result), "--width", "160",
+                              "--poses", "estimate", "--pose-method", "frontend", "--pose-option", "max_lost=0",
+                              "--pose-option", "min-match-correlation=1.01", "--prior", "folder",
+                              "--prior-path", str(out / "input/prior"), "--intrinsics",
+                              f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "off"],
+                     "tracking lost at frame 1", "correlation")
+    assert "< 1.01" in msg and ": 1 consecutive" in msg and not result.exists()  # both options applied
+
+
+def test_pose_option_errors_and_list(tmp_path, capsys):
+    from recon.poses.frontend import FrontendConfig
+
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = str(tmp_path / "out")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "windw=3"], "unknown pose option", "windw")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "window=three"], "window", "'three'", "int")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "window"], "KEY=VALUE")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "calibrate_lens=maybe"], "bool")
+    assert not Path(out).exists()
+    with pytest.raises(SystemExit) as exit_info:  # like --help: no input needed
+        main(["run", "--pose-option", "list"])
+    assert exit_info.value.code == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
+    assert rows["window"][1:3] == ["int", str(FrontendConfig().window)]
+    assert rows["calibrate_lens"][3:] == ["FrontendConfig,", "SfMConfig"]
+    assert "torch_threads" in rows and "mapper" in rows and "flow" not in rows
+
+
 def _depth_folder(tmp_path: Path, n: int) -> Path:
     folder = tmp_path / "prior"
     folder.mkdir()
@@ -244,7 +278,7 @@ def test_help_texts():
         sub = parser._subparsers._group_actions[0].choices[name]
         texts[name] = sub.format_help()
     for option in ("--poses", "--prior", "--intrinsics", "--fov", "--stride", "--width", "--voxel-size", "--device",
-                   "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:"):
+                   "--pose-option", "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:"):
         assert option in texts["run"], option
     assert "--frames" in texts["demo"] and "--poses" in texts["demo"]
     assert "recording.rrd" in texts["view"]

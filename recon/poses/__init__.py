@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import replace
+import types
+import typing
+from dataclasses import MISSING, fields, is_dataclass, replace
 
 from recon.errors import ReconInputError
 from recon.poses.result import PoseResult, TrackingLostError, parse_intrinsics
@@ -18,7 +20,8 @@ log = logging.getLogger(__name__)
 
 METHODS = ("auto", "frontend", "sfm")
 
-__all__ = ["METHODS", "PoseResult", "TrackingLostError", "estimate_poses", "intrinsics_from_fov"]
+__all__ = ["METHODS", "PoseResult", "TrackingLostError", "check_pose_options", "estimate_poses", "intrinsics_from_fov",
+           "parse_pose_option", "pose_option_table"]
 
 
 def intrinsics_from_fov(fov_deg: float, width: int, height: int) -> tuple[float, float, float, float]:
@@ -55,10 +58,8 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     intrinsics = parse_intrinsics(intrinsics)
     fe_cfg = options.pop("config", None) or FrontendConfig()
     sfm_cfg = options.pop("sfm_config", None) or SfMConfig()
+    check_pose_options(options)
     fe_fields, sfm_fields = set(FrontendConfig.__dataclass_fields__), set(SfMConfig.__dataclass_fields__)
-    unknown = set(options) - fe_fields - sfm_fields
-    if unknown:
-        raise ReconInputError(f"unknown pose option(s): {', '.join(sorted(unknown))}")
     fe_cfg = replace(fe_cfg, **{k: v for k, v in options.items() if k in fe_fields})
     sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in sfm_fields})
     if method == "sfm":
@@ -75,3 +76,85 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
         result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
         return result
+
+
+def _option_fields() -> dict[str, tuple[str, object, object]]:
+    """{name: (owner, type, default)} of the scalar fields of FrontendConfig and SfMConfig
+    (a name both have, such as calibrate_lens, sets both)."""
+    from recon.poses.frontend import FrontendConfig
+    from recon.poses.sfm import SfMConfig
+
+    table: dict[str, tuple[str, object, object]] = {}
+    for cls in (FrontendConfig, SfMConfig):
+        hints = typing.get_type_hints(cls)
+        for f in fields(cls):
+            if is_dataclass(hints[f.name]):
+                continue
+            default = f.default if f.default is not MISSING else f.default_factory()
+            owner = table[f.name][0] + ", " + cls.__name__ if f.name in table else cls.__name__
+            table[f.name] = (owner, hints[f.name], default)
+    return table
+
+
+def check_pose_options(options: dict) -> None:
+    """ReconInputError naming the keys of `options` that are no field of FrontendConfig or
+    SfMConfig (nested configs such as ``flow`` included; the command line sets scalars only)."""
+    from recon.poses.frontend import FrontendConfig
+    from recon.poses.sfm import SfMConfig
+
+    unknown = set(options) - set(FrontendConfig.__dataclass_fields__) - set(SfMConfig.__dataclass_fields__)
+    if unknown:
+        raise ReconInputError(
+            f"unknown pose option(s): {', '.join(sorted(unknown))} (`--pose-option list` shows the options)"
+        )
+
+
+def parse_pose_option(text: str) -> tuple[str, object]:
+    """KEY=VALUE from the command line as (key, value typed like the field), for a scalar
+    field of FrontendConfig or SfMConfig: numbers, true/false, none where the field may be
+    None, comma-separated numbers for tuples. Raises ReconInputError."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip().replace("-", "_"), raw.strip()
+    if not sep or not key or not raw:
+        raise ReconInputError(f"pose option must be KEY=VALUE, got {text!r}")
+    settable = _option_fields()
+    if key not in settable:
+        check_pose_options({key: None})
+        raise ReconInputError(f"pose option {key} is a nested config; set its fields in Python (recon.poses.estimate_poses)")
+    kind = settable[key][1]
+    try:
+        return key, _typed(raw, kind)
+    except ValueError:
+        raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {_type_name(kind)}") from None
+
+
+def _typed(raw: str, kind):
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, types.UnionType):
+        if raw.lower() == "none" and type(None) in args:
+            return None
+        return _typed(raw, next(a for a in args if a is not type(None)))
+    if typing.get_origin(kind) is tuple:
+        parts = [p for p in raw.split(",") if p.strip()]
+        if args and args[-1] is not Ellipsis and len(parts) != len(args):
+            raise ValueError(raw)
+        return tuple(_typed(p.strip(), args[0] if args else float) for p in parts)
+    if kind is bool:
+        value = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+        if raw.lower() not in value:
+            raise ValueError(raw)
+        return value[raw.lower()]
+    if kind in (int, float, str):
+        return kind(raw)
+    raise ValueError(raw)
+
+
+def _type_name(kind) -> str:
+    return str(kind).replace("typing.", "") if typing.get_args(kind) else kind.__name__
+
+
+def pose_option_table() -> str:
+    """The pose options (`--pose-option KEY=VALUE`) with type, default and owner, a line each."""
+    rows = [(name, _type_name(kind), repr(default), owner) for name, (owner, kind, default) in sorted(_option_fields().items())]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}" for n, t, d, o in rows)
