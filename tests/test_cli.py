@@ -212,18 +212,18 @@ def test_bad_pose_file(tmp_path, capsys):
 
 
 def test_pose_options_reach_the_estimator(demo, tmp_path, capsys):
-    """--pose-option sets FrontendConfig fields: a correlation floor no frame can pass, with
+    """--pose-option sets FrontendConfig fields: a correlation floor no moving frame can pass, with
     no lost frames allowed, stops tracking at the first frame after the keyframe, saying why."""
     out, _ = demo
     k = json.loads((out / "intrinsics.json").read_text())
     result = tmp_path / "result"
     msg = _run_fails(capsys, ["run", str(out / "input/synthetic.mp4"), "-o", str(result), "--width", "160",
                               "--poses", "estimate", "--pose-method", "frontend", "--pose-option", "max_lost=0",
-                              "--pose-option", "min-match-correlation=1.01", "--prior", "folder",
+                              "--pose-option", "min-match-correlation=1", "--prior", "folder",
                               "--prior-path", str(out / "input/prior"), "--intrinsics",
                               f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "off"],
                      "tracking lost at frame 1", "correlation")
-    assert "< 1.01" in msg and ": 1 consecutive" in msg and not result.exists()  # both options applied
+    assert "< 1.0" in msg and ": 1 consecutive" in msg and not result.exists()  # both options applied
 
 
 def test_pose_option_errors_and_list(tmp_path, capsys):
@@ -235,6 +235,9 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "window=three"], "window", "'three'", "int")
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "window"], "KEY=VALUE")
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "calibrate_lens=maybe"], "bool")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "ba_stride=0"], "ba_stride must be >= 1")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "lost_inlier=1.5"], "lost_inlier", "[0, 1]")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "mapper=glomap"], "mapper", "'global'")
     assert not Path(out).exists()
     with pytest.raises(SystemExit) as exit_info:  # like --help: no input needed
         main(["run", "--pose-option", "list"])

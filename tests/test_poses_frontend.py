@@ -16,6 +16,7 @@ from recon.poses import TrackingLostError, estimate_poses, intrinsics_from_fov
 from recon.poses import ba, lie
 from recon.poses import flow as fl
 from recon.poses.frontend import FrontendConfig
+from recon.poses.sfm import SfMConfig
 from recon.poses import projective as pj
 from recon.synthetic import render_sequence, simulate_prior
 
@@ -257,6 +258,10 @@ def test_bad_inputs_raise_one_line_errors(room):
         estimate_poses(seq.rgb[:8], prior[:5], seq.intrinsics, method="frontend", progress=False)
     with pytest.raises(ReconInputError, match="unknown pose option"):
         estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, bogus=1)
+    with pytest.raises(ReconInputError, match="ba_stride must be >= 1, got 0"):  # was a ZeroDivisionError
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, config=FrontendConfig(ba_stride=0))
+    with pytest.raises(ReconInputError, match="window must be >= 1"):  # the SfM's own front-end settings too
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, method="sfm", sfm_config=SfMConfig(frontend=FrontendConfig(window=0)))
     with pytest.raises(ReconInputError, match="positive focal"):
         estimate_poses(seq.rgb[:8], prior[:8], (0, 0, 1, 1))
     f = intrinsics_from_fov(90.0, 640, 480)

@@ -20,8 +20,8 @@ log = logging.getLogger(__name__)
 
 METHODS = ("auto", "frontend", "sfm")
 
-__all__ = ["METHODS", "PoseResult", "TrackingLostError", "check_pose_options", "estimate_poses", "intrinsics_from_fov",
-           "parse_pose_option", "pose_option_table"]
+__all__ = ["METHODS", "PoseResult", "TrackingLostError", "check_pose_config", "check_pose_options", "estimate_poses",
+           "intrinsics_from_fov", "parse_pose_option", "pose_option_table"]
 
 
 def intrinsics_from_fov(fov_deg: float, width: int, height: int) -> tuple[float, float, float, float]:
@@ -62,6 +62,8 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     fe_fields, sfm_fields = set(FrontendConfig.__dataclass_fields__), set(SfMConfig.__dataclass_fields__)
     fe_cfg = replace(fe_cfg, **{k: v for k, v in options.items() if k in fe_fields})
     sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in sfm_fields})
+    check_pose_config(fe_cfg)
+    check_pose_config(sfm_cfg)
     if method == "sfm":
         return estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
     try:
@@ -96,6 +98,53 @@ def _option_fields() -> dict[str, tuple[str, object, object]]:
     return table
 
 
+# Ranges of the estimators' numeric settings (FrontendConfig, then SfMConfig; see their
+# docstrings): outside them a setting makes no sense or breaks the estimator. None is
+# allowed wherever the field's default is None. Settings not listed take any finite value.
+_AT_LEAST_ONE = (">= 1", lambda v: v >= 1)
+_AT_LEAST_ZERO = (">= 0", lambda v: v >= 0)
+_POSITIVE = ("> 0", lambda v: v > 0)
+_FRACTION = ("in [0, 1]", lambda v: 0 <= v <= 1)
+_RANGES = {
+    **dict.fromkeys(("ba_stride", "temporal_radius", "window", "calib_stride", "calib_flow_stride", "calib_iters",
+                     "align_chunk", "torch_threads"), _AT_LEAST_ONE),
+    **dict.fromkeys(("proximity_edges", "proximity_nms", "final_proximity_edges", "window_iters", "global_iters",
+                     "prior_weight", "calibrate_after", "calibrate_iters", "max_lost", "reloc_candidates"), _AT_LEAST_ZERO),
+    **dict.fromkeys(("keyframe_flow", "keyframe_max_flow", "proximity_max_flow", "calib_tol"), _POSITIVE),
+    **dict.fromkeys(("proximity_min_overlap", "min_edge_weight", "lost_inlier", "min_registered"), _FRACTION),
+    "min_match_correlation": ("in [-1, 1]", lambda v: -1 <= v <= 1),
+    "calib_keyframes": (">= 2", lambda v: v >= 2),
+    **dict.fromkeys(("max_keyframes", "keyframe_stride", "max_num_features", "overlap", "num_threads"), _AT_LEAST_ONE),
+    "correction_grid": ("two numbers >= 1", lambda v: len(v) == 2 and min(v) >= 1),
+    "mapper": ("'incremental' or 'global'", lambda v: v in ("incremental", "global")),
+}
+
+
+def _check_value(name: str, value) -> None:
+    if value is None:
+        return
+    numbers = value if isinstance(value, tuple) else (value,)
+    finite = all(isinstance(v, str) or math.isfinite(v) for v in numbers)
+    rule = _RANGES.get(name)
+    if not finite or (rule is not None and not rule[1](value)):
+        raise ReconInputError(f"pose option {name} must be {rule[0] if rule else 'finite'}, got {value!r}")
+
+
+def check_pose_config(config) -> None:
+    """ReconInputError naming the first setting of a FrontendConfig or SfMConfig (and the
+    FrontendConfig inside an SfMConfig) outside its range."""
+    from recon.poses.frontend import FrontendConfig
+
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, FrontendConfig):
+            check_pose_config(value)
+        elif is_dataclass(value):
+            continue  # flow and BA settings: set in Python, not checked here
+        elif isinstance(value, (int, float, tuple, str)) and not isinstance(value, bool):
+            _check_value(f.name, value)
+
+
 def check_pose_options(options: dict) -> None:
     """ReconInputError naming the keys of `options` that are no field of FrontendConfig or
     SfMConfig (nested configs such as ``flow`` included; the command line sets scalars only)."""
@@ -107,6 +156,9 @@ def check_pose_options(options: dict) -> None:
         raise ReconInputError(
             f"unknown pose option(s): {', '.join(sorted(unknown))} (`--pose-option list` shows the options)"
         )
+    for name, value in options.items():
+        if isinstance(value, (int, float, tuple, str)) and not isinstance(value, bool):
+            _check_value(name, value)
 
 
 def parse_pose_option(text: str) -> tuple[str, object]:
@@ -123,9 +175,11 @@ def parse_pose_option(text: str) -> tuple[str, object]:
         raise ReconInputError(f"pose option {key} is a nested config; set its fields in Python (recon.poses.estimate_poses)")
     kind = settable[key][1]
     try:
-        return key, _typed(raw, kind)
+        value = _typed(raw, kind)
     except ValueError:
         raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {_type_name(kind)}") from None
+    check_pose_options({key: value})
+    return key, value
 
 
 def _typed(raw: str, kind):
