@@ -164,9 +164,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "default %(default)s")
     g.add_argument("--pose-method", choices=["auto", "frontend", "sfm"], default="auto",
                    help="pose estimator (default %(default)s)")
-    g.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
-                   help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
-                        "(repeatable); `--pose-option list` prints every setting with its default")
+    add_pose_option_argument(g)
 
     g = parser.add_argument_group("depth prior")
     g.add_argument("--prior", choices=["fastdepth", "sensor", "folder"], default=d.prior,
@@ -219,6 +217,12 @@ class _PoseOptionAction(argparse.Action):
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
 
 
+def add_pose_option_argument(parser) -> None:
+    parser.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
+                        help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
+                             "(repeatable); `--pose-option list` prints every setting with its default")
+
+
 def pose_options_from_args(args: argparse.Namespace) -> dict:
     from .poses import parse_pose_option
 
@@ -268,6 +272,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from .pipeline import format_summary
 
     medea = medea_config_from_args(args)
+    pose_options = pose_options_from_args(args)
     mode, path = rerun_mode(args, "save")
     if path is not None:
         raise ReconInputError("recon demo --rerun save takes no path (the recording is OUT/recording.rrd)")
@@ -276,7 +281,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
           f"MEDeA preset {args.preset} on {medea.device}; output {output}")
     report = run_demo(DemoOptions(
         output=output, overwrite=args.overwrite, frames=args.frames, width=args.width, height=args.height,
-        seed=args.scene_seed, poses=args.poses, prior=args.prior, compare_prior=not args.no_compare,
+        seed=args.scene_seed, poses=args.poses, pose_options=pose_options, prior=args.prior,
+        compare_prior=not args.no_compare,
         adjust=not args.no_medea, medea=medea,
         rerun=mode, device=medea.device, progress=not args.quiet,
     ))
@@ -396,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--poses", choices=["auto", "gt", "estimate"], default="auto",
                       help="estimate (pose front end), gt (rendered trajectory), auto: estimate when the estimator "
                            "is installed, else gt with a note (default %(default)s)")
+    add_pose_option_argument(demo)
     demo.add_argument("--prior", choices=["simulated", "fastdepth"], default="simulated",
                       help="simulated: ground truth distorted like a monocular network (default); fastdepth: the "
                            "real network")

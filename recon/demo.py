@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -71,6 +71,7 @@ def pose_estimator_available() -> bool:
 @dataclass
 class DemoOptions:
     """frames, width, height: the rendered sequence; seed: scene and prior; poses: DEMO_POSES;
+    pose_options: estimator settings (PipelineConfig.pose_options) when poses are estimated;
     prior: "simulated" (ground truth distorted like a network, see recon.synthetic.prior)
     or "fastdepth"; compare_prior: also fuse the raw prior to score it (not written)."""
 
@@ -81,6 +82,7 @@ class DemoOptions:
     height: int = 480
     seed: int = 0
     poses: str = "auto"
+    pose_options: dict[str, Any] = field(default_factory=dict)
     prior: str = "simulated"
     compare_prior: bool = True
     adjust: bool = True
@@ -88,6 +90,13 @@ class DemoOptions:
     rerun: str = "save"
     device: str = "cpu"
     progress: bool = True
+
+
+def _option_text(value) -> str:
+    """A pose option value as `--pose-option` reads it back."""
+    if isinstance(value, tuple):
+        return ",".join(str(v) for v in value)
+    return str(value).lower() if value is None or isinstance(value, bool) else str(value)
 
 
 @dataclass
@@ -191,13 +200,14 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
     fx, fy, cx, cy = seq.intrinsics
     config = PipelineConfig(
         input=inputs["video"], output=out.path, overwrite=True, width=None, intrinsics=seq.intrinsics,
-        poses=str(inputs["poses"]) if poses == "gt" else "estimate",
+        poses=str(inputs["poses"]) if poses == "gt" else "estimate", pose_options=dict(options.pose_options),
         prior="folder" if prior is not None else "fastdepth", prior_path=inputs.get("prior"),
         adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device, progress=options.progress,
     )
     command = (
         f"recon run {config.input} -o {out.path} --overwrite --width 0 --intrinsics {fx:g},{fy:g},{cx:g},{cy:g} "
         f"--poses {config.poses} --prior {config.prior}"
+        + "".join(f" --pose-option {k}={_option_text(v)}" for k, v in config.pose_options.items())
         + (f" --prior-path {config.prior_path}" if prior is not None else "")
         + f" --rerun {options.rerun}"
     )

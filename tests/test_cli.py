@@ -238,6 +238,7 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "ba_stride=0"], "ba_stride must be >= 1")
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "lost_inlier=1.5"], "lost_inlier", "[0, 1]")
     _run_fails(capsys, ["run", str(video), "-o", out, "--pose-option", "mapper=glomap"], "mapper", "'global'")
+    _run_fails(capsys, ["demo", "-o", out, "--pose-option", "windw=3"], "windw")
     assert not Path(out).exists()
     with pytest.raises(SystemExit) as exit_info:  # like --help: no input needed
         main(["run", "--pose-option", "list"])
@@ -246,6 +247,15 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     assert rows["window"][1:3] == ["int", str(FrontendConfig().window)]
     assert rows["calibrate_lens"][3:] == ["FrontendConfig,", "SfMConfig"]
     assert "torch_threads" in rows and "mapper" in rows and "flow" not in rows
+
+
+@pytest.mark.parametrize("key, value", [("correction_grid", (2, 5)), ("torch_threads", None), ("calibrate_lens", False),
+                                        ("keyframe_flow", 12.5), ("mapper", "global")])
+def test_demo_replay_command_reads_back_its_pose_options(key, value):
+    from recon.demo import _option_text
+    from recon.poses import parse_pose_option
+
+    assert parse_pose_option(f"{key}={_option_text(value)}") == (key, value)
 
 
 def _depth_folder(tmp_path: Path, n: int) -> Path:
@@ -283,5 +293,5 @@ def test_help_texts():
     for option in ("--poses", "--prior", "--intrinsics", "--fov", "--stride", "--width", "--voxel-size", "--device",
                    "--pose-option", "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:"):
         assert option in texts["run"], option
-    assert "--frames" in texts["demo"] and "--poses" in texts["demo"]
+    assert "--frames" in texts["demo"] and "--poses" in texts["demo"] and "--pose-option" in texts["demo"]
     assert "recording.rrd" in texts["view"]
