@@ -245,7 +245,17 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(room, monkeypatch, capsys)
     monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: sentinel)
     res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=True)
     assert res.diagnostics["fallback"]["frame"] == 7
-    assert "falling back to SfM" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "falling back to SfM" in said.out and said.err == ""  # said once
+
+    def sfm_fails(*args, **kwargs):
+        raise TrackingLostError("SfM registered only 0 of 4 keyframes")
+
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", sfm_fails)
+    with pytest.raises(TrackingLostError, match=r"front end failed \(tracking lost at frame 7: test\), and so did the "
+                                                r"SfM fallback \(SfM registered only 0") as info:
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
+    assert info.value.frame == 7
     with pytest.raises(TrackingLostError):
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
 

@@ -72,10 +72,15 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         if method == "frontend":
             raise
         message = f"front end failed ({err}); falling back to SfM (pycolmap)"
-        log.warning(message)
         if progress:
             print(f"recon: {message}")
-        result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
+        else:
+            log.warning(message)
+        try:
+            result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
+        except TrackingLostError as sfm_err:
+            raise TrackingLostError(f"no camera poses: the front end failed ({err}), and so did the SfM fallback "
+                                    f"({sfm_err})", frame=err.frame) from None
         result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
         return result
 

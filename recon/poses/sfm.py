@@ -93,7 +93,9 @@ def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: Sf
     level = pycolmap.logging.minloglevel
     # COLMAP's INFO lines would flood the console, and so would its warnings: Ceres reports
     # every rejected LM step (hundreds on a rotating camera once the lens term is refined).
-    pycolmap.logging.minloglevel = max(level, 2)
+    # Its errors ("Failed to create any sparse model") are failures we report ourselves, in
+    # one line with what to do, so only fatal ones get through.
+    pycolmap.logging.minloglevel = max(level, 3)
     try:
         return _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg, workdir)
     finally:
