@@ -11,6 +11,7 @@ with code 2, without a traceback.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -444,9 +445,34 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=_cmd_eval)
     return parser
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is when a record comes (it may be replaced after the
+    handler is made: tests capture it, embedding applications redirect it)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
+
+def _log_warnings_to_stderr() -> None:
+    """recon's warnings (a pose fallback, frames fusion skipped) as `recon: warning: ...`
+    lines; without a handler Python prints them bare."""
+    logger = logging.getLogger("recon")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("recon: warning: %(message)s"))
+        handler.setLevel(logging.WARNING)
+        logger.addHandler(handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _log_warnings_to_stderr()
     try:
         return args.func(args)
     except ReconInputError as error:

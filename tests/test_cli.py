@@ -266,6 +266,18 @@ def _depth_folder(tmp_path: Path, n: int) -> Path:
     return folder
 
 
+def test_warnings_are_prefixed_lines_on_stderr(capsys):
+    import logging
+
+    from recon.cli import _log_warnings_to_stderr
+
+    _log_warnings_to_stderr()
+    _log_warnings_to_stderr()  # once, however often main runs in a process
+    logging.getLogger("recon.fusion").warning("skipping %d of %d frames", 2, 9)
+    logging.getLogger("recon.poses").info("not shown")
+    assert capsys.readouterr().err == "recon: warning: skipping 2 of 9 frames\n"
+
+
 @pytest.mark.skipif(pose_estimator_available(), reason="pose estimation is installed")
 def test_missing_pose_estimator_is_a_clear_error(tmp_path, capsys):
     video = _video(tmp_path / "clip.mp4", 4)

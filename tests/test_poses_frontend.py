@@ -3,6 +3,7 @@ tracking loss; and the geometry it rests on (Lie maps, Jacobians, Schur-compleme
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -232,7 +233,7 @@ def test_previous_frame_becomes_a_keyframe_when_the_reference_fails(room):
     assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.8  # of ~1.6 deg turned
 
 
-def test_auto_falls_back_to_sfm_when_tracking_is_lost(room, monkeypatch, capsys):
+def test_auto_falls_back_to_sfm_when_tracking_is_lost(room, monkeypatch, capsys, caplog):
     seq, prior = room
     import recon.poses.frontend as fe
     import recon.poses.sfm as sfm
@@ -247,6 +248,11 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(room, monkeypatch, capsys)
     assert res.diagnostics["fallback"]["frame"] == 7
     said = capsys.readouterr()
     assert "falling back to SfM" in said.out and said.err == ""  # said once
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
+    assert capsys.readouterr().out == ""
+    assert [r.getMessage() for r in caplog.records] == [
+        "front end failed (tracking lost at frame 7: test); the poses are from the SfM fallback (pycolmap)"]
 
     def sfm_fails(*args, **kwargs):
         raise TrackingLostError("SfM registered only 0 of 4 keyframes")

@@ -71,16 +71,15 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     except TrackingLostError as err:
         if method == "frontend":
             raise
-        message = f"front end failed ({err}); falling back to SfM (pycolmap)"
-        if progress:
-            print(f"recon: {message}")
-        else:
-            log.warning(message)
+        if progress:  # said before SfM's own progress bars, which take a while
+            print(f"recon: front end failed ({err}); falling back to SfM (pycolmap)")
         try:
             result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
         except TrackingLostError as sfm_err:
             raise TrackingLostError(f"no camera poses: the front end failed ({err}), and so did the SfM fallback "
                                     f"({sfm_err})", frame=err.frame) from None
+        if not progress:  # said once, by the error above, when SfM fails too
+            log.warning("front end failed (%s); the poses are from the SfM fallback (pycolmap)", err)
         result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
         return result
 
