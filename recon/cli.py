@@ -445,6 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.set_defaults(func=_cmd_eval)
     return parser
 
+
 class _StderrHandler(logging.StreamHandler):
     """Writes to whatever sys.stderr is when a record comes (it may be replaced after the
     handler is made: tests capture it, embedding applications redirect it)."""

@@ -92,13 +92,6 @@ class DemoOptions:
     progress: bool = True
 
 
-def _option_text(value) -> str:
-    """A pose option value as `--pose-option` reads it back."""
-    if isinstance(value, tuple):
-        return ",".join(str(v) for v in value)
-    return str(value).lower() if value is None or isinstance(value, bool) else str(value)
-
-
 @dataclass
 class DemoReport:
     result: PipelineResult
@@ -204,10 +197,14 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
         prior="folder" if prior is not None else "fastdepth", prior_path=inputs.get("prior"),
         adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device, progress=options.progress,
     )
+    pose_options = ""
+    if config.pose_options:  # the estimator, which owns the syntax, is there when options are given
+        from .poses import format_pose_option
+
+        pose_options = "".join(f" --pose-option {format_pose_option(k, v)}" for k, v in config.pose_options.items())
     command = (
         f"recon run {config.input} -o {out.path} --overwrite --width 0 --intrinsics {fx:g},{fy:g},{cx:g},{cy:g} "
-        f"--poses {config.poses} --prior {config.prior}"
-        + "".join(f" --pose-option {k}={_option_text(v)}" for k, v in config.pose_options.items())
+        f"--poses {config.poses} --prior {config.prior}{pose_options}"
         + (f" --prior-path {config.prior_path}" if prior is not None else "")
         + f" --rerun {options.rerun}"
     )

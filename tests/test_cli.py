@@ -252,10 +252,9 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
 @pytest.mark.parametrize("key, value", [("correction_grid", (2, 5)), ("torch_threads", None), ("calibrate_lens", False),
                                         ("keyframe_flow", 12.5), ("mapper", "global")])
 def test_demo_replay_command_reads_back_its_pose_options(key, value):
-    from recon.demo import _option_text
-    from recon.poses import parse_pose_option
+    from recon.poses import format_pose_option, parse_pose_option
 
-    assert parse_pose_option(f"{key}={_option_text(value)}") == (key, value)
+    assert parse_pose_option(format_pose_option(key, value)) == (key, value)
 
 
 def _depth_folder(tmp_path: Path, n: int) -> Path:

@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 METHODS = ("auto", "frontend", "sfm")
 
 __all__ = ["METHODS", "PoseResult", "TrackingLostError", "check_pose_config", "check_pose_options", "estimate_poses",
-           "intrinsics_from_fov", "parse_pose_option", "pose_option_table"]
+           "format_pose_option", "intrinsics_from_fov", "parse_pose_option", "pose_option_table"]
 
 
 def intrinsics_from_fov(fov_deg: float, width: int, height: int) -> tuple[float, float, float, float]:
@@ -103,8 +103,9 @@ def _option_fields() -> dict[str, tuple[str, object, object]]:
 
 
 # Ranges of the estimators' numeric settings (FrontendConfig, then SfMConfig; see their
-# docstrings): outside them a setting makes no sense or breaks the estimator. None is
-# allowed wherever the field's default is None. Settings not listed take any finite value.
+# docstrings): outside them a setting makes no sense or breaks the estimator. Settings not
+# listed take any finite value. None is not checked here: the command line gives None only
+# to fields that may be None (``parse_pose_option``), Python callers are trusted with it.
 _AT_LEAST_ONE = (">= 1", lambda v: v >= 1)
 _AT_LEAST_ZERO = (">= 0", lambda v: v >= 0)
 _POSITIVE = ("> 0", lambda v: v > 0)
@@ -125,7 +126,9 @@ _RANGES = {
 
 
 def _check_value(name: str, value) -> None:
-    if value is None:
+    """ReconInputError when a scalar setting is outside its range; None, booleans and nested
+    configs pass (see _RANGES)."""
+    if value is None or isinstance(value, bool) or not isinstance(value, (int, float, tuple, str)):
         return
     numbers = value if isinstance(value, tuple) else (value,)
     finite = all(isinstance(v, str) or math.isfinite(v) for v in numbers)
@@ -143,9 +146,7 @@ def check_pose_config(config) -> None:
         value = getattr(config, f.name)
         if isinstance(value, FrontendConfig):
             check_pose_config(value)
-        elif is_dataclass(value):
-            continue  # flow and BA settings: set in Python, not checked here
-        elif isinstance(value, (int, float, tuple, str)) and not isinstance(value, bool):
+        else:  # flow and BA settings (nested configs) are set in Python and not checked here
             _check_value(f.name, value)
 
 
@@ -161,8 +162,7 @@ def check_pose_options(options: dict) -> None:
             f"unknown pose option(s): {', '.join(sorted(unknown))} (`--pose-option list` shows the options)"
         )
     for name, value in options.items():
-        if isinstance(value, (int, float, tuple, str)) and not isinstance(value, bool):
-            _check_value(name, value)
+        _check_value(name, value)
 
 
 def parse_pose_option(text: str) -> tuple[str, object]:
@@ -184,6 +184,15 @@ def parse_pose_option(text: str) -> tuple[str, object]:
         raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {_type_name(kind)}") from None
     check_pose_options({key: value})
     return key, value
+
+
+def format_pose_option(key: str, value) -> str:
+    """KEY=VALUE as parse_pose_option reads it back (for commands echoed to the user)."""
+    if isinstance(value, tuple):
+        text = ",".join(str(v) for v in value)
+    else:
+        text = str(value).lower() if value is None or isinstance(value, bool) else str(value)
+    return f"{key}={text}"
 
 
 def _typed(raw: str, kind):
