@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import logging
 import math
-import types
-import typing
-from dataclasses import MISSING, fields, is_dataclass, replace
+from dataclasses import fields, replace
 
 from recon.errors import ReconInputError
+from recon.options import scalar_fields, split_option, type_name, typed_value
 from recon.poses.result import PoseResult, TrackingLostError, parse_intrinsics
 
 log = logging.getLogger(__name__)
@@ -92,13 +91,9 @@ def _option_fields() -> dict[str, tuple[str, object, object]]:
 
     table: dict[str, tuple[str, object, object]] = {}
     for cls in (FrontendConfig, SfMConfig):
-        hints = typing.get_type_hints(cls)
-        for f in fields(cls):
-            if is_dataclass(hints[f.name]):
-                continue
-            default = f.default if f.default is not MISSING else f.default_factory()
-            owner = table[f.name][0] + ", " + cls.__name__ if f.name in table else cls.__name__
-            table[f.name] = (owner, hints[f.name], default)
+        for name, (kind, default) in scalar_fields(cls).items():
+            owner = table[name][0] + ", " + cls.__name__ if name in table else cls.__name__
+            table[name] = (owner, kind, default)
     return table
 
 
@@ -169,19 +164,16 @@ def parse_pose_option(text: str) -> tuple[str, object]:
     """KEY=VALUE from the command line as (key, value typed like the field), for a scalar
     field of FrontendConfig or SfMConfig: numbers, true/false, none where the field may be
     None, comma-separated numbers for tuples. Raises ReconInputError."""
-    key, sep, raw = text.partition("=")
-    key, raw = key.strip().replace("-", "_"), raw.strip()
-    if not sep or not key or not raw:
-        raise ReconInputError(f"pose option must be KEY=VALUE, got {text!r}")
+    key, raw = split_option(text, "pose option")
     settable = _option_fields()
     if key not in settable:
         check_pose_options({key: None})
         raise ReconInputError(f"pose option {key} is a nested config; set its fields in Python (recon.poses.estimate_poses)")
     kind = settable[key][1]
     try:
-        value = _typed(raw, kind)
+        value = typed_value(raw, kind)
     except ValueError:
-        raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {_type_name(kind)}") from None
+        raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {type_name(kind)}") from None
     check_pose_options({key: value})
     return key, value
 
@@ -195,33 +187,8 @@ def format_pose_option(key: str, value) -> str:
     return f"{key}={text}"
 
 
-def _typed(raw: str, kind):
-    args = typing.get_args(kind)
-    if typing.get_origin(kind) in (typing.Union, types.UnionType):
-        if raw.lower() == "none" and type(None) in args:
-            return None
-        return _typed(raw, next(a for a in args if a is not type(None)))
-    if typing.get_origin(kind) is tuple:
-        parts = [p for p in raw.split(",") if p.strip()]
-        if args and args[-1] is not Ellipsis and len(parts) != len(args):
-            raise ValueError(raw)
-        return tuple(_typed(p.strip(), args[0] if args else float) for p in parts)
-    if kind is bool:
-        value = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
-        if raw.lower() not in value:
-            raise ValueError(raw)
-        return value[raw.lower()]
-    if kind in (int, float, str):
-        return kind(raw)
-    raise ValueError(raw)
-
-
-def _type_name(kind) -> str:
-    return str(kind).replace("typing.", "") if typing.get_args(kind) else kind.__name__
-
-
 def pose_option_table() -> str:
     """The pose options (`--pose-option KEY=VALUE`) with type, default and owner, a line each."""
-    rows = [(name, _type_name(kind), repr(default), owner) for name, (owner, kind, default) in sorted(_option_fields().items())]
+    rows = [(name, type_name(kind), repr(default), owner) for name, (owner, kind, default) in sorted(_option_fields().items())]
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
     return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}" for n, t, d, o in rows)

@@ -224,6 +224,29 @@ class _Residuals:
         return rmse, float((wv * (rn < inlier)).sum()) / total
 
 
+@dataclass
+class PosePrior:
+    """A tie of the poses to given ones: 0.5 sum_k weight_k . log(T_k T0_k^-1)^2.
+
+    T0: (K, 4, 4) world-to-camera poses to stay near; weight: (K, 6) per tangent component
+    (translation, then rotation, in camera k's axes, as the left updates of the BA). For
+    poses that come from elsewhere (a dataset, ARKit, a pose file) and are right overall but
+    not to the pixel: the flow polishes their relative motion while the tie holds what flow
+    cannot see (scale, slow drift, the gauge).
+    """
+
+    T0: torch.Tensor
+    weight: torch.Tensor
+
+    def residual(self, T_cw: torch.Tensor) -> torch.Tensor:
+        """(K, 6) log(T_k T0_k^-1)."""
+        return lie.se3_log(T_cw @ lie.inv(self.T0))
+
+    def cost(self, T_cw: torch.Tensor) -> float:
+        r = self.residual(T_cw)
+        return float(0.5 * (self.weight * r * r).sum())
+
+
 def prior_cost(disps: torch.Tensor, prior: torch.Tensor | None, prior_w: torch.Tensor | None) -> float:
     """The tie of inverse depth (K, H, W) to the prior: 0.5 sum prior_w log(d / d0)^2."""
     if prior is None:
@@ -462,6 +485,7 @@ def ba_step(
     fixed_disp: torch.Tensor | None = None,
     k1: float | None = None,
     k1_tie: tuple[float, float] = (0.0, 0.0),
+    pose_prior: PosePrior | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, float | None, dict]:
     """One damped Gauss-Newton step. Returns the proposed poses (K, 4, 4), inverse depths
     (K, H, W), k1 (when estimated: k1 given, edges raw, tied to k1_tie = (start, weight)
@@ -486,6 +510,11 @@ def ba_step(
     # A held depth has infinite stiffness: it drops out of the Schur complement.
     free_disp = torch.ones(K, dtype=torch.bool) if fixed_disp is None else ~fixed_disp
     S, g, cpl = _reduced_system(sys, edges, Q, wz, K, free_disp)
+    if pose_prior is not None:
+        # r(dx) = log(exp(dx) T T0^-1) ~ r + dx for the left update.
+        k = torch.arange(K)
+        S[k, k] += torch.diag_embed(pose_prior.weight.to(S.dtype))
+        g[:K] -= pose_prior.weight * pose_prior.residual(T_cw)
     if k1 is not None:
         start, weight = k1_tie
         S[K, K, 0, 0] += weight
@@ -521,6 +550,7 @@ def bundle_adjust(
     opts: BAOptions | None = None,
     fixed_disp: torch.Tensor | None = None,
     k1: float = 0.0,
+    pose_prior: PosePrior | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, BAReport]:
     """Levenberg-Marquardt dense BA.
 
@@ -543,9 +573,12 @@ def bundle_adjust(
     if not calibrate:
         edges = edges.undistorted(intr, k1)
 
-    def objective(res: _Residuals, d: torch.Tensor, k: float, huber: float) -> float:
+    def tie(T: torch.Tensor) -> float:
+        return 0.0 if pose_prior is None else pose_prior.cost(T)
+
+    def objective(res: _Residuals, T: torch.Tensor, d: torch.Tensor, k: float, huber: float) -> float:
         lens = 0.5 * k1_tie[1] * (k - k1_tie[0]) ** 2
-        return res.cost(edges, huber) + prior_cost(d, prior, prior_w) + lens
+        return res.cost(edges, huber) + prior_cost(d, prior, prior_w) + lens + tie(T)
 
     def residuals(T: torch.Tensor, d: torch.Tensor, k: float) -> _Residuals:
         return _Residuals.of(T, d, intr, edges, opts.pixel_dtype, k if calibrate else 0.0)
@@ -562,15 +595,15 @@ def bundle_adjust(
             # accept test below use the same threshold.
             if opts.huber_auto > 0 and len(edges):
                 huber = res.adaptive_huber(edges, opts)
-            cost = objective(res, disps, k1, huber)
+            cost = objective(res, T_cw, disps, k1, huber)
             if not report.costs:
                 report.costs.append(cost)
         T_new, d_new, k1_new, sys = ba_step(T_cw, disps, intr, edges, prior, prior_w, fixed,
                                             replace(opts, huber=huber), lm, sys, fixed_disp,
-                                            k1 if calibrate else None, k1_tie)
+                                            k1 if calibrate else None, k1_tie, pose_prior)
         k1_new = k1 if k1_new is None else k1_new
         res_new = residuals(T_new, d_new, k1_new)
-        new_cost = objective(res_new, d_new, k1_new, huber)
+        new_cost = objective(res_new, T_new, d_new, k1_new, huber)
         if new_cost <= cost:
             T_cw, disps, k1, res = T_new, d_new, k1_new, res_new
             report.costs.append(new_cost)

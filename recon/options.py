@@ -1,0 +1,85 @@
+"""`KEY=VALUE` settings from the command line, typed like the dataclass field they set.
+
+One rule for every config the CLI exposes this way (``--pose-option``, ``--refine-option``):
+numbers, true/false (also yes/no, on/off, 1/0), ``none`` where the field may be None, and
+comma-separated numbers for tuples.
+"""
+
+from __future__ import annotations
+
+import types
+import typing
+from dataclasses import MISSING, fields, is_dataclass
+
+from .errors import ReconInputError
+
+
+def typed_value(raw: str, kind):
+    """raw text as a value of type `kind` (int, float, str, bool, tuple[...], X | None).
+    Raises ValueError."""
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, types.UnionType):
+        if raw.lower() == "none" and type(None) in args:
+            return None
+        return typed_value(raw, next(a for a in args if a is not type(None)))
+    if typing.get_origin(kind) is tuple:
+        parts = [p for p in raw.split(",") if p.strip()]
+        if args and args[-1] is not Ellipsis and len(parts) != len(args):
+            raise ValueError(raw)
+        return tuple(typed_value(p.strip(), args[0] if args else float) for p in parts)
+    if kind is bool:
+        value = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+        if raw.lower() not in value:
+            raise ValueError(raw)
+        return value[raw.lower()]
+    if kind in (int, float, str):
+        return kind(raw)
+    raise ValueError(raw)
+
+
+def type_name(kind) -> str:
+    return str(kind).replace("typing.", "") if typing.get_args(kind) else kind.__name__
+
+
+def scalar_fields(cls) -> dict[str, tuple[object, object]]:
+    """{name: (type, default)} of the fields of dataclass `cls` that are not nested configs."""
+    hints = typing.get_type_hints(cls)
+    table = {}
+    for f in fields(cls):
+        if is_dataclass(hints[f.name]):
+            continue
+        table[f.name] = (hints[f.name], f.default if f.default is not MISSING else f.default_factory())
+    return table
+
+
+def split_option(text: str, what: str) -> tuple[str, str]:
+    """KEY=VALUE -> (key with dashes as underscores, raw value); ReconInputError otherwise."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip().replace("-", "_"), raw.strip()
+    if not sep or not key or not raw:
+        raise ReconInputError(f"{what} must be KEY=VALUE, got {text!r}")
+    return key, raw
+
+
+def parse_field_option(text: str, cls, what: str) -> tuple[str, object]:
+    """KEY=VALUE for a scalar field of dataclass `cls`, typed like the field.
+    `what` names the option in messages ("refine option")."""
+    key, raw = split_option(text, what)
+    table = scalar_fields(cls)
+    if key not in table:
+        raise ReconInputError(f"unknown {what} {key!r} (known: {', '.join(sorted(table))})")
+    kind = table[key][0]
+    try:
+        return key, typed_value(raw, kind)
+    except ValueError:
+        raise ReconInputError(f"{what} {key}: {raw!r} is not a valid {type_name(kind)}") from None
+
+
+def option_table(cls) -> str:
+    """The scalar fields of dataclass `cls` with type and default, a line each."""
+    rows = [(name, type_name(kind), repr(default)) for name, (kind, default) in sorted(scalar_fields(cls).items())]
+    widths = [max(len(r[i]) for r in rows) for i in range(2)]
+    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d}" for n, t, d in rows)
+
+
+__all__ = ["option_table", "parse_field_option", "scalar_fields", "split_option", "type_name", "typed_value"]
