@@ -1,0 +1,129 @@
+"""The refinement, step by step: views, sweep, consistency, fill.
+
+1. **Views.** Every frame gets `num_sources` neighbours by triangulation angle and overlap,
+   measured on the input depth (:mod:`.views`).
+2. **Sweep.** At `image_scale` of the input, each pixel tries `hypotheses` depths in a band
+   of +-`band` (log) around the input depth; the winner of the patch NCC, refined by a
+   parabola, is the pixel's multi-view depth (:mod:`.sweep`).
+3. **Consistency.** A pixel is reconstructed when at least `min_consistent` sources'
+   depths agree with it (round trip within `consistency_pixels`, depth within
+   `consistency_depth`); its depth becomes the mean over them (:mod:`.consistency`). Its
+   confidence is the share of sources that agree.
+4. **Fill.** Elsewhere the input depth stays, corrected by the spread of its neighbours'
+   corrections (:mod:`.fill`), so that textureless walls keep the input's shape and never
+   get a depth the images did not support.
+
+The output is at the input depth's resolution: the input times the upsampled correction
+``exp(log(refined / input))``, so the input's edges and resolution are kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+
+from medea_core.frames import resize_depth
+from medea_core.geometry import scale_intrinsics
+
+from .config import MvsConfig
+from .consistency import consistent_views
+from .fill import propagate_log_ratio
+from .sweep import patch_statistics, select_winner, sweep_cost
+from .views import select_sources
+
+
+@dataclass
+class RefineResult:
+    """depth: (N, H, W) refined depth at the input's resolution (0 where the input is 0).
+    confidence: (N, H, W) share of sources that agree with the pixel (0: not reconstructed,
+        the depth there is the filled input).
+    reconstructed: (N, H, W) bool, at least `min_consistent` sources agree.
+    sources: (N, S) the views each frame was matched against; source_scores (N, S).
+    unsupported: (N,) bool, frames whose reconstructed share is below min_frame_share.
+    stats: per-frame summaries (reconstructed share, median |log correction|)."""
+
+    depth: torch.Tensor
+    confidence: torch.Tensor
+    reconstructed: torch.Tensor
+    sources: torch.Tensor
+    source_scores: torch.Tensor
+    unsupported: torch.Tensor
+    stats: dict = field(default_factory=dict)
+
+
+def sweep_frames(
+    grey: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor, intrinsics: torch.Tensor, sources: torch.Tensor,
+    config: MvsConfig, progress: Callable[[int], None] | None = None,
+) -> torch.Tensor:
+    """Step 2 for every frame: multi-view depth (N, h, w), 0 where no hypothesis matched
+    (best cost above max_cost, or the winner on the band's edge, or the input invalid).
+    All inputs at the working resolution."""
+    offsets = torch.linspace(-config.band, config.band, config.hypotheses, device=grey.device, dtype=grey.dtype)
+    poses = poses.double()
+    out = torch.zeros_like(depth)
+    for i in range(depth.shape[0]):
+        src = sources[i]
+        ref_to_src = torch.linalg.solve(poses[src], poses[i].expand(len(src), 4, 4))
+        d_i = depth[i]
+        cost = sweep_cost(grey[i], patch_statistics(grey[i], config.radius), d_i.clamp(min=1e-6), grey[src],
+                          intrinsics, ref_to_src, offsets, config.radius, config.keep_best, config.texture_floor)
+        offset, best, _, at_edge = select_winner(cost, offsets)
+        matched = (d_i > 0) & ~at_edge & (best <= config.max_cost)
+        out[i] = torch.where(matched, d_i * torch.exp(offset), torch.zeros_like(d_i))
+        if progress is not None:
+            progress(1)
+    return out
+
+
+def refine_depth(
+    grey: torch.Tensor,
+    depth: torch.Tensor,
+    poses: torch.Tensor,
+    intrinsics: torch.Tensor,
+    config: MvsConfig | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> RefineResult:
+    """Refine depth maps (N, H, W) by multi-view stereo around them.
+
+    grey: (N, h, w) grey images in [0, 1] at the working resolution (config.image_scale of
+    the depth's size; resizing is the caller's, so that it happens once, from the frames);
+    depth: (N, H, W) metres, 0 invalid (MEDeA's output); poses: (N, 4, 4) camera-to-world;
+    intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution. progress: called with
+    1 after each frame's sweep.
+    """
+    config = config or MvsConfig()
+    config.validate()
+    device = torch.device(config.device)
+    num, height, width = depth.shape
+    depth = depth.to(device=device, dtype=torch.float32)
+    grey = grey.to(device=device, dtype=torch.float32)
+    poses = poses.to(device=device, dtype=torch.float64)
+    small_h, small_w = grey.shape[-2:]
+    intr = scale_intrinsics(intrinsics.to(device=device, dtype=torch.float32), small_w / width, small_h / height)
+    small, _ = resize_depth(depth, (small_h, small_w))
+    if num < 2:
+        zeros = torch.zeros_like(depth)
+        empty = torch.zeros(num, 0, dtype=torch.long)
+        return RefineResult(depth.clone(), zeros, zeros.bool(), empty, empty.float(), torch.ones(num, dtype=torch.bool))
+
+    sources, scores = select_sources(small, poses, intr, config.num_sources, config.min_angle, config.max_angle,
+                                     config.chunk)
+    swept = sweep_frames(grey, small, poses, intr, sources, config, progress)
+    count, mean = consistent_views(swept, poses, intr, sources, config.consistency_depth, config.consistency_pixels)
+    reconstructed = (count >= config.min_consistent) & (mean > 0) & (small > 0)
+    log_ratio = torch.where(reconstructed, torch.log(mean.clamp(min=1e-6) / small.clamp(min=1e-6)),
+                            torch.zeros_like(small))
+    spread, _ = propagate_log_ratio(log_ratio, reconstructed.float(), config.fill_sigma, config.min_fill_weight)
+    correction = torch.where(reconstructed, log_ratio, spread)
+    full = F.interpolate(correction[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
+    confidence = torch.where(reconstructed, count / float(config.num_sources), torch.zeros_like(count))
+    confidence = F.interpolate(confidence[:, None], size=(height, width), mode="nearest")[:, 0]
+    refined = torch.where(depth > 0, depth * torch.exp(full), torch.zeros_like(depth))
+    share = reconstructed.flatten(1).float().mean(1)
+    moved = torch.where(reconstructed, log_ratio.abs(), torch.full_like(log_ratio, float("nan"))).flatten(1)
+    stats = {"reconstructed": share.cpu(), "median_abs_log_correction": moved.nanmedian(1).values.cpu()}
+    unsupported = (share < config.min_frame_share).cpu()
+    return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats)
