@@ -4,13 +4,14 @@ and mesh quality against the synthetic room's ground-truth mesh.
 Two runs on the same rendered sequence (default 300 frames at 640x480, written as mp4):
 
 * ``speed``: what `recon run VIDEO --poses FILE` costs: decode, FastDepth prior (with
-  encoder features for MEDeA), poses from a file (ground truth; "given poses"), MEDeA
-  (fast preset), TSDF fusion, export (PLY, GLB, TUM, 16-bit PNG + npy depth) and Rerun
+  encoder features for MEDeA), poses from a file (ground truth; "given poses", polished
+  against the frames), MEDeA (fast preset), the MVS refinement (``refine``), TSDF fusion, export (PLY, GLB, TUM, 16-bit PNG + npy depth) and Rerun
   logging (saved .rrd). With ``--estimate`` a third run estimates the poses instead, when
   the pose estimator is installed.
 * ``quality``: `recon demo` at the same size: the simulated prior (ground truth distorted
-  like a network) adjusted by MEDeA with ground-truth poses; mesh accuracy, completeness,
-  precision, recall and F-score at 5 cm for MEDeA's depth and for the raw prior.
+  like a network) adjusted by MEDeA with ground-truth poses, then refined; mesh accuracy,
+  completeness, precision, recall and F-score at 5 cm for the refined depth (the written
+  mesh), MEDeA's depth and the raw prior.
 
 Usage: python benchmarks/pipeline.py [--frames 300] [--skip-quality] [--estimate]
 Prints tables, writes benchmarks/results/pipeline.json. Timings on a shared machine are
@@ -107,12 +108,17 @@ def main() -> None:
     if quality:
         ev = quality["evaluation"]
         mrows = []
-        for label, key in (("MEDeA depth", "mesh_adjusted"), ("raw prior", "mesh_prior")):
+        for label, key in (("refined depth", "mesh_refined"), ("MEDeA depth", "mesh_adjusted"),
+                           ("raw prior", "mesh_prior")):
+            if key not in ev:
+                continue
             m = ev[key]
             mrows.append([label, f"{m['accuracy']:.4f}", f"{m['completeness']:.4f}", f"{m['precision']:.3f}",
                           f"{m['recall']:.3f}", f"{m['fscore']:.3f}"])
         print(table(["depth fused", "accuracy [m]", "completeness [m]", "precision", "recall", "F-score @5cm"], mrows))
-        print(f"depth abs rel: prior {ev['depth_prior']['abs_rel']:.4f} -> MEDeA {ev['depth_adjusted']['abs_rel']:.4f}")
+        refined = f" -> refined {ev['depth_refined']['abs_rel']:.4f}" if "depth_refined" in ev else ""
+        print(f"depth abs rel: prior {ev['depth_prior']['abs_rel']:.4f} -> MEDeA {ev['depth_adjusted']['abs_rel']:.4f}"
+              f"{refined}")
     print(f"wrote {write_json('pipeline', payload)}")
 
 

@@ -139,6 +139,7 @@ def _wait_for_ctrl_c(url: str | None) -> None:
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     from .fusion import FusionOptions
     from .pipeline import PipelineConfig
+    from .refine import REFINE_CHOICES
 
     d, fd = PipelineConfig(Path(), Path()), FusionOptions()
     g = parser.add_argument_group("frames")
@@ -176,6 +177,18 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                                                 "../shared/weights, ~/.cache/recon/weights")
     g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
 
+    g = parser.add_argument_group("multi-view stereo refinement (after MEDeA)")
+    g.add_argument("--refine", choices=list(REFINE_CHOICES), default=d.refine,
+                   help="mvs: per-pixel depth from the frames around MEDeA's depth, with a confidence; only the "
+                        "pixels it reconstructs are fused. none: MEDeA's depth, the paper's pipeline "
+                        "(default %(default)s)")
+    g.add_argument("--refine-option", action=_RefineOptionAction, default=[], metavar="KEY=VALUE",
+                   help="change a refinement setting (mvs_core.MvsConfig), e.g. num_sources=4, hypotheses=16 "
+                        "(repeatable); `--refine-option list` prints every setting with its default")
+    g.add_argument("--no-polish", action="store_true",
+                   help="use given poses (dataset, pose file) as they are; by default they are polished against the "
+                        "frames before MEDeA when refining (recon.poses.polish)")
+
     g = parser.add_argument_group("TSDF fusion")
     g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
     g.add_argument("--trunc", type=float, help=f"truncation in metres (default {fd.trunc_voxels:g} voxels)")
@@ -187,6 +200,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                    help="drop mesh pieces with fewer triangles (default %(default)s; 0 keeps all)")
     g.add_argument("--block-count", type=int, default=fd.block_count,
                    help="memory budget in voxel blocks (10 KiB each); the voxel grows to fit (default %(default)s)")
+    g.add_argument("--min-confidence", type=float, default=fd.min_confidence,
+                   help="with the refinement, fuse only pixels of at least this confidence (share of source views "
+                        "that agree; default %(default)s: every reconstructed pixel)")
     g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
 
     g = parser.add_argument_group("output")
@@ -200,6 +216,7 @@ def fusion_options_from_args(args: argparse.Namespace):
     return FusionOptions(
         voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
         min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
+        min_confidence=args.min_confidence,
     )
 
 
@@ -216,6 +233,38 @@ class _PoseOptionAction(argparse.Action):
             print(pose_option_table())
             parser.exit()
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
+class _RefineOptionAction(argparse.Action):
+    """Collects --refine-option values; `list` prints the settings and exits while parsing."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values == "list":
+            from mvs_core import MvsConfig
+
+            from .options import option_table
+
+            print("refinement options (--refine-option KEY=VALUE): name, type, default; their meaning is in the "
+                  "docstring of mvs_core.MvsConfig")
+            print(option_table(MvsConfig))
+            parser.exit()
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
+def mvs_config_from_args(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from mvs_core import MvsConfig
+
+    from .options import parse_field_option
+
+    values = dict(parse_field_option(text, MvsConfig, "refine option") for text in args.refine_option)
+    config = replace(MvsConfig(), **values)
+    try:
+        config.validate()
+    except ValueError as error:
+        raise ReconInputError(f"--refine-option: {error}") from None
+    return config
 
 
 def add_pose_option_argument(parser) -> None:
@@ -243,6 +292,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
         prior=args.prior, prior_path=args.prior_path,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
+        refine=args.refine, mvs=mvs_config_from_args(args), polish=not args.no_polish,
         fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
         progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
     )

@@ -9,10 +9,10 @@ The demo writes its inputs next to the results, so the run can be repeated by ha
 
 and then everything `recon run` writes (mesh.ply, mesh.glb, recording.rrd, depth/,
 trajectory.txt, intrinsics.json, report.json). ``report.json`` gets an ``evaluation``
-block: depth error of the prior and of MEDeA's output against the rendered depth, and
-mesh accuracy / completeness / F-score at 5 cm against the ground-truth mesh (both meshes
-restricted to what the cameras saw), for the adjusted depth and for the raw prior fused
-the same way.
+block: depth error of the prior, of MEDeA's output and of the refined depth (when the
+refinement ran) against the rendered depth, and mesh accuracy / completeness / F-score at
+5 cm against the ground-truth mesh (both meshes restricted to what the cameras saw), for the
+mesh the pipeline wrote and for MEDeA's depth and the raw prior fused the same way.
 
 Poses: ``"estimate"`` runs the pose front end on the video (``recon.poses``), ``"gt"``
 uses the rendered trajectory, ``"auto"`` estimates when the estimator is installed and
@@ -146,23 +146,31 @@ def aligned_mesh(mesh, poses: np.ndarray, gt_poses: np.ndarray):
 
 
 def evaluate(result: PipelineResult, seq: SyntheticSequence, compare_prior: bool = True, estimated: bool = False) -> dict:
-    """Depth error before/after MEDeA and mesh scores (module docstring)."""
+    """Depth error of the prior, MEDeA and the refinement, and their mesh scores (module docstring)."""
     idx = result.frames.indices
     gt_depth, gt_poses = seq.depth[idx], seq.poses[idx]
+    adjusted = result.depth if result.adjusted_depth is None else result.adjusted_depth
     evaluation = {
         "depth_prior": depth_report(result.prior_depth, gt_depth, gt_poses, seq.intrinsics),
-        "depth_adjusted": depth_report(result.depth, gt_depth, gt_poses, seq.intrinsics),
+        "depth_adjusted": depth_report(adjusted, gt_depth, gt_poses, seq.intrinsics),
     }
+    if result.refined is not None:
+        evaluation["depth_refined"] = depth_report(result.depth, gt_depth, gt_poses, seq.intrinsics)
     mesh = result.fusion.mesh
     if estimated:
         mesh, evaluation["alignment"] = aligned_mesh(mesh, result.poses, gt_poses)
-    evaluation["mesh_adjusted"] = mesh_scores(mesh, seq)
+    evaluation["mesh_refined" if result.refined is not None else "mesh_adjusted"] = mesh_scores(mesh, seq)
+    # The depths the pipeline did not fuse, fused the same way for comparison (not written).
+    others = []
+    if result.refined is not None:
+        others.append(("mesh_adjusted", adjusted))
     if compare_prior and result.medea is not None:
-        options = FusionOptions(progress=False)
-        raw = fuse(result.prior_depth, result.frames.rgb, result.poses, result.intrinsics, options).mesh
+        others.append(("mesh_prior", result.prior_depth))
+    for key, depth in others:
+        other = fuse(depth, result.frames.rgb, result.poses, result.intrinsics, FusionOptions(progress=False)).mesh
         if estimated:
-            raw, _ = aligned_mesh(raw, result.poses, gt_poses)
-        evaluation["mesh_prior"] = mesh_scores(raw, seq)
+            other, _ = aligned_mesh(other, result.poses, gt_poses)
+        evaluation[key] = mesh_scores(other, seq)
     return evaluation
 
 
@@ -224,19 +232,23 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
 
 
 def format_demo(report: DemoReport) -> str:
-    """Depth error table (prior vs MEDeA) and mesh scores, as the demo prints them."""
+    """Depth error table (prior, MEDeA, refined; change: last against the prior) and mesh
+    scores, as the demo prints them."""
     ev = report.evaluation
-    before, after = ev["depth_prior"], ev["depth_adjusted"]
+    columns = [("prior", ev["depth_prior"]), ("MEDeA", ev["depth_adjusted"])]
+    if "depth_refined" in ev:
+        columns.append(("refined", ev["depth_refined"]))
     rows = [("abs rel", "abs_rel", "{:.4f}"), ("abs diff [m]", "abs_diff", "{:.4f}"), ("sq rel", "sq_rel", "{:.4f}"),
             ("RMSE [m]", "rmse", "{:.4f}"), ("delta < 1.25", "delta1", "{:.4f}"), ("inconsistency", "inconsistency", "{:.4f}")]
-    lines = [f"{'depth metric':<16}{'prior':>10}{'MEDeA':>10}{'change':>10}"]
+    lines = [f"{'depth metric':<16}" + "".join(f"{name:>10}" for name, _ in columns) + f"{'change':>10}"]
     for label, key, fmt in rows:
-        b, a = before[key], after[key]
-        change = (a - b) / b if b else float("nan")
-        lines.append(f"{label:<16}{fmt.format(b):>10}{fmt.format(a):>10}{change:>+10.0%}")
+        values = [depth[key] for _, depth in columns]
+        change = (values[-1] - values[0]) / values[0] if values[0] else float("nan")
+        lines.append(f"{label:<16}" + "".join(f"{fmt.format(v):>10}" for v in values) + f"{change:>+10.0%}")
     lines.append("")
     lines.append(f"{'mesh vs ground truth (5 cm)':<28}{'accuracy':>10}{'complete':>10}{'precision':>10}{'recall':>10}{'F-score':>10}")
-    for label, key in (("MEDeA depth", "mesh_adjusted"), ("raw prior", "mesh_prior")):
+    for label, key in (("refined depth (written)", "mesh_refined"), ("MEDeA depth", "mesh_adjusted"),
+                       ("raw prior", "mesh_prior")):
         if key in ev:
             m = ev[key]
             lines.append(f"{label:<28}{m['accuracy']:>10.4f}{m['completeness']:>10.4f}{m['precision']:>10.3f}"

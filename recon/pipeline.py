@@ -13,11 +13,18 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
 ``prior``    per-frame metric depth (FastDepth by default; sensor depth; a depth folder);
 ``poses``    camera-to-world poses: a pose file, the dataset's ground truth, or estimated;
 ``medea``    MEDeA multi-view depth adjustment (skipped with ``adjust=False``);
-``fusion``   TSDF fusion of the adjusted depth with colour, marching cubes, clean-up;
+``refine``   per-pixel multi-view stereo around MEDeA's depth, with a confidence per pixel
+             (``refine="mvs"``, :mod:`recon.refine`; ``"none"`` keeps the paper's pipeline);
+``fusion``   TSDF fusion of the final depth with colour (only the pixels the refinement
+             reconstructed, when it ran), marching cubes, clean-up;
 ``export``   mesh.ply, mesh.glb, trajectory.txt, intrinsics.json, depth maps;
 ``logging``  the Rerun recording (frames, depths, cameras, trajectory, mesh, losses).
 
 ``report.json`` is written last: inputs, options, versions, timings, MEDeA loss summary.
+
+Given poses (a dataset's ground truth, a pose file) are polished against the frames in the
+``poses`` stage when the refinement runs (:mod:`recon.poses.polish`): multi-view stereo
+needs the sub-pixel agreement that given poses rarely have for the colour camera.
 
 Intrinsics, first that applies: ``intrinsics`` given (pixels of the input as decoded),
 ``fov`` given, the dataset's calibration, the pose file's, the pose estimator's estimate,
@@ -27,12 +34,13 @@ printed). Poses ``"auto"``: a dataset's ground truth when it has one, else estim
 
 from __future__ import annotations
 
+import logging
 import math
 import platform
 import sys
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -48,8 +56,13 @@ from viewer.output_folder import RECORDING
 
 from .io.frames import DatasetSource, FrameBatch, FrameSource, ImageFolderSource, open_source, resize_intrinsics
 from .lens import undistort_features, undistort_images, worth_undistorting
+from .poses.polish import PolishConfig
+from .refine import REFINE_CHOICES, fusion_confidence, refine_summary
+from mvs_core import MvsConfig
 
-STAGES = ("decode", "prior", "poses", "medea", "fusion", "export", "logging")
+log = logging.getLogger(__name__)
+
+STAGES = ("decode", "prior", "poses", "medea", "refine", "fusion", "export", "logging")
 POSE_CHOICES = ("auto", "gt", "estimate")
 PRIOR_CHOICES = ("fastdepth", "sensor", "folder")
 RERUN_MODES = ("spawn", "save", "serve", "off")
@@ -76,6 +89,10 @@ class PipelineConfig:
         depth map per frame, matched by name). weights: FastDepth weights location.
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
+    refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
+        mvs: its configuration (mvs_core.MvsConfig).
+    polish: polish given poses against the frames before MEDeA when refining
+        (recon.poses.polish); polish_config: its settings.
     fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
     rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
         OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.
@@ -104,6 +121,10 @@ class PipelineConfig:
     features: bool = True
     adjust: bool = True
     medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
+    refine: str = "mvs"
+    mvs: MvsConfig = field(default_factory=MvsConfig)
+    polish: bool = True
+    polish_config: PolishConfig = field(default_factory=PolishConfig)
     fusion: FusionOptions = field(default_factory=FusionOptions)
     rerun: str = "off"
     rerun_path: Path | None = None
@@ -119,6 +140,12 @@ class PipelineConfig:
             raise ReconInputError(f"prior must be one of {', '.join(PRIOR_CHOICES)}, got {self.prior!r}")
         if self.prior == "folder" and self.prior_path is None:
             raise ReconInputError("prior 'folder' needs a folder of depth maps (--prior-path)")
+        if self.refine not in REFINE_CHOICES:
+            raise ReconInputError(f"refine must be one of {', '.join(REFINE_CHOICES)}, got {self.refine!r}")
+        try:
+            self.mvs.validate()
+        except ValueError as error:
+            raise ReconInputError(str(error)) from None
         if self.rerun not in RERUN_MODES:
             raise ReconInputError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, got {self.rerun!r}")
         if self.fov is not None and not (0 < self.fov < 180):
@@ -152,10 +179,11 @@ class PipelineResult:
     """What a run produced (everything also on disk in ``output``).
 
     frames: the selected frames at working size; prior_depth, depth: (N, H, W) metres
-    (depth is the MEDeA-adjusted depth, or the prior when adjust=False); poses (N, 4, 4)
-    camera-to-world; intrinsics (fx, fy, cx, cy) at working size; fusion: FusionResult;
-    medea: MedeaResult or None; seconds: {stage: wall seconds}; files: {label: path};
-    report: what report.json holds.
+    (depth is the final depth: refined, else MEDeA-adjusted, else the prior);
+    adjusted_depth: MEDeA's (the prior when adjust=False); poses (N, 4, 4) camera-to-world;
+    intrinsics (fx, fy, cx, cy) at working size; fusion: FusionResult; medea: MedeaResult
+    or None; refined: mvs_core.RefineResult or None; seconds: {stage: wall seconds};
+    files: {label: path}; report: what report.json holds.
     """
 
     output: Path
@@ -170,6 +198,8 @@ class PipelineResult:
     files: dict[str, Path]
     report: dict
     rerun_url: str | None = None
+    adjusted_depth: np.ndarray | None = None
+    refined: object = None
 
     @property
     def seconds_per_frame(self) -> dict[str, float]:
@@ -383,6 +413,24 @@ def adjust_depth(config: PipelineConfig, frames: FrameBatch, prior, poses, intri
     return result.depth.numpy().astype(np.float32, copy=False), result
 
 
+def polished_poses(config: PipelineConfig, stage: PoseStage, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
+    """The given poses polished against the frames (recon.poses.polish), the lens with them."""
+    from .poses.polish import polish_poses
+
+    result = polish_poses(frames.rgb, prior_depth, stage.poses, intrinsics, config.polish_config, config.progress)
+    info = {**stage.info, "polish": result.info}
+    source = f"{stage.source}, polished against the frames" if result.info.get("polished") else stage.source
+    return replace(stage, poses=result.poses, source=source, info=info, lens_k1=result.lens_k1)
+
+
+def refine_stage(config: PipelineConfig, frames: FrameBatch, depth, poses, intrinsics):
+    """Multi-view stereo refinement of the adjusted depth: mvs_core.RefineResult."""
+    from .refine import refine_sequence
+
+    mvs = replace(config.mvs, device=config.device)
+    return refine_sequence(frames.rgb, depth, poses, intrinsics, mvs, config.progress)
+
+
 def medea_summary(result) -> dict:
     """Per stage: epochs run, whether it stopped early, first and last epoch losses."""
     if result is None:
@@ -399,13 +447,18 @@ def medea_summary(result) -> dict:
     return out
 
 
-def log_to_rerun(logger, frames: FrameBatch, prior_depth, depth, poses, intrinsics, mesh, medea_result, progress=True):
-    """Every frame (RGB, prior and adjusted depth, camera, trajectory), the mesh, the losses."""
+def log_to_rerun(logger, frames: FrameBatch, prior_depth, depth, poses, intrinsics, mesh, medea_result, progress=True,
+                 refined=None):
+    """Every frame (RGB, prior, adjusted and refined depth, confidence, camera, trajectory),
+    the mesh, the losses. depth: MEDeA's (or the prior when MEDeA was skipped); refined:
+    the refinement's RefineResult or None."""
     from tqdm.auto import tqdm
 
     for k in tqdm(range(len(frames)), desc="rerun logging", unit="frame", disable=not progress, leave=False):
+        extra = {} if refined is None else {"refined_depth": refined.depth[k].numpy(),
+                                            "confidence": refined.confidence[k].numpy()}
         logger.log_frame(int(frames.indices[k]), frames.rgb[k], prior_depth[k], depth[k], poses[k], intrinsics,
-                         timestamp=float(frames.timestamps[k]))
+                         timestamp=float(frames.timestamps[k]), **extra)
     if mesh is not None and len(mesh.triangles):
         colors = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
         logger.log_mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), colors)
@@ -507,6 +560,11 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         print("note: camera intrinsics unknown; assuming NYU Depth v2's field of view "
               "(pass --intrinsics or --fov for a better mesh)", file=sys.stderr)
     intrinsics = tuple(float(v) for v in intrinsics)
+    if pose_plan != "estimate" and config.refine != "none" and config.polish:
+        say("polishing the given poses against the frames")
+        with timer.stage("poses"):
+            pose_stage = polished_poses(config, pose_stage, frames, prior_depth, intrinsics)
+        poses = pose_stage.poses
     undistorted = worth_undistorting(intrinsics, source.size, pose_stage.lens_k1)
     if undistorted:
         # The poses belong to the pinhole camera of the estimated lens: so must the images.
@@ -527,11 +585,28 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     else:
         depth = prior_depth
         timer.seconds["medea"] = 0.0
+    adjusted = depth
+
+    refined = None
+    if config.refine == "mvs":
+        say("multi-view stereo refinement")
+        with timer.stage("refine"):
+            refined = refine_stage(config, frames, depth, poses, intrinsics)
+        depth = refined.depth.numpy()
+        unsupported = np.flatnonzero(refined.unsupported.numpy())
+        if len(unsupported):
+            log.warning("the refinement reconstructed less than %.0f%% of the pixels of %d of %d frames (first: frame "
+                        "%d): the frames do not confirm their depth (too little parallax or texture), so their MEDeA "
+                        "depth is fused whole", 100 * config.mvs.min_frame_share, len(unsupported), len(frames),
+                        int(frames.indices[unsupported[0]]))
+    else:
+        timer.seconds["refine"] = 0.0
 
     say("TSDF fusion")
     fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress})
     with timer.stage("fusion"):
-        fused = fuse(depth, frames.rgb, poses, intrinsics, fusion_options)
+        confidence = None if refined is None else fusion_confidence(refined)
+        fused = fuse(depth, frames.rgb, poses, intrinsics, fusion_options, confidence=confidence)
 
     if fused.mesh.has_vertex_colors():  # TSDF colour averages can overshoot 1 by rounding
         fused.mesh.vertex_colors = type(fused.mesh.vertex_colors)(np.clip(np.asarray(fused.mesh.vertex_colors), 0, 1))
@@ -547,8 +622,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     with timer.stage("logging"):
         if config.rerun != "off":
             say(f"rerun: {config.rerun}")
-            rerun_url, rec_path = _log_recording(config, out, frames, prior_depth, depth, poses, intrinsics,
-                                                 fused.mesh, medea_result)
+            rerun_url, rec_path = _log_recording(config, out, frames, prior_depth, adjusted, poses, intrinsics,
+                                                 fused.mesh, medea_result, refined)
             if rec_path is not None:
                 files["recording"] = rec_path
 
@@ -564,6 +639,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,
                   "features": None if features is None else list(features.shape[1:])},
         "medea": medea_summary(medea_result),
+        "refine": {"method": config.refine, **refine_summary(refined)},
         "fusion": {"voxel_size": fused.voxel_size, "trunc": fused.trunc, "max_depth": fused.max_depth,
                    "frames_fused": fused.frames_fused, "block_estimate": fused.block_estimate,
                    "blocks_used": fused.blocks_used, "fragments_removed": fused.fragments_removed,
@@ -578,10 +654,12 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     return PipelineResult(
         output=out.path, frames=frames, prior_depth=prior_depth, depth=depth, poses=poses, intrinsics=intrinsics,
         fusion=fused, medea=medea_result, seconds=dict(timer.seconds), files=files, report=report, rerun_url=rerun_url,
+        adjusted_depth=adjusted, refined=refined,
     )
 
 
-def _log_recording(config, out: OutputFolder, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result):
+def _log_recording(config, out: OutputFolder, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result,
+                   refined=None):
     """Log to Rerun in the configured mode: (server URL or None, .rrd path or None).
 
     A saved recording goes to a temporary name first, like every other output file.
@@ -589,7 +667,8 @@ def _log_recording(config, out: OutputFolder, frames, prior_depth, depth, poses,
     from viewer import RerunLogger
 
     def log(logger):
-        log_to_rerun(logger, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result, config.progress)
+        log_to_rerun(logger, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result, config.progress,
+                     refined)
 
     if config.rerun == "save":
         if config.rerun_path is None:

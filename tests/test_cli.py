@@ -43,14 +43,17 @@ def test_demo_writes_every_output(demo):
     depth_m = np.load(npys[3])
     assert depth_m.shape == (HEIGHT, WIDTH) and (depth_m > 0).all()
     np.testing.assert_allclose(read_depth_png_mm(pngs[3]), depth_m, atol=0.0006)
-    # Trajectory: the ground-truth poses that went in come out (TUM, camera-to-world).
+    # Trajectory: the ground-truth poses that went in come out (TUM, camera-to-world): they
+    # agree with the rendered frames, so the polish leaves them as they are.
     written = read_poses(out / "trajectory.txt").poses
     given = read_poses(out / "input/poses_gt.txt").poses
     np.testing.assert_allclose(written, given, atol=1e-5)
     assert not any(p.name.startswith(".") for p in out.rglob("*")), "temporary files left behind"
     # report.json: inputs, options, versions, per-stage timings, MEDeA loss summary.
     assert report["frames"]["count"] == FRAMES and report["input"]["kind"] == "video"
-    assert set(report["seconds"]) == {"decode", "prior", "poses", "medea", "fusion", "export", "logging"}
+    assert set(report["seconds"]) == {"decode", "prior", "poses", "medea", "refine", "fusion", "export", "logging"}
+    assert report["poses"]["polish"]["polished"] is False and report["poses"]["polish"]["cost_gain"] < 1.5
+    assert report["refine"]["method"] == "mvs" and 0.5 < report["refine"]["reconstructed"] <= 1.0
     assert all(v >= 0 for v in report["seconds"].values()) and report["seconds"]["medea"] > 0
     stage1 = report["medea"]["stages"]["stage1"]
     assert stage1["epochs"] > 1 and stage1["last"]["total"] < stage1["first"]["total"]
@@ -67,6 +70,9 @@ def test_demo_mesh_quality(demo):
     assert adjusted["fscore"] >= 0.85, adjusted
     assert adjusted["fscore"] > prior["fscore"] + 0.4, (adjusted, prior)
     assert adjusted["accuracy"] < 0.5 * prior["accuracy"]
+    # The refinement (the written depth and mesh) keeps MEDeA's result or betters it.
+    assert ev["depth_refined"]["abs_rel"] <= ev["depth_adjusted"]["abs_rel"] + 0.002
+    assert ev["mesh_refined"]["fscore"] >= 0.85 and ev["mesh_refined"]["accuracy"] <= adjusted["accuracy"]
 
 
 def test_glb_matches_ply_and_is_y_up(demo):
@@ -306,3 +312,42 @@ def test_help_texts():
         assert option in texts["run"], option
     assert "--frames" in texts["demo"] and "--poses" in texts["demo"] and "--pose-option" in texts["demo"]
     assert "recording.rrd" in texts["view"]
+
+
+def test_refine_option_errors_and_list(tmp_path, capsys):
+    from mvs_core import MvsConfig
+
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = str(tmp_path / "out")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "hypothesis=3"], "unknown refine option",
+               "hypothesis")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "hypotheses=many"], "hypotheses", "int")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "band=-1"], "band")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "keep_best=9"], "keep_best")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--min-confidence", "2"], "min_confidence")
+    assert not Path(out).exists()
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "--refine-option", "list"])
+    assert exit_info.value.code == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
+    assert rows["hypotheses"][1:3] == ["int", str(MvsConfig().hypotheses)]
+
+
+def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
+    """--refine none: no polish, no refinement; the depth written is MEDeA's and every pixel is fused."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
+              "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0", "--max-frames", "12",
+              "--quiet", "--rerun", "off", "--no-npy"]
+    plain = tmp_path / "plain"
+    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(plain), "--refine", "none", *common]) == 0
+    report = json.loads((plain / "report.json").read_text())
+    assert report["refine"] == {"method": "none"} and report["seconds"]["refine"] == 0.0
+    assert "polish" not in report["poses"] and report["options"]["refine"] == "none"
+    refined = tmp_path / "refined"
+    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(refined), *common,
+                 "--refine-option", "num_sources=3"]) == 0
+    report = json.loads((refined / "report.json").read_text())
+    assert report["options"]["mvs"]["num_sources"] == 3 and len(report["refine"]["sources"][0]) == 3
+    assert 0.3 < report["refine"]["reconstructed"] <= 1.0

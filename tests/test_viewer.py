@@ -42,7 +42,9 @@ def _log_run(logger: RerunLogger) -> None:
         prior = (1.0 + rng.random((H, W))).astype(np.float32)
         prior[0, 0] = 0.0  # invalid pixel
         adjusted = torch.from_numpy(prior * 1.1)  # torch input accepted too
-        logger.log_frame(i, rgb, prior, adjusted, pose, INTRINSICS, timestamp=i / 30.0)
+        confidence = rng.random((H, W)).astype(np.float32)
+        logger.log_frame(i, rgb, prior, adjusted, pose, INTRINSICS, timestamp=i / 30.0, refined_depth=prior * 1.05,
+                         confidence=confidence)
     vertices = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=np.float32)
     triangles = np.array([[0, 1, 2], [1, 3, 2]])
     logger.log_mesh(vertices, triangles, vertex_colors=np.full((4, 3), 0.5))
@@ -87,6 +89,8 @@ def test_save_roundtrip(tmp_path):
         "/world/camera/rgb",
         "/world/camera/prior_depth",
         "/world/camera/adjusted_depth",
+        "/world/camera/refined_depth",
+        "/world/camera/confidence",
         "/world/trajectory",
         "/world/mesh",
         "/world/points",
@@ -106,6 +110,10 @@ def test_save_roundtrip(tmp_path):
     # exactly one rgb row per frame on the "frame" timeline
     assert sorted(frames["/world/camera/rgb"]) == list(range(N_FRAMES))
     assert sorted(frames["/world/camera/adjusted_depth"]) == list(range(N_FRAMES))
+    assert sorted(frames["/world/camera/refined_depth"]) == list(range(N_FRAMES))
+    assert sorted(frames["/world/camera/confidence"]) == list(range(N_FRAMES))
+    assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/refined_depth"]
+    assert "Image:buffer" in components["/world/camera/confidence"]
     # the mesh is static; losses are per epoch
     assert "/world/mesh" not in frames
     assert sorted(frames["/medea/stage1/total#epoch"]) == [0, 1, 2]

@@ -41,6 +41,8 @@ CAMERA = "world/camera"
 RGB = f"{CAMERA}/rgb"
 PRIOR_DEPTH = f"{CAMERA}/prior_depth"
 ADJUSTED_DEPTH = f"{CAMERA}/adjusted_depth"
+REFINED_DEPTH = f"{CAMERA}/refined_depth"
+CONFIDENCE = f"{CAMERA}/confidence"
 TRAJECTORY = "world/trajectory"
 MESH = "world/mesh"
 POINTS = "world/points"
@@ -192,12 +194,16 @@ class RerunLogger:
         pose: Any = None,
         intrinsics: Any = None,
         timestamp: float | None = None,
+        refined_depth: Any = None,
+        confidence: Any = None,
     ) -> None:
         """Log frame ``index``: images, camera (pose + intrinsics) and the trajectory so far.
 
-        rgb: (H, W, 3) uint8 or float in [0, 1] (CHW accepted); depths: (H, W) metres,
-        resampled (nearest) to the logged RGB size; pose: 4x4 camera-to-world;
-        intrinsics: (fx, fy, cx, cy) or 3x3 in pixels of ``rgb``; timestamp: seconds.
+        rgb: (H, W, 3) uint8 or float in [0, 1] (CHW accepted); depths (prior, MEDeA's
+        adjusted, the refinement's): (H, W) metres, resampled (nearest) to the logged RGB
+        size; confidence: (H, W) in [0, 1], the refinement's (logged as an 8-bit image);
+        pose: 4x4 camera-to-world; intrinsics: (fx, fy, cx, cy) or 3x3 in pixels of ``rgb``;
+        timestamp: seconds.
         """
         rec = self._rec
         if rec is None:
@@ -211,7 +217,7 @@ class RerunLogger:
         if image is not None:
             src_h, src_w = image.shape[:2]
         else:
-            first = next((d for d in (prior_depth, adjusted_depth) if d is not None), None)
+            first = next((d for d in (prior_depth, adjusted_depth, refined_depth) if d is not None), None)
             if first is None:
                 src_h = src_w = None
             else:
@@ -225,9 +231,13 @@ class RerunLogger:
             if self.jpeg_quality is not None and image.ndim == 3 and image.shape[-1] == 3:
                 archetype = archetype.compress(jpeg_quality=self.jpeg_quality)
             rec.log(RGB, archetype)
-        for entity, depth in ((PRIOR_DEPTH, prior_depth), (ADJUSTED_DEPTH, adjusted_depth)):
+        for entity, depth in ((PRIOR_DEPTH, prior_depth), (ADJUSTED_DEPTH, adjusted_depth),
+                              (REFINED_DEPTH, refined_depth)):
             if depth is not None:
                 rec.log(entity, rr.DepthImage(_resize_nearest(_depth_f32(depth), height, width), meter=1.0))
+        if confidence is not None and src_h is not None:
+            conf = _resize_nearest(np.clip(_depth_f32(confidence), 0.0, 1.0), height, width)
+            rec.log(CONFIDENCE, rr.Image((conf * 255.0 + 0.5).astype(np.uint8)))
 
         if intrinsics is not None and src_h is not None:
             fx, fy, cx, cy = _as_intrinsics(intrinsics)

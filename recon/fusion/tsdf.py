@@ -26,6 +26,12 @@ Automatic parameters (each can be overridden in :class:`FusionOptions`):
   truncation grow by sqrt(estimate / budget) (surface blocks scale as 1 / voxel^2) with a
   logged warning, instead of running out of memory mid-way.
 
+Confidence: with a per-pixel confidence map (the refinement's, ``recon.refine``), pixels
+below ``min_confidence`` are left out of the integration: the depth the images could not
+confirm is not fused, so it cannot pull the surface or leave floaters. Textureless walls the
+refinement left to MEDeA then leave holes rather than wavy surfaces (see
+``docs/benchmarks.md``: on 7-Scenes fusing them too lowered the mesh F-score).
+
 Fragment removal keeps a connected component only if it has at least
 ``min_fragment_triangles`` triangles and ``min_fragment_fraction`` of the largest one's.
 """
@@ -68,7 +74,9 @@ class FusionOptions:
     per block side. block_count: the memory budget in blocks (80 000 blocks at resolution 8
     ~ 0.8 GB). min_fragment_triangles / min_fragment_fraction: fragment removal (0 and 0
     keep everything). point_cloud: also extract a surface point cloud. device: "cpu",
-    "cuda", "cuda:1", ... progress: show a tqdm bar over frames.
+    "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
+    confidence map, pixels below it are not integrated (the default keeps every pixel with
+    any confidence, i.e. every pixel the refinement reconstructed).
     """
 
     voxel_size: float | None = None
@@ -83,6 +91,7 @@ class FusionOptions:
     point_cloud: bool = False
     device: str = "cpu"
     progress: bool = True
+    min_confidence: float = 0.01
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
@@ -98,6 +107,8 @@ class FusionOptions:
             raise ReconInputError(f"fusion option block_resolution must be 4, 8, 16 or 32, got {self.block_resolution}")
         if int(self.block_count) < 64:
             raise ReconInputError(f"fusion option block_count must be >= 64, got {self.block_count}")
+        if not (0 <= self.min_confidence <= 1):
+            raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
             raise ReconInputError("fusion options min_fragment_triangles must be >= 0 and min_fragment_fraction in [0, 1]")
 
@@ -361,7 +372,24 @@ def _extract(extract, empty_type):
         raise
 
 
-def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None) -> FusionResult:
+class ConfidentDepth:
+    """Depth maps (N, H, W) with the pixels of confidence below a threshold set to 0, read
+    one frame at a time (indexable and sized like the depth it wraps)."""
+
+    def __init__(self, depth, confidence, threshold: float):
+        if len(confidence) != len(depth):
+            raise ValueError(f"{len(confidence)} confidence maps for {len(depth)} depth maps")
+        self.depth, self.confidence, self.threshold = depth, confidence, float(threshold)
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        d = np.asarray(self.depth[i], dtype=np.float32)
+        return np.where(np.asarray(self.confidence[i]) >= self.threshold, d, np.float32(0.0))
+
+
+def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, confidence=None) -> FusionResult:
     """Fuse metric depth maps (and colour) into a mesh by TSDF integration.
 
     Args:
@@ -371,6 +399,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None) ->
         poses: (N, 4, 4) camera-to-world (OpenCV axes); frames with non-finite poses skipped.
         intrinsics: (fx, fy, cx, cy) of the depth maps, or (N, 4) per frame.
         options: FusionOptions (defaults: everything automatic, CPU).
+        confidence: (N, H, W) in [0, 1] aligned with depth, or None: pixels below
+            options.min_confidence are not integrated.
 
     Returns:
         FusionResult with a legacy TriangleMesh (vertex colours, normals).
@@ -379,6 +409,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None) ->
     options.validate()
     t0 = time.perf_counter()
     n, h, w = _check_inputs(depth, rgb, poses)
+    if confidence is not None:
+        depth = ConfidentDepth(depth, confidence, options.min_confidence)
     poses = np.asarray(poses, dtype=np.float64)
     k_all = _frame_intrinsics(intrinsics, n)
     device = o3d_device(options.device)

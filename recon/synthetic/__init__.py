@@ -2,12 +2,13 @@
 exact depth, poses and mesh (`scene`), and a simulated monocular depth prior (`prior`).
 """
 
-from .prior import SimulatedPrior, simulate_prior, simulate_prior_with_truth
+from .prior import SimulatedPrior, add_shape_errors, simulate_prior, simulate_prior_with_truth
 from .scene import SyntheticSequence, camera_path, intrinsics_for, render_sequence, write_video
 
 __all__ = [
     "SimulatedPrior",
     "SyntheticSequence",
+    "add_shape_errors",
     "camera_path",
     "intrinsics_for",
     "render_sequence",

@@ -129,3 +129,49 @@ def simulate_prior(depth, seed: int = 0, **kwargs) -> np.ndarray:
     function to also get the true per-frame scale factors.
     """
     return simulate_prior_with_truth(depth, seed, **kwargs).depth
+
+
+def add_shape_errors(
+    prior,
+    seed: int = 0,
+    *,
+    bumps: int = 12,
+    bump_amplitude: float = 0.12,
+    bump_radius: float = 0.03,
+    ramp_amplitude: float = 0.06,
+    ramp_period: float = 0.08,
+    edge_blur: float = 6.0,
+) -> np.ndarray:
+    """Per-pixel shape errors (N, H, W) float32 that no coarse scale grid can represent.
+
+    A network's depth is wrong in shape as well as in scale: small blobs that bulge or sink,
+    surfaces tilted in stripes, depth edges smeared between foreground and background.
+    MEDeA's 8x10 grid per frame (one node per 64 x 60 pixels at 640 x 480) corrects
+    neither; the multi-view refinement must.
+
+    prior: (N, H, W) metres (0 invalid, kept 0); per frame and independently:
+    bumps: Gaussian blobs in log depth, amplitude uniform in +-bump_amplitude, radius
+    bump_radius x width; a sawtooth ramp in log depth of +-ramp_amplitude along a random
+    direction with period ramp_period x width; a mask-aware Gaussian blur of edge_blur
+    pixels (at 640 px width) over the whole map, which smears depth edges.
+    """
+    prior = _check_depth(prior)
+    n, height, width = prior.shape
+    rng = np.random.default_rng([seed, 11])
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    out = np.empty_like(prior)
+    sigma_px = edge_blur * width / 640.0
+    for i in range(n):
+        field = np.zeros((height, width), np.float32)
+        for _ in range(bumps):
+            cx, cy = rng.uniform(0, width), rng.uniform(0, height)
+            r = bump_radius * width * rng.uniform(0.6, 1.4)
+            field += np.float32(rng.uniform(-bump_amplitude, bump_amplitude)) * np.exp(
+                -((u - cx) ** 2 + (v - cy) ** 2) / (2 * r * r))
+        angle = rng.uniform(0, np.pi)
+        phase = (u * np.cos(angle) + v * np.sin(angle)) / (ramp_period * width) + rng.uniform(0, 1)
+        field += np.float32(ramp_amplitude) * (2.0 * (phase - np.floor(phase)) - 1.0)
+        valid = prior[i] > 0
+        shaped = _masked_blur(prior[i] * np.exp(field), valid, sigma_px)
+        out[i] = np.where(valid, shaped, 0.0)
+    return out
