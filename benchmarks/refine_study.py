@@ -47,7 +47,8 @@ from recon.lens import undistort_features, undistort_images, worth_undistorting 
 from recon.medea import adjust_sequence  # noqa: E402
 from recon.poses.polish import PolishConfig, polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
-from recon.refine import fusion_confidence, refine_sequence  # noqa: E402
+from recon.refine import (FILLED_CONFIDENCE, MIN_CONFIDENCE_GIVEN, default_min_confidence,  # noqa: E402
+                          fusion_confidence, refine_sequence)
 
 DATA = ROOT.parent / "shared" / "data"
 MAX_DEPTH = 10.0
@@ -63,7 +64,7 @@ SETS = {
 # Pose variants: given poses as they are, polished (PolishConfig overrides), or estimated.
 POLISH = {"polish": {}, "nolens": {"calibrate_lens": False}, "tie3": {"pose_weight": 1e-3},
           "tie5": {"pose_weight": 1e-5}, "always": {"min_gain": 0.0}}
-POSES = ("raw", *POLISH, "estimate")
+POSES = ("raw", *POLISH, "estimate", "estimate+polish")
 VARIANTS = {
     "default": {},
     "half": {"image_scale": 0.5, "hypotheses": 24},
@@ -72,6 +73,22 @@ VARIANTS = {
     "tau1": {"consistency_depth": 0.01},
     "band6": {"band": 0.6, "hypotheses": 30},
 }
+
+
+# Fusion policies: which pixels of a refined frame reach the TSDF, as thresholds on
+# recon.refine.fusion_confidence (filled pixels: FILLED_CONFIDENCE x support); "pipeline":
+# the pipeline's default for the pose source; "share0.15": reconstructed pixels, and frames
+# under 15 % reconstructed whole.
+FUSION = {"pipeline": None, "rec": MIN_CONFIDENCE_GIVEN, "all": 0.0, "sup0.3": 0.3 * FILLED_CONFIDENCE,
+          "sup0.1": 0.1 * FILLED_CONFIDENCE, "share0.15": MIN_CONFIDENCE_GIVEN}
+
+
+def policy_confidence(result, policy: str) -> np.ndarray:
+    confidence = fusion_confidence(result)
+    if policy == "share0.15":
+        weak = result.stats["reconstructed"].numpy() < 0.15
+        confidence[weak] = (result.depth.numpy()[weak] > 0).astype(np.float32)
+    return confidence
 
 
 def say(text: str) -> None:
@@ -107,18 +124,25 @@ def pose_variant(kind: str, rgb, prior, poses, intrinsics):
     from recon.poses import estimate_poses
 
     result = estimate_poses(rgb, prior, intrinsics=tuple(intrinsics), method="auto", progress=False)
-    return np.asarray(result.poses), float(result.diagnostics.get("lens_k1", 0.0)), {"seconds": result.seconds}
+    poses, k1 = np.asarray(result.poses), float(result.diagnostics.get("lens_k1", 0.0))
+    if kind == "estimate":
+        return poses, k1, {"seconds": result.seconds}
+    # The estimate polished as given poses are (the lens calibrated afresh on the raw frames).
+    polished = polish_poses(rgb, prior, poses, tuple(intrinsics), PolishConfig(), progress=False)
+    info = {k: v for k, v in polished.info.items() if k != "config"}
+    return polished.poses, polished.lens_k1, {"seconds": result.seconds, "polish": info}
 
 
-def mesh_score(depth, poses, intrinsics, reference, voxel, confidence=None, alignment=None) -> dict:
-    options = FusionOptions(voxel_size=voxel, max_depth=MAX_DEPTH, progress=False)
+def mesh_score(depth, poses, intrinsics, reference, voxel, confidence=None, alignment=None,
+               min_confidence: float | None = None) -> dict:
+    options = FusionOptions(voxel_size=voxel, max_depth=MAX_DEPTH, progress=False, min_confidence=min_confidence)
     mesh = fuse(depth, None, poses, intrinsics, options, confidence=confidence).mesh
     vertices = move_points(np.asarray(mesh.vertices), alignment)
     scores = mesh_metrics((vertices, np.asarray(mesh.triangles)), reference, num_points=200_000).to_dict()
     return {k: scores[k] for k in ("fscore", "precision", "recall", "accuracy", "completeness")}
 
 
-def run_set(name: str, pose_kinds, variants, threads: int) -> list[dict]:
+def run_set(name: str, pose_kinds, variants, threads: int, fusions=("pipeline",)) -> list[dict]:
     torch.set_num_threads(threads)
     say(f"{name}: loading")
     rgb, gt, gt_poses, intrinsics, prior, features = load_set(name)
@@ -138,8 +162,9 @@ def run_set(name: str, pose_kinds, variants, threads: int) -> list[dict]:
         feats = undistort_features(features, K, (rgb.shape[2], rgb.shape[1]), k1) if lens and features is not None \
             else features
         truth = undistort_images(gt, K, k1, nearest=True) if lens else gt
-        alignment = pose_alignment(poses, gt_poses, "sim3") if kind == "estimate" else None
-        align_mode = "median_sequence" if kind == "estimate" else "none"
+        estimated = kind.startswith("estimate")
+        alignment = pose_alignment(poses, gt_poses, "sim3") if estimated else None
+        align_mode = "median_sequence" if estimated else "none"
         start = time.perf_counter()
         medea = adjust_sequence(frames, p_depth, poses, K, feats, MedeaConfig.fast(), progress=False).depth.numpy()
         medea_seconds = time.perf_counter() - start
@@ -159,14 +184,20 @@ def run_set(name: str, pose_kinds, variants, threads: int) -> list[dict]:
             full = depth_metrics(depth, truth, max_depth=MAX_DEPTH, align=align_mode)
             rec = depth_metrics(np.where(result.reconstructed.numpy(), depth, 0), truth, max_depth=MAX_DEPTH,
                                 align=align_mode)
-            row = {**base, "variant": variant, "overrides": VARIANTS[variant], "abs_rel": full["abs_rel"],
-                   "reconstructed": float(result.reconstructed.float().mean()), "abs_rel_reconstructed": rec["abs_rel"],
-                   "unsupported_frames": int(result.unsupported.sum()), "seconds_per_frame": seconds / len(rgb),
-                   **mesh_score(depth, poses, K, reference, voxel, fusion_confidence(result), alignment)}
-            rows.append(row)
-            say(f"  {variant}: abs rel {row['abs_rel']:.4f} (reconstructed {row['reconstructed']:.2f}: "
-                f"{row['abs_rel_reconstructed']:.4f}) F {row['fscore']:.3f} P {row['precision']:.3f} "
-                f"R {row['recall']:.3f}; {row['seconds_per_frame']:.3f} s/frame")
+            for fusion in fusions:
+                label = variant if fusion == "pipeline" else f"{variant}/{fusion}"
+                threshold = default_min_confidence(estimated) if FUSION[fusion] is None else FUSION[fusion]
+                row = {**base, "variant": label, "overrides": VARIANTS[variant], "fusion": fusion,
+                       "abs_rel": full["abs_rel"], "reconstructed": float(result.reconstructed.float().mean()),
+                       "abs_rel_reconstructed": rec["abs_rel"], "unsupported_frames": int(result.unsupported.sum()),
+                       "seconds_per_frame": seconds / len(rgb),
+                       "min_confidence": threshold,
+                       **mesh_score(depth, poses, K, reference, voxel, policy_confidence(result, fusion), alignment,
+                                    threshold)}
+                rows.append(row)
+                say(f"  {label}: abs rel {row['abs_rel']:.4f} (reconstructed {row['reconstructed']:.2f}: "
+                    f"{row['abs_rel_reconstructed']:.4f}) F {row['fscore']:.3f} P {row['precision']:.3f} "
+                    f"R {row['recall']:.3f}; {row['seconds_per_frame']:.3f} s/frame")
     return rows
 
 
@@ -175,6 +206,8 @@ def main() -> None:
     parser.add_argument("--sets", nargs="+", default=list(SETS), choices=list(SETS))
     parser.add_argument("--poses", nargs="+", default=["raw", "polish", "estimate"], choices=list(POSES))
     parser.add_argument("--variants", nargs="+", default=["default"], choices=list(VARIANTS))
+    parser.add_argument("--fusion", nargs="+", default=["pipeline"], choices=list(FUSION),
+                        help="fusion policies scored per refinement (pipeline: the pipeline's default)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     path = RESULTS / "refine_study.json"
@@ -184,7 +217,7 @@ def main() -> None:
         if SETS[name][0] is not None and not (DATA / SETS[name][0]).is_dir():
             say(f"{name}: {DATA / SETS[name][0]} not found, skipped")
             continue
-        rows += run_set(name, args.poses, args.variants, args.threads)
+        rows += run_set(name, args.poses, args.variants, args.threads, args.fusion)
     keys = {(r["set"], r["poses"], r["variant"]) for r in rows}
     merged = [r for r in old["rows"] if (r["set"], r["poses"], r["variant"]) not in keys] + rows
     headers = ["set", "poses", "variant", "abs rel", "reconstr.", "abs rel (rec.)", "F@5cm", "P", "R", "s/frame"]

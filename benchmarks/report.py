@@ -56,6 +56,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -80,7 +81,7 @@ from recon.medea import adjust_sequence  # noqa: E402
 from recon.pipeline import STAGES  # noqa: E402
 from recon.poses.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
-from recon.refine import fusion_confidence, refine_sequence  # noqa: E402
+from recon.refine import default_min_confidence, fusion_confidence, refine_sequence  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 DOCS = ROOT / "docs" / "benchmarks.md"
@@ -584,8 +585,9 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         for k in keys:
             say(f"  C {rows_c[k]['label']}: F {rows_c[k]['fscore']:.3f} (P {rows_c[k]['precision']:.3f}, "
                 f"R {rows_c[k]['recall']:.3f})")
-    # The refinement's meshes: fused as the pipeline fuses (reconstructed pixels; frames it
-    # could not support whole), in the poses it ran with.
+    # The refinement's meshes: fused as the pipeline fuses (reconstructed pixels with given
+    # poses, also filled pixels near evidence with estimated ones; frames it could not
+    # support whole), in the poses it ran with.
     refine_meshes = [("gt", "refine", "MVS refinement [default], polished GT poses"),
                      ("gt", "medea", "MEDeA-S [fast], polished GT poses"),
                      ("gt raw", "refined", "MVS refinement, GT poses not polished"),
@@ -598,7 +600,10 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         start = time.perf_counter()
         confidence = run["confidence"] if depth_key != "medea" else None
         depth = run["refined"] if depth_key != "medea" else run["medea"]
-        mesh = fuse(depth, None, run["poses"], intrinsics, options, confidence=confidence).mesh
+        # The pipeline's fusion threshold for where the poses came from (recon.refine).
+        threshold = default_min_confidence(not run_key.startswith("gt"))
+        mesh = fuse(depth, None, run["poses"], intrinsics, replace(options, min_confidence=threshold),
+                    confidence=confidence).mesh
         modes = ("none",) if run_key.startswith("gt") else ("sim3", "se3")
         for mode in modes:
             alignment = None if mode == "none" else pose_alignment(run["poses"], gt_poses, mode)

@@ -43,7 +43,9 @@ class RefineResult:
     reconstructed: (N, H, W) bool, at least `min_consistent` sources agree.
     sources: (N, S) the views each frame was matched against; source_scores (N, S).
     unsupported: (N,) bool, frames whose reconstructed share is below min_frame_share.
-    stats: per-frame summaries (reconstructed share, median |log correction|)."""
+    stats: per-frame summaries (reconstructed share, median |log correction|).
+    support: (N, H, W) the Gaussian-weighted share of reconstructed pixels around each
+        pixel (fill_sigma): how much evidence its filled depth leans on."""
 
     depth: torch.Tensor
     confidence: torch.Tensor
@@ -52,6 +54,7 @@ class RefineResult:
     source_scores: torch.Tensor
     unsupported: torch.Tensor
     stats: dict = field(default_factory=dict)
+    support: torch.Tensor | None = None
 
 
 def sweep_frames(
@@ -116,7 +119,7 @@ def refine_depth(
     reconstructed = (count >= config.min_consistent) & (mean > 0) & (small > 0)
     log_ratio = torch.where(reconstructed, torch.log(mean.clamp(min=1e-6) / small.clamp(min=1e-6)),
                             torch.zeros_like(small))
-    spread, _ = propagate_log_ratio(log_ratio, reconstructed.float(), config.fill_sigma, config.min_fill_weight)
+    spread, support = propagate_log_ratio(log_ratio, reconstructed.float(), config.fill_sigma, config.min_fill_weight)
     correction = torch.where(reconstructed, log_ratio, spread)
     full = F.interpolate(correction[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
     confidence = torch.where(reconstructed, count / float(config.num_sources), torch.zeros_like(count))
@@ -126,4 +129,5 @@ def refine_depth(
     moved = torch.where(reconstructed, log_ratio.abs(), torch.full_like(log_ratio, float("nan"))).flatten(1)
     stats = {"reconstructed": share.cpu(), "median_abs_log_correction": moved.nanmedian(1).values.cpu()}
     unsupported = (share < config.min_frame_share).cpu()
-    return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats)
+    support = F.interpolate(support[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
+    return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats, support)

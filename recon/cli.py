@@ -201,8 +201,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--block-count", type=int, default=fd.block_count,
                    help="memory budget in voxel blocks (10 KiB each); the voxel grows to fit (default %(default)s)")
     g.add_argument("--min-confidence", type=float, default=fd.min_confidence,
-                   help="with the refinement, fuse only pixels of at least this confidence (share of source views "
-                        "that agree; default %(default)s: every reconstructed pixel)")
+                   help="with the refinement, fuse only pixels of at least this confidence (reconstructed pixels: "
+                        "the share of source views that agree, >= 1/3; filled pixels: 0.1 x the share of "
+                        "reconstructed pixels around them; 0 fuses all). Default: 0.1 (reconstructed pixels only) "
+                        "with given poses, 0.01 (also filled pixels near evidence) with estimated poses")
     g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
 
     g = parser.add_argument_group("output")

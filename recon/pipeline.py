@@ -57,7 +57,7 @@ from viewer.output_folder import RECORDING
 from .io.frames import DatasetSource, FrameBatch, FrameSource, ImageFolderSource, open_source, resize_intrinsics
 from .lens import undistort_features, undistort_images, worth_undistorting
 from .poses.polish import PolishConfig
-from .refine import REFINE_CHOICES, fusion_confidence, refine_summary
+from .refine import REFINE_CHOICES, default_min_confidence, fusion_confidence, refine_summary
 from mvs_core import MvsConfig
 
 log = logging.getLogger(__name__)
@@ -560,7 +560,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         print("note: camera intrinsics unknown; assuming NYU Depth v2's field of view "
               "(pass --intrinsics or --fov for a better mesh)", file=sys.stderr)
     intrinsics = tuple(float(v) for v in intrinsics)
-    if pose_plan != "estimate" and config.refine != "none" and config.polish:
+    estimated = isinstance(pose_plan, str) and pose_plan == "estimate"
+    if not estimated and config.refine != "none" and config.polish:
         say("polishing the given poses against the frames")
         with timer.stage("poses"):
             pose_stage = polished_poses(config, pose_stage, frames, prior_depth, intrinsics)
@@ -606,6 +607,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress})
     with timer.stage("fusion"):
         confidence = None if refined is None else fusion_confidence(refined)
+        if fusion_options.min_confidence is None:
+            fusion_options.min_confidence = default_min_confidence(estimated)
         fused = fuse(depth, frames.rgb, poses, intrinsics, fusion_options, confidence=confidence)
 
     if fused.mesh.has_vertex_colors():  # TSDF colour averages can overshoot 1 by rounding
@@ -640,7 +643,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
                   "features": None if features is None else list(features.shape[1:])},
         "medea": medea_summary(medea_result),
         "refine": {"method": config.refine, **refine_summary(refined)},
-        "fusion": {"voxel_size": fused.voxel_size, "trunc": fused.trunc, "max_depth": fused.max_depth,
+        "fusion": {"min_confidence": fusion_options.min_confidence if refined is not None else None,
+                   "voxel_size": fused.voxel_size, "trunc": fused.trunc, "max_depth": fused.max_depth,
                    "frames_fused": fused.frames_fused, "block_estimate": fused.block_estimate,
                    "blocks_used": fused.blocks_used, "fragments_removed": fused.fragments_removed,
                    "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)},

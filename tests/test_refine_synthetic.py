@@ -50,3 +50,31 @@ def test_refinement_repairs_per_pixel_shape(refined):
     f_medea = _mesh_f(medea, seq)
     f_refined = _mesh_f(result.depth.numpy(), seq, fusion_confidence(result))
     assert f_refined > f_medea + 0.2 and f_refined > 0.75, (f_medea, f_refined)
+
+
+def test_fusion_confidence_orders_reconstructed_filled_and_unsupported_pixels():
+    import torch
+
+    from mvs_core import RefineResult
+    from recon.refine import FILLED_CONFIDENCE, default_min_confidence
+
+    depth = torch.ones(3, 4, 6)
+    depth[0, 0, 2] = 0.0  # invalid pixel: never fused
+    reconstructed = torch.zeros(3, 4, 6, dtype=torch.bool)
+    reconstructed[0, :, :2] = True
+    confidence = torch.where(reconstructed, torch.tensor(0.5), torch.tensor(0.0))
+    support = torch.zeros(3, 4, 6)
+    support[0, :, 2] = 0.6  # filled next to evidence
+    support[0, :, 5] = 0.02  # filled far from it
+    unsupported = torch.tensor([False, False, True])
+    result = RefineResult(depth, confidence, reconstructed, torch.zeros(3, 1), torch.zeros(3, 1), unsupported,
+                          {}, support)
+    weights = fusion_confidence(result)
+    assert weights[0, 1, 0] == pytest.approx(0.5)
+    assert weights[0, 0, 2] == 0.0
+    assert weights[0, 1, 2] == pytest.approx(FILLED_CONFIDENCE * 0.6)
+    assert (weights[2] == 1.0).all()  # an unsupported frame is fused whole
+    given, estimated = default_min_confidence(False), default_min_confidence(True)
+    # Given poses: reconstructed pixels only; estimated: also filled pixels near evidence.
+    assert weights[0, 1, 0] >= given > weights[0, 1, 2]
+    assert weights[0, 1, 2] >= estimated > weights[0, 1, 5]

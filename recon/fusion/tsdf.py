@@ -30,7 +30,9 @@ Confidence: with a per-pixel confidence map (the refinement's, ``recon.refine``)
 below ``min_confidence`` are left out of the integration: the depth the images could not
 confirm is not fused, so it cannot pull the surface or leave floaters. Textureless walls the
 refinement left to MEDeA then leave holes rather than wavy surfaces (see
-``docs/benchmarks.md``: on 7-Scenes fusing them too lowered the mesh F-score).
+``docs/benchmarks.md``: on 7-Scenes with given poses fusing them too lowered the mesh
+F-score). ``None`` leaves the threshold to the caller (the pipeline picks one by where the
+poses came from); ``fuse`` itself then uses DEFAULT_MIN_CONFIDENCE.
 
 Fragment removal keeps a connected component only if it has at least
 ``min_fragment_triangles`` triangles and ``min_fragment_fraction`` of the largest one's.
@@ -58,6 +60,9 @@ MAX_VOXEL = 0.05
 VOXEL_PER_DEPTH = 1.0 / 200.0
 MAX_DEPTH_PERCENTILE = 99.0
 MAX_DEPTH_MARGIN = 1.1
+# Confidence threshold when none is set: the refinement's reconstructed pixels (whose
+# confidence is >= 1/3 by default) and no filled ones (< 0.1, recon.refine).
+DEFAULT_MIN_CONFIDENCE = 0.1
 _STAT_FRAMES = 64  # frames sampled for the depth statistics
 _STAT_STEP = 4  # pixel lattice step for the depth statistics
 _BYTES_PER_VOXEL = 20  # tsdf + weight + rgb, float32
@@ -75,8 +80,8 @@ class FusionOptions:
     ~ 0.8 GB). min_fragment_triangles / min_fragment_fraction: fragment removal (0 and 0
     keep everything). point_cloud: also extract a surface point cloud. device: "cpu",
     "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
-    confidence map, pixels below it are not integrated (the default keeps every pixel with
-    any confidence, i.e. every pixel the refinement reconstructed).
+    confidence map, pixels below it are not integrated (None: the caller's choice, else
+    DEFAULT_MIN_CONFIDENCE).
     """
 
     voxel_size: float | None = None
@@ -91,7 +96,7 @@ class FusionOptions:
     point_cloud: bool = False
     device: str = "cpu"
     progress: bool = True
-    min_confidence: float = 0.01
+    min_confidence: float | None = None
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
@@ -107,7 +112,7 @@ class FusionOptions:
             raise ReconInputError(f"fusion option block_resolution must be 4, 8, 16 or 32, got {self.block_resolution}")
         if int(self.block_count) < 64:
             raise ReconInputError(f"fusion option block_count must be >= 64, got {self.block_count}")
-        if not (0 <= self.min_confidence <= 1):
+        if self.min_confidence is not None and not (0 <= self.min_confidence <= 1):
             raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
             raise ReconInputError("fusion options min_fragment_triangles must be >= 0 and min_fragment_fraction in [0, 1]")
@@ -410,7 +415,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     t0 = time.perf_counter()
     n, h, w = _check_inputs(depth, rgb, poses)
     if confidence is not None:
-        depth = ConfidentDepth(depth, confidence, options.min_confidence)
+        threshold = DEFAULT_MIN_CONFIDENCE if options.min_confidence is None else options.min_confidence
+        depth = ConfidentDepth(depth, confidence, threshold)
     poses = np.asarray(poses, dtype=np.float64)
     k_all = _frame_intrinsics(intrinsics, n)
     device = o3d_device(options.device)
