@@ -209,21 +209,25 @@ def test_tracking_loss_names_the_frame(room):
 def test_previous_frame_becomes_a_keyframe_when_the_reference_fails(room):
     """A frame that cannot be aligned to its reference keyframe (here: the keyframe's image
     is corrupted) is aligned to the previous frame, which becomes a keyframe."""
-    from recon.poses.frontend import FrontendConfig, PriorSource, _Tracker, make_geometry
+    from recon.poses.frontend import FrontendConfig, make_geometry
+    from recon.poses.result import PriorSource
+    from recon.poses.track_state import TrackState
+    from recon.poses.tracker import Tracker
 
     seq, prior = room
     height, width = seq.rgb.shape[1:3]
     cfg = FrontendConfig()
-    tracker = _Tracker(seq.intrinsics, make_geometry(width, height, cfg.ba_stride), PriorSource(prior), cfg)
+    state = TrackState(seq.intrinsics, make_geometry(width, height, cfg.ba_stride), PriorSource(prior), cfg)
+    tracker = Tracker(state)
     tracker.start(0, seq.rgb[0])
     for i in (1, 2, 3):
         tracker.track(i, seq.rgb[i])
-    assert tracker.graph.frames == [0]
-    noise = np.random.default_rng(0).integers(0, 256, size=tracker.graph.gray[0].shape, dtype=np.uint8)
-    tracker.graph.gray[0] = noise
+    assert state.graph.frames == [0]
+    noise = np.random.default_rng(0).integers(0, 256, size=state.graph.gray[0].shape, dtype=np.uint8)
+    state.graph.gray[0] = noise
     tracker.track(4, seq.rgb[4])
-    assert tracker.graph.frames == [0, 3] and tracker.status[4] == "tracked"
-    T_est = np.linalg.inv(tracker.frame_T[4].numpy())
+    assert state.graph.frames == [0, 3] and state.status[4] == "tracked"
+    T_est = np.linalg.inv(state.frame_T[4].numpy())
     T_gt = np.linalg.inv(seq.poses[0]) @ seq.poses[4]
     # While tracking, the metric scale of a two-keyframe map is provisional: check the
     # direction of travel and the rotation.

@@ -30,7 +30,7 @@ from mvs_core.views import select_sources
 
 from . import ba, lie
 from . import flow as fl
-from .frontend import _disp_from_depth, make_geometry
+from .frontend_config import disp_from_depth, make_geometry
 from .result import invert_poses, pool_depth
 
 
@@ -137,7 +137,7 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
             target, weight = fl.pool_edge(flow, conf, geo.flow_factor, cfg.flow)
             ii.append(src), jj.append(dst), targets.append(target), weights.append(weight)
     edges = ba.Edges(torch.tensor(ii), torch.tensor(jj), torch.stack(targets), torch.stack(weights))
-    priors = [_disp_from_depth(d, cfg.prior_weight) for d in pooled]
+    priors = [disp_from_depth(d, cfg.prior_weight) for d in pooled]
     disp0 = torch.stack([p[0] for p in priors])
     prior_w = torch.stack([p[1] for p in priors])
     T_cw = lie.inv(c2w)

@@ -29,6 +29,18 @@ class TrackingLostError(ReconInputError):
         self.frame = frame
 
 
+# Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every
+# estimator so that one quality gate (``recon.poses.quality``) reads them all:
+#   keyframe     optimised in the map (front end BA; SfM: registered in COLMAP's model)
+#   tracked      aligned to keyframes by its own flow (SfM: registered densely)
+#   relocalised  tracked after a loss, against an older keyframe
+#   recovered    lost while tracking, aligned at the end against its final neighbours
+#   interpolated no reliable evidence: the pose is a guess between its neighbours
+FRAME_STATES = ("keyframe", "tracked", "relocalised", "recovered", "interpolated")
+# States whose pose rests on the frame's own image evidence.
+TRUSTED_STATES = frozenset({"keyframe", "tracked", "relocalised", "recovered"})
+
+
 @dataclass
 class PoseResult:
     """Camera poses for every input frame.

@@ -1,0 +1,150 @@
+"""The front end's trajectory filler (DROID-SLAM's ``trajectory_filler``): once the
+keyframes are final, every other frame is aligned, motion only, against the keyframes
+before and after it; a frame without reliable flow to either gets the geodesic between them
+and is marked "interpolated".
+
+``align_to_keyframes`` is shared with the SfM fallback, which registers the frames COLMAP
+did not take the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from recon.poses import ba
+from recon.poses import flow as fl
+from recon.poses import lie
+from recon.poses import projective as pj
+from recon.poses.frontend_config import FrontendConfig
+from recon.poses.track_state import TrackState
+
+
+def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progress: bool) -> None:
+    """Motion-only alignment of every non-keyframe against the keyframes before and after it."""
+    g = state.graph
+    T_kf = g.poses()
+    kf_frames = np.array(g.frames)
+    jobs = [i for i in range(num_frames) if state.status.get(i) != "keyframe"]
+    known = {i: ref for i, ref in state.refs.items()}
+
+    def init_of(i: int, prev: int, nxt: int) -> torch.Tensor:
+        if i in state.rel:
+            return state.rel[i] @ T_kf[state.refs[i][0]]
+        return interpolated_pose(i, prev, nxt, kf_frames, T_kf)
+
+    prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
+    out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_size),
+                             kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, known,
+                             prior_of, progress, state.k1)
+    for i, (T, ok, ratio) in out.items():
+        state.frame_T[i] = T
+        if ok:
+            if np.isfinite(ratio):
+                state.frame_ratios[i] = ratio
+            if state.status.get(i) == "lost":
+                state.status[i] = "recovered"
+        else:
+            state.status[i] = "interpolated"
+
+
+def interpolated_pose(i: int, prev: int, nxt: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:
+    """Pose (4, 4) of frame i on the geodesic between keyframes prev and nxt (ids; -1 or K
+    when there is none on that side: then the nearest keyframe's pose)."""
+    if prev >= 0 and nxt < len(kf_frames):
+        a = (i - kf_frames[prev]) / max(kf_frames[nxt] - kf_frames[prev], 1)
+        return torch.from_numpy(lie.interpolate(T_kf[prev][None].numpy(), T_kf[nxt][None].numpy(), np.array([a]))[0])
+    return T_kf[prev] if prev >= 0 else T_kf[nxt]
+
+
+def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, cfg: FrontendConfig, init_of=None,
+                       known=None, prior_of=None, progress: bool = False, k1: float = 0.0) -> dict:
+    """Motion-only alignment of frames `jobs` against their neighbouring keyframes.
+
+    kf_frames (K,) sorted frame indices of the keyframes, kf_gray their flow-resolution grey
+    images, T_kf (K, 4, 4) world-to-camera poses, disp_kf (K, H, W) BA-grid inverse depth.
+    gray_of(i): frame i's flow-resolution grey image. init_of(i, prev, nxt): initial pose
+    (default: geodesic between the keyframes before and after). known: {i: (k, target,
+    weight)} flow measurements already made (from tracking). prior_of(i): (prior inverse
+    depth, tie weight) on the BA grid, for the per-frame metric ratio (``frame_depth_ratios``);
+    k1: the lens' radial term.
+    Returns {i: (T_cw (4, 4), ok, ratio)}; ok is False when the alignment kept less than
+    ``cfg.lost_inlier`` of its flow confidence (a keyframe whose flow fails
+    ``cfg.min_match_correlation`` is left out), and T_cw is then the initial pose.
+    """
+    known = known or {}
+    init_of = init_of or (lambda i, p, n: interpolated_pose(i, p, n, kf_frames, T_kf))
+    results = {}
+    K = len(kf_frames)
+    for start in tqdm(range(0, len(jobs), cfg.align_chunk), desc="aligning frames", unit="batch",
+                      disable=not progress, leave=False):
+        chunk = jobs[start : start + cfg.align_chunk]
+        frame_idx, kfs, targets, weights, T_init = [], [], [], [], []
+        for m, i in enumerate(chunk):
+            nxt = int(np.searchsorted(kf_frames, i))
+            prev = nxt - 1
+            T_init.append(init_of(i, prev, nxt))
+            if i in known:
+                k, t, w = known[i]
+                frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
+            gray = None
+            for k in (prev, nxt):
+                if k < 0 or k >= K or (i in known and known[i][0] == k):
+                    continue
+                gray = gray_of(i) if gray is None else gray
+                fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow)
+                if fl.match_correlation(kf_gray[k], gray, fwd, cf) < cfg.min_match_correlation:
+                    continue
+                t, w = fl.pool_edge(fwd, cf, 2, cfg.flow)
+                frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
+        if not kfs:
+            results.update({i: (T_init[m], False, float("nan")) for m, i in enumerate(chunk)})
+            continue
+        kt, ft = torch.tensor(kfs), torch.tensor(frame_idx)
+        wt = torch.stack(weights).double()
+        T, _, inl = ba.align_frames(torch.stack(T_init), T_kf[kt], disp_kf[kt], intr, ft,
+                                    torch.stack(targets).double(), wt, huber=1.0, k1=k1)
+        ratio = np.full(len(chunk), np.nan)
+        if prior_of is not None:
+            disp_w = [prior_of(i) for i in chunk]
+            prior = torch.stack([d for d, _ in disp_w])
+            prior_ok = torch.stack([w for _, w in disp_w]) > 0
+            ratio = frame_depth_ratios(T, T_kf[kt], disp_kf[kt], intr, ft, wt, prior, prior_ok, k1)
+        for m, i in enumerate(chunk):
+            ok = float(inl[m]) >= cfg.lost_inlier
+            results[i] = (T[m] if ok else T_init[m], ok, float(ratio[m]))
+    return results
+
+
+def frame_depth_ratios(T: torch.Tensor, T_kf: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor,
+                       frame: torch.Tensor, weight: torch.Tensor, prior: torch.Tensor, prior_ok: torch.Tensor,
+                       k1: float = 0.0) -> np.ndarray:
+    """Median ratio (M,) of geometric to prior inverse depth per frame.
+
+    T: (M, 4, 4) world-to-camera frame poses; T_kf (L, 4, 4), disp_kf (L, H, W): keyframes
+    observed by frame[l] (L,) with flow confidence weight (L, H, W); prior, prior_ok:
+    (M, H, W) the frames' prior inverse depth and its validity on the BA grid. Keyframe
+    pixels with confidence > 0.5 are moved into the frame, and its prior is read (nearest
+    pixel) where they land (through the lens k1). NaN for frames without such pixels.
+    """
+    L = T_kf.shape[0]
+    height, width = disp_kf.shape[-2:]
+    uv, _ = pj.undistort(pj.pixel_grid(height, width, dtype=T.dtype), intr, k1)
+    X = pj.backproject(uv[None], disp_kf, intr).reshape(L, -1, 4)
+    Xf = pj.transform(T[frame] @ lie.inv(T_kf), X)
+    proj, valid = pj.project(Xf, intr)
+    proj = pj.distort(proj, intr, k1)
+    ui, vi = proj[..., 0].round().long(), proj[..., 1].round().long()
+    valid &= (ui >= 0) & (ui < width) & (vi >= 0) & (vi < height) & (weight.reshape(L, -1) > 0.5)
+    ui, vi = ui.clamp(0, width - 1), vi.clamp(0, height - 1)
+    f = frame[:, None].expand_as(ui)
+    valid &= prior_ok[f, vi, ui]
+    geo_disp = Xf[..., 3] / Xf[..., 2].clamp(min=1e-9)
+    ratio = geo_disp / prior[f, vi, ui]
+    out = np.full(T.shape[0], np.nan)
+    for m in range(T.shape[0]):
+        sel = valid & (f == m)
+        if int(sel.sum()) >= 16:
+            out[m] = float(ratio[sel].median())
+    return out

@@ -1,0 +1,78 @@
+"""The one state object of a front-end run (DROID-SLAM's ``depth_video``): the keyframe
+graph and the per-frame records that the roles around it read and write.
+
+The roles: ``motion_filter`` (is this frame a keyframe?), ``tracker`` (the local window:
+align each new frame, insert keyframes, window BA, relocalise), ``backend`` (edges, BA,
+lens calibration, metric scale), ``filler`` (poses of the non-keyframes at the end). Each
+takes a :class:`TrackState`; none keeps state of its own.
+
+Poses here are world-to-camera (``T_cw``), as in the BA; the estimator's result is
+camera-to-world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from recon.poses import ba
+from recon.poses import flow as fl
+from recon.poses import graph as gr
+from recon.poses.frontend_config import FrontendConfig, Geometry, disp_from_depth
+from recon.poses.result import PriorSource, pool_depth
+
+
+class TrackState:
+    """Everything one tracking run knows.
+
+    graph: keyframes (frame index, grey image, pose, BA depth, prior) and flow edges.
+    frame_T: {frame: T_cw (4, 4)} every frame tracked so far (keyframes: their graph pose).
+    refs: {non-keyframe: (keyframe id, BA target (h, w, 2), weight (h, w))}: the flow that
+        aligned it, reused by the filler.
+    rel: {non-keyframe: T_frame <- T_keyframe (4, 4)} its pose relative to that keyframe, so
+        that it follows the keyframe through later BA.
+    status: {frame: one of result.FRAME_STATES, or "lost" while tracking}.
+    frame_ratios: {frame: geometric / prior inverse depth}, for the metric scale.
+    ref_kf: the keyframe new frames are aligned to first.
+    lost_run: the current run of consecutive lost frames.
+    previous: the last tracked non-keyframe (index, frame, grey, pose, keyframe, flows),
+        promoted to a keyframe when the next frame cannot be aligned to ref_kf.
+    last_failure: why the last alignment was refused (for the error message).
+    k1, lens_calibrated: the lens' radial term and whether the BA has estimated it.
+    reloc_events, ba_reports: what happened, for the diagnostics.
+    """
+
+    def __init__(self, intrinsics, geo: Geometry, prior: PriorSource, cfg: FrontendConfig):
+        self.cfg = cfg
+        self.geo = geo
+        self.prior = prior
+        self.intrinsics = intrinsics
+        self.intr = geo.ba_intrinsics(intrinsics)
+        self.graph = gr.FrameGraph((geo.ba_size[1], geo.ba_size[0]))
+        self.refs: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = {}
+        self.frame_T: dict[int, torch.Tensor] = {}
+        self.rel: dict[int, torch.Tensor] = {}
+        self.frame_ratios: dict[int, float] = {}
+        self.status: dict[int, str] = {}
+        self.ref_kf = 0
+        self.lost_run: list[int] = []
+        self.reloc_events: list[dict] = []
+        self.ba_reports: list[ba.BAReport] = []
+        self.previous: tuple | None = None
+        self.last_failure = ""
+        self.k1 = cfg.lens_k1
+        self.lens_calibrated = False
+
+    def ba_options(self, iters: int) -> ba.BAOptions:
+        return replace(self.cfg.ba, iters=iters, prior_weight=self.cfg.prior_weight)
+
+    def prior_disp(self, index: int, frame: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Prior inverse depth (h, w) of a frame on the BA grid and its tie weight."""
+        depth = pool_depth(self.prior.get(index, frame), self.geo.ba_size)
+        return disp_from_depth(depth, self.cfg.prior_weight)
+
+    def edge_targets(self, flow: np.ndarray, conf: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """A flow-resolution flow and confidence pooled to a BA target and weight."""
+        return fl.pool_edge(flow, conf, self.geo.flow_factor, self.cfg.flow)

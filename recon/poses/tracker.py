@@ -1,0 +1,156 @@
+"""The front end's local window (DROID-SLAM's ``droid_frontend``): each new frame is aligned
+to the current keyframe by dense flow; frames that move far enough become keyframes, are
+linked to their recent neighbours and the window is bundle-adjusted; a frame that cannot
+be aligned is tried against the previous frame (promoted to a keyframe) and older
+keyframes, and too many failures in a row stop tracking with the frame and the reason.
+
+:class:`Tracker` drives a :class:`~recon.poses.track_state.TrackState`; the keyframe
+policy is ``motion_filter``'s, the edges and BA ``backend``'s.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from recon.poses import ba
+from recon.poses import backend
+from recon.poses import flow as fl
+from recon.poses import lie
+from recon.poses import motion_filter
+from recon.poses.result import TrackingLostError
+from recon.poses.track_state import TrackState
+
+log = logging.getLogger(__name__)
+
+
+class Tracker:
+    """Frame-by-frame tracking over one TrackState (``state``)."""
+
+    def __init__(self, state: TrackState):
+        self.state = state
+
+    def start(self, index: int, frame: np.ndarray) -> None:
+        """The first frame: the first keyframe, at the origin."""
+        s = self.state
+        disp, pw = s.prior_disp(index, frame)
+        gray = fl.prepare_gray(frame, s.geo.flow_size)
+        s.graph.add_keyframe(index, gray, torch.eye(4, dtype=torch.float64), disp, disp.clone(), pw)
+        s.frame_T[index] = torch.eye(4, dtype=torch.float64)
+        s.status[index] = "keyframe"
+
+    def track(self, index: int, frame: np.ndarray) -> None:
+        """Align one frame and, when it moved far enough, make it a keyframe."""
+        s = self.state
+        gray = fl.prepare_gray(frame, s.geo.flow_size)
+        T0 = s.frame_T.get(index - 1, s.graph.poses([s.ref_kf])[0])
+        found = self._against(s.ref_kf, gray, T0)
+        if found is None and self._promote_previous(index):
+            # The reference keyframe is too far (fast rotation, blur): the previous frame,
+            # which still tracked, becomes a keyframe and this frame is aligned to it.
+            found = self._against(s.ref_kf, gray, T0)
+        status = "tracked"
+        if found is None:
+            found = self._relocalise(index, gray)
+            if found is None:
+                self._lost(index)
+                return
+            s.ref_kf = found[0]
+            status = "relocalised"
+        kf, T, fwd, bwd, cf, cb, target, weight = found
+        s.lost_run = []
+        s.frame_T[index] = T
+        s.refs[index] = (kf, target, weight)
+        s.rel[index] = T @ lie.inv(s.graph.poses([kf])[0])
+        s.status[index] = status
+        motion, parallax = motion_filter.motion_and_parallax(fwd, cf, s.rel[index], s.intrinsics, s.geo)
+        if motion_filter.is_keyframe(motion, parallax, s.cfg):
+            self._add_keyframe(index, frame, gray, T, kf, (fwd, bwd, cf, cb))
+            s.previous = None
+        else:
+            s.previous = (index, frame, gray, T, kf, (fwd, bwd, cf, cb))
+
+    def _align(self, T_init: torch.Tensor, kf: int, target: torch.Tensor, weight: torch.Tensor):
+        """Pose (4, 4) of one frame against keyframe kf, and its inlier fraction."""
+        s = self.state
+        T, _, inl = ba.align_frames(
+            T_init[None], s.graph.poses([kf]), s.graph.disps([kf]), s.intr, torch.zeros(1, dtype=torch.int64),
+            target[None].double(), weight[None].double(), huber=1.0, k1=s.k1,
+        )
+        return T[0], float(inl[0])
+
+    def _against(self, kf: int, gray: np.ndarray, T0: torch.Tensor):
+        """Flow from keyframe kf to a frame and the frame's pose aligned to it, or None when
+        the flow or the alignment is not to be trusted (``last_failure`` says why)."""
+        s = self.state
+        cfg = s.cfg
+        fwd, bwd, cf, cb = fl.flow_pair(s.graph.gray[kf], gray, cfg.flow)
+        correlation = fl.match_correlation(s.graph.gray[kf], gray, fwd, cf)
+        if correlation < cfg.min_match_correlation:
+            s.last_failure = f"image correlation along the flow {correlation:.2f} < {cfg.min_match_correlation}"
+            return None
+        target, weight = s.edge_targets(fwd, cf)
+        if float(weight.mean()) < cfg.min_edge_weight:
+            s.last_failure = f"mean flow confidence {float(weight.mean()):.2f} < {cfg.min_edge_weight}"
+            return None
+        T, inl = self._align(T0, kf, target, weight)
+        if inl < cfg.lost_inlier:
+            s.last_failure = f"inlier fraction {inl:.2f} < {cfg.lost_inlier}"
+            return None
+        return kf, T, fwd, bwd, cf, cb, target, weight
+
+    def _promote_previous(self, index: int) -> bool:
+        """Make the previous frame a keyframe when it tracked (and is not one already)."""
+        s = self.state
+        if s.previous is None or s.previous[0] != index - 1:
+            return False
+        prev, frame, gray, T, kf, flows = s.previous
+        s.previous = None
+        log.info("frame %d: keyframe at frame %d too far, the previous frame becomes a keyframe", index,
+                 s.graph.frames[kf])
+        self._add_keyframe(prev, frame, gray, T, kf, flows)
+        return True
+
+    def _relocalise(self, index: int, gray: np.ndarray):
+        """Try older keyframes (most recent first) when the reference keyframe fails."""
+        s = self.state
+        K = len(s.graph)
+        tried = [k for k in range(K - 1, -1, -1) if k != s.ref_kf][: s.cfg.reloc_candidates]
+        for k in tried:
+            found = self._against(k, gray, s.graph.poses([k])[0])
+            if found is not None:
+                s.reloc_events.append({"frame": index, "keyframe": int(s.graph.frames[k])})
+                log.info("frame %d: relocalised against keyframe at frame %d", index, s.graph.frames[k])
+                return found
+        return None
+
+    def _lost(self, index: int) -> None:
+        s = self.state
+        s.lost_run.append(index)
+        s.status[index] = "lost"
+        if len(s.lost_run) > s.cfg.max_lost:
+            first = s.lost_run[0]
+            raise TrackingLostError(
+                f"tracking lost at frame {first}: {len(s.lost_run)} consecutive frames could not be aligned to any "
+                f"of the last keyframes ({s.last_failure}); the video may cut, "
+                "blur or move too fast",
+                frame=first,
+            )
+
+    def _add_keyframe(self, index, frame, gray, T, ref, flows) -> None:
+        s = self.state
+        g = s.graph
+        disp, pw = s.prior_disp(index, frame)
+        k = g.add_keyframe(index, gray, T, disp, disp.clone(), pw)
+        s.refs.pop(index, None)
+        s.status[index] = "keyframe"
+        backend.add_pair(s, ref, k, *flows, "temporal")
+        for j in range(k - 1, max(k - 1 - s.cfg.temporal_radius, -1), -1):
+            if j != ref:
+                backend.link(s, j, k, "temporal")
+        backend.link_proximity(s, k)
+        backend.window_ba(s, k)
+        s.ref_kf = k
+        s.frame_T[index] = g.poses([k])[0]
