@@ -53,20 +53,33 @@ def undistort_radial(rgb: np.ndarray, prior: np.ndarray, intrinsics, k1: float) 
     return undistort_images(rgb, intrinsics, k1), undistort_images(prior, intrinsics, k1, nearest=True)
 
 
+def parse_case(name: str) -> tuple[str, int, int]:
+    """'7scenes/12@100' -> ('7scenes', 12, 100): base case, frame stride, first frame."""
+    base, _, start = name.partition("@")
+    base, _, stride = base.partition("/")
+    return base, int(stride or 1), int(start or 0)
+
+
 def load_case(name: str, k1: float = 0.0):
-    """rgb (N, H, W, 3), prior (N, h, w), intrinsics or None, gt poses (N, 4, 4), prior seconds."""
-    if name in ("7scenes", "7scenes-nok", "tum"):
-        ds = open_dataset(DATA / ("tum-fr1-rpy" if name == "tum" else "7scenes-redkitchen"))
+    """rgb (N, H, W, 3), prior (N, h, w), intrinsics or None, gt poses (N, 4, 4), prior seconds.
+
+    name: a base case, optionally with a frame stride and a first frame ('tum/3',
+    '7scenes/12@100'): fast motion made from the recordings (issue 20)."""
+    base, stride, start = parse_case(name)
+    if base in ("7scenes", "7scenes-nok", "tum"):
+        ds = open_dataset(DATA / ("tum-fr1-rpy" if base == "tum" else "7scenes-redkitchen"))
+        if stride > 1 or start:
+            ds = ds.subset(np.arange(start, len(ds), stride))
         rgb = ds.load_rgb_batch()
         prior, secs = fastdepth(rgb, ds.intrinsics)
-        if k1 and name.startswith("7scenes"):
+        if k1 and base.startswith("7scenes"):
             rgb, prior = undistort_radial(rgb, prior, ds.intrinsics, k1)
-        return rgb, prior, (None if name.endswith("-nok") else ds.intrinsics), ds.poses, secs
+        return rgb, prior, (None if base.endswith("-nok") else ds.intrinsics), ds.poses, secs
     from recon.synthetic import render_sequence, simulate_prior
 
     seq = render_sequence(120, 640, 480, seed=0)
     prior = simulate_prior(seq.depth, seed=1)
-    return seq.rgb, prior, (None if name == "synthetic-nok" else seq.intrinsics), seq.poses, 0.0
+    return seq.rgb, prior, (None if base == "synthetic-nok" else seq.intrinsics), seq.poses, 0.0
 
 
 def evaluate(res, gt: np.ndarray, true_intr) -> dict:
@@ -108,7 +121,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     results, rows = [], []
     for case in args.cases:
-        if case in ("7scenes", "7scenes-nok", "tum") and not DATA.is_dir():
+        if parse_case(case)[0] in ("7scenes", "7scenes-nok", "tum") and not DATA.is_dir():
             print(f"skipping {case}: {DATA} not found")
             continue
         rgb, prior, intr, gt, prior_s = load_case(case, args.k1)
@@ -119,7 +132,7 @@ def main() -> None:
 
             true_intr = intrinsics_for(rgb.shape[2], rgb.shape[1])
         for method in args.methods:
-            if case.endswith("-nok") and method == "sfm":
+            if parse_case(case)[0].endswith("-nok") and method == "sfm":
                 continue
             try:
                 res = estimate_poses(rgb, prior, intr, method=method, progress=False)

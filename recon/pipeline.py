@@ -352,6 +352,7 @@ class PoseStage:
     info: dict = field(default_factory=dict)
     keep: np.ndarray | None = None  # frames kept (ground truth may lack poses for some)
     lens_k1: float = 0.0  # radial term the poses were estimated with (recon.lens)
+    dropped_note: str = ""  # why frames were left out, said once when keep is set
 
 
 def plan_poses(config: PipelineConfig, source: FrameSource):
@@ -386,7 +387,8 @@ def camera_poses(config: PipelineConfig, plan, source: FrameSource, frames: Fram
         valid = np.isfinite(source.poses).all(axis=(1, 2))
         if valid.sum() < 2:
             raise ReconInputError(f"{config.input}: fewer than 2 selected frames have a ground-truth pose")
-        return PoseStage(source.poses, None, "dataset ground truth", keep=None if valid.all() else np.flatnonzero(valid))
+        return PoseStage(source.poses, None, "dataset ground truth", keep=None if valid.all() else np.flatnonzero(valid),
+                         dropped_note=f"{len(valid) - valid.sum()} frames have no ground-truth pose and are left out")
     if plan == "estimate":
         return estimated_poses(config, frames, prior_depth, intrinsics)
     poses, file_intrinsics = _matched_pose_file(plan, source, frames)
@@ -394,14 +396,38 @@ def camera_poses(config: PipelineConfig, plan, source: FrameSource, frames: Fram
 
 
 def estimated_poses(config: PipelineConfig, frames: FrameBatch, prior_depth, intrinsics) -> PoseStage:
+    """Poses estimated from the frames, through the quality gate (recon.poses.quality):
+    frames whose pose the images do not back are left out, named in report.json."""
+    from .poses.quality import gate_trajectory
+
     result = _pose_estimator()(
         frames.rgb, prior_depth, intrinsics=intrinsics, method=config.pose_method, device=config.device,
         progress=config.progress, **config.pose_options,
     )
+    gate = gate_trajectory(result)
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
-            "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50}}
-    return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info,
-                     lens_k1=float(result.diagnostics.get("lens_k1", 0.0)))
+            "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
+            "frame_status": list(result.diagnostics.get("frame_status", [])),
+            "quality": gate.summary([int(i) for i in frames.indices])}
+    keep, note = None, ""
+    if gate.dropped:
+        keep = np.flatnonzero(gate.keep)
+        spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
+        note = (f"{len(gate.dropped)} of {len(frames)} frames have no pose the images back "
+                f"(video frames {spans}) and are left out of depth and fusion (report.json: poses.quality)")
+    return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info, keep=keep,
+                     lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
+
+
+def tracking_states(stage: PoseStage, frames: FrameBatch) -> list[tuple[int, str, np.ndarray]] | None:
+    """[(video frame, tracking state, camera-to-world pose)] of every frame of an estimate,
+    "dropped: <why>" for those the quality gate left out; None for given poses."""
+    status = stage.info.get("frame_status")
+    if not status:
+        return None
+    why = {d["frame"]: d["reason"] for d in stage.info.get("quality", {}).get("dropped_frames", [])}
+    return [(int(i), f"dropped: {why[int(i)]}" if int(i) in why else state, stage.poses[k])
+            for k, (i, state) in enumerate(zip(frames.indices, status))]
 
 
 def adjust_depth(config: PipelineConfig, frames: FrameBatch, prior, poses, intrinsics):
@@ -448,12 +474,15 @@ def medea_summary(result) -> dict:
 
 
 def log_to_rerun(logger, frames: FrameBatch, prior_depth, depth, poses, intrinsics, mesh, medea_result, progress=True,
-                 refined=None):
+                 refined=None, tracking=None):
     """Every frame (RGB, prior, adjusted and refined depth, confidence, camera, trajectory),
     the mesh, the losses. depth: MEDeA's (or the prior when MEDeA was skipped); refined:
-    the refinement's RefineResult or None."""
+    the refinement's RefineResult or None; tracking: [(video frame, state, pose)] of every
+    selected frame, dropped ones included (see tracking_states), or None."""
     from tqdm.auto import tqdm
 
+    for index, state, pose in tracking or []:
+        logger.log_tracking(index, state, pose)
     for k in tqdm(range(len(frames)), desc="rerun logging", unit="frame", disable=not progress, leave=False):
         extra = {} if refined is None else {"refined_depth": refined.depth[k].numpy(),
                                             "confidence": refined.confidence[k].numpy()}
@@ -543,9 +572,9 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     with timer.stage("poses"):
         pose_stage = camera_poses(config, pose_plan, source, frames, prior.depth, intrinsics)
     poses, prior_depth, features = pose_stage.poses, prior.depth, prior.features
+    tracking = tracking_states(pose_stage, frames)
     if pose_stage.keep is not None:
-        print(f"note: {len(frames) - len(pose_stage.keep)} frames have no ground-truth pose and are left out",
-              file=sys.stderr)
+        log.warning(pose_stage.dropped_note)
         keep = pose_stage.keep
         frames = FrameBatch(frames.indices[keep], frames.timestamps[keep], frames.rgb[keep])
         names = [names[k] for k in keep]
@@ -626,7 +655,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         if config.rerun != "off":
             say(f"rerun: {config.rerun}")
             rerun_url, rec_path = _log_recording(config, out, frames, prior_depth, adjusted, poses, intrinsics,
-                                                 fused.mesh, medea_result, refined)
+                                                 fused.mesh, medea_result, refined, tracking)
             if rec_path is not None:
                 files["recording"] = rec_path
 
@@ -663,7 +692,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
 
 def _log_recording(config, out: OutputFolder, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result,
-                   refined=None):
+                   refined=None, tracking=None):
     """Log to Rerun in the configured mode: (server URL or None, .rrd path or None).
 
     A saved recording goes to a temporary name first, like every other output file.
@@ -672,7 +701,7 @@ def _log_recording(config, out: OutputFolder, frames, prior_depth, depth, poses,
 
     def log(logger):
         log_to_rerun(logger, frames, prior_depth, depth, poses, intrinsics, mesh, medea_result, config.progress,
-                     refined)
+                     refined, tracking)
 
     if config.rerun == "save":
         if config.rerun_path is None:

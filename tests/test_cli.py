@@ -351,3 +351,44 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     report = json.loads((refined / "report.json").read_text())
     assert report["options"]["mvs"]["num_sources"] == 3 and len(report["refine"]["sources"][0]) == 3
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
+
+
+def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path, capsys):
+    """Three noise frames in the middle of the walk: the front end cannot place them, the
+    quality gate drops them from depth and fusion with one warning, report.json names them,
+    and the recording shows each frame's tracking state (dropped ones in red)."""
+    out, _ = demo
+    priors = sorted((out / "input/prior").iterdir())
+    cap = cv2.VideoCapture(str(out / "input/synthetic.mp4"))
+    images, prior_folder = tmp_path / "frames", tmp_path / "prior"
+    images.mkdir(), prior_folder.mkdir()
+    rng = np.random.default_rng(0)
+    n = 0
+    for i in range(FRAMES):
+        ok, bgr = cap.read()
+        assert ok
+        if i == 12:
+            for _ in range(3):
+                cv2.imwrite(str(images / f"frame_{n:06d}.png"), rng.integers(0, 256, bgr.shape, dtype=np.uint8))
+                np.save(prior_folder / f"frame_{n:06d}.npy", np.load(priors[i]))
+                n += 1
+        cv2.imwrite(str(images / f"frame_{n:06d}.png"), bgr)
+        np.save(prior_folder / f"frame_{n:06d}.npy", np.load(priors[i]))
+        n += 1
+    cap.release()
+    k = json.loads((out / "intrinsics.json").read_text())
+    result = tmp_path / "result"
+    code = main(["run", str(images), "-o", str(result), "--poses", "estimate", "--pose-method", "frontend",
+                 "--prior", "folder", "--prior-path", str(prior_folder), "--intrinsics",
+                 f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "save", "--no-npy"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "recon: warning: 3 of 27 frames have no pose the images back (video frames 12-14)" in err
+    report = json.loads((result / "report.json").read_text())
+    quality = report["poses"]["quality"]
+    assert quality["dropped"] == 3 and quality["dropped_ranges"] == [[12, 14]]
+    assert report["frames"]["count"] == 24 and 12 not in report["frames"]["indices"]
+    assert len(list((result / "depth").glob("*.png"))) == 24
+    entities, _, frames, _ = _read_back(result / "recording.rrd")
+    assert "/tracking" in entities and "/world/dropped" in entities
+    assert sorted(frames["/tracking"]) == list(range(27))

@@ -11,6 +11,9 @@ Entity layout::
     world/camera/prior_depth      DepthImage (meter=1)
     world/camera/adjusted_depth   DepthImage (meter=1)
     world/trajectory              LineStrips3D of the camera centres so far
+    world/dropped                 Points3D: centres of frames the quality gate dropped (red)
+    tracking                      TextLog: each frame's tracking state (keyframe, tracked,
+                                  relocalised, recovered, interpolated, dropped)
     world/mesh                    Mesh3D (static)
     world/points                  Points3D (static)
     medea/<stage>/<term>          Scalars on the "epoch" timeline
@@ -44,6 +47,10 @@ ADJUSTED_DEPTH = f"{CAMERA}/adjusted_depth"
 REFINED_DEPTH = f"{CAMERA}/refined_depth"
 CONFIDENCE = f"{CAMERA}/confidence"
 TRAJECTORY = "world/trajectory"
+DROPPED = "world/dropped"
+TRACKING = "tracking"
+# Tracking states that mean trouble are logged as warnings (rerun's TextLog level).
+_TROUBLE = ("interpolated", "dropped", "lost")
 MESH = "world/mesh"
 POINTS = "world/points"
 LOSSES = "medea"
@@ -163,6 +170,7 @@ class RerunLogger:
         self.jpeg_quality = jpeg_quality
         self.url: str | None = None  # gRPC URL in "serve" mode
         self._centres: list[np.ndarray] = []
+        self._dropped: list[np.ndarray] = []
         self._rec: rr.RecordingStream | None = None
         if mode == "off":
             return
@@ -260,6 +268,23 @@ class RerunLogger:
             rec.log(CAMERA, rr.Transform3D(translation=t[:3, 3], mat3x3=t[:3, :3]))
             self._centres.append(t[:3, 3].copy())
             rec.log(TRAJECTORY, rr.LineStrips3D([np.stack(self._centres)], colors=[[255, 128, 0]]))
+
+    def log_tracking(self, index: int, state: str, pose: Any = None) -> None:
+        """Frame ``index``'s tracking state on the frame timeline (a TextLog line; states
+        that mean trouble as warnings), and for a dropped frame with a pose its camera
+        centre in red under world/dropped."""
+        rec = self._rec
+        if rec is None:
+            return
+        rec.set_time("frame", sequence=int(index))
+        trouble = state.split(":")[0] in _TROUBLE
+        rec.log(TRACKING, rr.TextLog(f"frame {index}: {state}", level=rr.TextLogLevel.WARN if trouble
+                                     else rr.TextLogLevel.INFO))
+        if pose is not None and state.startswith("dropped"):
+            t = _to_numpy(pose).astype(np.float64)
+            if np.isfinite(t).all():
+                self._dropped.append(t[:3, 3].copy())
+                rec.log(DROPPED, rr.Points3D(np.stack(self._dropped), colors=[[230, 30, 30]], radii=0.02))
 
     # ------------------------------------------------------------------ geometry
 

@@ -94,7 +94,8 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
                     continue
                 gray = gray_of(i) if gray is None else gray
                 fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow)
-                if fl.match_correlation(kf_gray[k], gray, fwd, cf) < cfg.min_match_correlation:
+                if (fl.match_correlation(kf_gray[k], gray, fwd, cf) < cfg.min_match_correlation
+                        or fl.local_correlation(kf_gray[k], gray, fwd, cf) < cfg.min_local_correlation):
                     continue
                 t, w = fl.pool_edge(fwd, cf, 2, cfg.flow)
                 frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)

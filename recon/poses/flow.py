@@ -156,6 +156,29 @@ def match_correlation(a: np.ndarray, b: np.ndarray, flow: np.ndarray, conf: np.n
     return float(cov / max(np.sqrt((w * x * x).sum() * (w * y * y).sum()), 1e-9))
 
 
+def local_correlation(a: np.ndarray, b: np.ndarray, flow: np.ndarray, conf: np.ndarray, radius: int = 3,
+                      min_std: float = 4.0) -> float:
+    """Confidence-weighted mean of the zero-normalised cross-correlation of (2 radius + 1)^2
+    windows of grey image a (h, w) and b sampled along flow (h, w, 2), over windows with
+    texture (grey-level std >= min_std in both). A dense flow can bend one image onto the
+    coarse layout of an unrelated one (a floor below a wall, a bright window), which the
+    global correlation of ``match_correlation`` rewards; the fine texture inside each
+    window only lines up between views of the same surfaces."""
+    x = a.astype(np.float32)
+    y = _matched(b, flow)
+    k = (2 * radius + 1, 2 * radius + 1)
+    mx, my = cv2.blur(x, k), cv2.blur(y, k)
+    vx = np.maximum(cv2.blur(x * x, k) - mx * mx, 0.0)
+    vy = np.maximum(cv2.blur(y * y, k) - my * my, 0.0)
+    cov = cv2.blur(x * y, k) - mx * my
+    textured = (vx >= min_std**2) & (vy >= min_std**2)
+    w = conf.astype(np.float64) * textured
+    if w.sum() <= 0:
+        return 0.0
+    ncc = cov / np.sqrt(np.maximum(vx * vy, 1e-6))
+    return float((w * ncc).sum() / w.sum())
+
+
 def flow_pair(
     a: np.ndarray,
     b: np.ndarray,

@@ -175,6 +175,8 @@ def _estimate(frames, prior_depth, intrinsics, progress: bool, cfg: FrontendConf
         edges=g.kinds(),
         metric_scale_factor=scale,
         frame_status=status,
+        frame_inlier=[state.inlier.get(i, float("nan")) for i in range(len(frames_list))],
+        feature_starts=state.feature_starts,
         lost_frames=[i for i, s in enumerate(status) if s in ("recovered", "interpolated")],
         relocalisations=state.reloc_events,
         ba_rmse_px=last.rmse,

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from recon.poses import ba
+from recon.poses import features as ft
 from recon.poses import flow as fl
 from recon.poses import projective as pj
 
@@ -70,6 +71,12 @@ class FrontendConfig:
         confidence passes unrelated images (random-noise frames matched a keyframe with
         mean confidence 0.16 and 99 % inliers); their correlation was 0.09-0.17, that of
         every tracked frame of TUM fr1/rpy and 7-Scenes 0.988 or more.
+    min_local_correlation: ... and whose 7x7 windows along the flow correlate less than
+        this on average (``flow.local_correlation``): a flow can bend an unrelated image
+        onto the coarse layout of the keyframe (two synthetic rooms filmed alike: global
+        correlation 0.64-0.73, local 0.33-0.43), less so its fine texture. Lowest local
+        correlation of an accepted frame: 0.55 (the synthetic room at 6x speed with blur),
+        0.92 (TUM fr1/rpy every 2nd and 3rd frame, 7-Scenes every 8th and 12th).
     lost_inlier: a frame whose alignment keeps less than this fraction of the flow
         confidence within the robust threshold counts as lost.
     max_lost: consecutive lost frames (after relocalisation attempts) that stop tracking.
@@ -86,6 +93,13 @@ class FrontendConfig:
         setting alone. The BA's pixel-plane products are large enough for threads to pay:
         on the 2-core machine two threads took TUM fr1/rpy from 0.23-0.28 to 0.20-0.21 s
         per frame and 7-Scenes from 0.126 to 0.103. Set 1 when other work shares the cores.
+    seed_min_flow: a frame whose unseeded flow from the keyframe fails the checks is tried
+        again with DIS seeded by the flow its start pose (the previous frame's) predicts,
+        when that moves the keyframe's pixels by at least this many flow pixels on average:
+        a keyframe several fast frames back is beyond DIS's unseeded reach.
+    feature_init: when flow fails from the prediction, start the frame from the pose that
+        ORB matches to the keyframe give by PnP against its depth (``features``), and
+        likewise when relocalising against older keyframes.
     """
 
     ba_stride: int = 8
@@ -107,6 +121,7 @@ class FrontendConfig:
     calibrate_after: int = 20
     calibrate_iters: int = 4
     min_match_correlation: float = 0.5
+    min_local_correlation: float = 0.5
     lost_inlier: float = 0.25
     max_lost: int = 10
     reloc_candidates: int = 4
@@ -117,7 +132,10 @@ class FrontendConfig:
     calib_iters: int = 6
     align_chunk: int = 64
     torch_threads: int | None = None
+    seed_min_flow: float = 2.0
+    feature_init: bool = True
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
+    features: ft.FeatureConfig = field(default_factory=ft.FeatureConfig)
     ba: ba.BAOptions = field(default_factory=ba.BAOptions)
 
 

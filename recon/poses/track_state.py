@@ -20,6 +20,7 @@ import torch
 from recon.poses import ba
 from recon.poses import flow as fl
 from recon.poses import graph as gr
+from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig, Geometry, disp_from_depth
 from recon.poses.result import PriorSource, pool_depth
 
@@ -40,7 +41,11 @@ class TrackState:
     previous: the last tracked non-keyframe (index, frame, grey, pose, keyframe, flows),
         promoted to a keyframe when the next frame cannot be aligned to ref_kf.
     last_failure: why the last alignment was refused (for the error message).
+    inlier: {frame: share of its flow confidence its tracked pose explains} (evidence for
+        the quality gate; last_inlier: that of the last accepted alignment).
     k1, lens_calibrated: the lens' radial term and whether the BA has estimated it.
+    kf_detail, kf_keypoints: keyframes' half-size grey images and ORB keypoints (the
+        feature start); feature_starts counts the frames it started.
     reloc_events, ba_reports: what happened, for the diagnostics.
     """
 
@@ -62,8 +67,18 @@ class TrackState:
         self.ba_reports: list[ba.BAReport] = []
         self.previous: tuple | None = None
         self.last_failure = ""
+        self.last_inlier = float("nan")
+        self.inlier: dict[int, float] = {}
         self.k1 = cfg.lens_k1
         self.lens_calibrated = False
+        # Keyframes' grey images at half the working size and their ORB keypoints, for the
+        # feature start (``features``) of frames the flow cannot start on.
+        self.detail_size = (max(geo.width // 2, 16), max(geo.height // 2, 16))
+        self.detail_intrinsics = pj.scale_intrinsics(intrinsics, self.detail_size[0] / geo.width,
+                                                     self.detail_size[1] / geo.height)
+        self.kf_detail: dict[int, np.ndarray] = {}
+        self.kf_keypoints: dict = {}
+        self.feature_starts = 0
 
     def ba_options(self, iters: int) -> ba.BAOptions:
         return replace(self.cfg.ba, iters=iters, prior_weight=self.cfg.prior_weight)

@@ -635,8 +635,11 @@ def _rotation(yaw: float, pitch_down: float, roll: float) -> np.ndarray:
     return r_yaw @ r_pitch @ r_roll
 
 
-def camera_path(num_frames: int, seed: int) -> np.ndarray:
+def camera_path(num_frames: int, seed: int, speed: float = 1.0, times=None) -> np.ndarray:
     """(N, 4, 4) float64 camera-to-world poses of a smooth hand-held scan of the room.
+
+    speed: path time per frame (2: every other frame of the speed-1 path, twice the motion
+    per frame). times: explicit path times (N,) instead (sub-frames for motion blur).
 
     The heading turns slowly (0.4 deg/frame plus a gentle sway) so the camera sweeps the
     room; meanwhile the camera steps sideways back and forth (up to 1 m, ~2 cm/frame) and
@@ -647,7 +650,8 @@ def camera_path(num_frames: int, seed: int) -> np.ndarray:
     pitch/roll wobble and hand shake. Motion per frame does not depend on num_frames.
     """
     rng = np.random.default_rng([seed, 3])
-    t = np.arange(num_frames, dtype=np.float64)
+    t = np.arange(num_frames, dtype=np.float64) * float(speed) if times is None else np.asarray(times, np.float64)
+    num_frames = len(t)
     phase = rng.uniform(0, 2 * np.pi, 12)
     wave = lambda amplitude, period, k: amplitude * np.sin(2 * np.pi * t / period + phase[k])  # noqa: E731
     heading = rng.uniform(0, 2 * np.pi) + rng.choice([-1.0, 1.0]) * _YAW_RATE * t + wave(0.04, 95, 0)
@@ -826,11 +830,20 @@ def render_sequence(
     seed: int = 0,
     chunk: int | None = None,
     threads: int = 2,
+    speed: float = 1.0,
+    blur: int = 1,
+    exposure: float = 0.5,
 ) -> SyntheticSequence:
     """Render the synthetic room along the hand-held camera path.
 
     Args:
-        num_frames: N >= 1; the path advances ~2 cm and ~0.4 degrees of yaw per frame.
+        num_frames: N >= 1; the path advances ~2 cm and ~0.4 degrees of yaw per frame
+            (times `speed`).
+        speed: motion per frame relative to the default path (a fast hand-held walk: 4-8).
+        blur: sub-frames rendered and averaged per frame, spread over `exposure` (a
+            fraction of the frame interval) centred on the frame's time: motion blur.
+            The pose, depth and mesh are those of the frame's time (the middle of the
+            exposure); 1 renders sharp frames.
         width, height: image size in pixels (>= 8); fx = fy = 525 * width / 640,
             cx = (width - 1) / 2, cy = (height - 1) / 2.
         seed: scene layout, colours, textures and path phases; the same seed gives
@@ -852,19 +865,34 @@ def render_sequence(
     boxes, materials, room = scene_layout(seed)
     vertices, triangles, triangle_materials = scene_mesh(boxes, room)
     intrinsics = intrinsics_for(width, height)
-    poses = camera_path(num_frames, seed)
+    blur = int(blur)
+    if blur < 1 or not (0.0 <= exposure <= 1.0) or not speed > 0:
+        raise ReconInputError(f"synthetic sequence: need blur >= 1, 0 <= exposure <= 1 and speed > 0, got "
+                              f"blur={blur}, exposure={exposure}, speed={speed}")
+    times = np.arange(num_frames, dtype=np.float64) * float(speed)
+    poses = camera_path(num_frames, seed, times=times)
+    # Sub-frame times, frame-major: blur steps evenly over the exposure around each frame.
+    offsets = (np.arange(blur) + 0.5) / blur - 0.5 if blur > 1 else np.zeros(1)
+    sub_poses = camera_path(0, seed, times=(times[:, None] + offsets * exposure * float(speed)).reshape(-1))
     renderer = _Renderer(vertices, triangles, triangle_materials, materials, texture_pyramid(seed), intrinsics, width, height)
     rgb = np.empty((num_frames, height, width, 3), dtype=np.uint8)
     depth = np.empty((num_frames, height, width), dtype=np.float32)
     threads = max(1, int(threads))
     if chunk is None:
-        chunk = min(_CHUNK_PIXELS // (width * height), -(-num_frames // threads))
+        chunk = min(max(_CHUNK_PIXELS // (width * height * blur), 1), -(-num_frames // threads))
     chunk = max(1, int(chunk))
     starts = range(0, num_frames, chunk)
 
     def work(start: int) -> None:
         stop = min(start + chunk, num_frames)
-        rgb[start:stop], depth[start:stop] = renderer.render(poses[start:stop])
+        if blur == 1:
+            rgb[start:stop], depth[start:stop] = renderer.render(poses[start:stop])
+            return
+        colour, _ = renderer.render(sub_poses[start * blur : stop * blur])
+        # Averaged in linear light would be more exact; the renderer's output is what a
+        # camera integrates well enough for a tracking test.
+        rgb[start:stop] = colour.reshape(stop - start, blur, height, width, 3).mean(1).round().astype(np.uint8)
+        depth[start:stop] = renderer.render(poses[start:stop])[1]
 
     # numpy, OpenCV and Open3D release the GIL in their kernels, so two chunks in flight
     # keep both cores of a small machine busy; chunks are independent, so output is identical.
