@@ -138,7 +138,7 @@ def main() -> None:
                 res = estimate_poses(rgb, prior, intr, method=method, progress=False)
                 if args.save:
                     args.save.mkdir(parents=True, exist_ok=True)
-                    np.savez(args.save / f"{label}-{method}.npz", poses=res.poses, gt=gt,
+                    np.savez(args.save / f"{label.replace('/', '-s')}-{method}.npz", poses=res.poses, gt=gt,
                              status=np.array(res.diagnostics.get("frame_status", [])))
                 entry = {"case": label, "method": method, "frames": len(rgb), "prior_s_per_frame": prior_s / len(rgb),
                          **evaluate(res, gt, true_intr)}

@@ -209,7 +209,7 @@ def test_tracking_loss_names_the_frame(room):
 def test_previous_frame_becomes_a_keyframe_when_the_reference_fails(room):
     """A frame that cannot be aligned to its reference keyframe (here: the keyframe's image
     is corrupted) is aligned to the previous frame, which becomes a keyframe."""
-    from recon.poses.frontend import FrontendConfig, make_geometry
+    from recon.poses.frontend_config import FrontendConfig, make_geometry
     from recon.poses.result import PriorSource
     from recon.poses.track_state import TrackState
     from recon.poses.tracker import Tracker

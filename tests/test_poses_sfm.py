@@ -1,53 +1,172 @@
 """The pycolmap SfM fallback on the synthetic room: accuracy, metric scale from the prior,
-dense registration of the frames COLMAP did not see, the lens' radial term, and its failure
-message."""
+dense registration of the frames COLMAP did not see, the lens' radial term, keyframes by
+motion, loop pairs by image similarity, and the check that refuses a partial model."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from recon.eval.trajectory import ate_rmse, path_length, scale_error
 from recon.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses
+from recon.poses import flow as fl
+from recon.poses import sfm
+from recon.poses import sfm_keyframes as skf
+from recon.poses.frontend_config import make_geometry
+from recon.poses.result import FRAME_STATES, TRUSTED_STATES
 from recon.synthetic import render_sequence, simulate_prior
 
 pytest.importorskip("pycolmap")
 
 
-def test_sfm_synthetic_accuracy_and_metric_scale():
+@pytest.fixture(scope="module")
+def room():
+    """30 frames of the synthetic room (320x240) and a simulated prior."""
     seq = render_sequence(30, 320, 240, seed=0)
-    prior = simulate_prior(seq.depth, seed=1)
-    res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3)
+    return seq, simulate_prior(seq.depth, seed=1)
+
+
+def test_sfm_synthetic_accuracy_and_metric_scale(room):
+    seq, prior = room
+    res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
+                         num_threads=1)
     assert res.poses.shape == (30, 4, 4) and np.isfinite(res.poses).all()
     d = res.diagnostics
     assert d["method"] == "sfm" and d["registered_keyframes"] == d["num_keyframes"] == 11  # every 3rd + the last
-    # The other 19 frames were never seen by COLMAP: they are aligned densely.
-    assert d["frame_status"].count("aligned") == 19
+    # The other 19 frames were never seen by COLMAP: they are registered densely.
+    status = d["frame_status"]
+    assert set(status) <= set(FRAME_STATES)
+    assert status.count("keyframe") == 11 and status.count("tracked") == 19
+    assert d["lost_frames"] == [] and d["registered_fraction"] == 1.0
+    inlier = np.array(d["frame_inlier"])
+    model = np.array([s == "keyframe" for s in status])
+    # Model frames: the share of their verified matches that the model explains, well above
+    # the quality gate's floor (recon.poses.quality: 0.25).
+    assert inlier.shape == (30,) and ((inlier[model] > 0.4) & (inlier[model] <= 1.0)).all(), inlier[model]
+    assert np.isnan(inlier[~model]).all() or ((inlier[~model] >= 0) & (inlier[~model] <= 1)).all()
     length = path_length(seq.poses)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * length
     assert scale_error(res.poses, seq.poses) <= 0.10
     assert abs(d["lens_k1"]) < 0.01  # a pinhole camera
 
 
-def test_sfm_estimates_the_lens_radial_term():
+def test_sfm_estimates_the_lens_radial_term(room):
     """The room filmed through a barrel lens (k1 = -0.1): COLMAP's SIMPLE_RADIAL camera finds
     it, and the frames it did not see are registered through it."""
-    seq = render_sequence(30, 320, 240, seed=0)
-    prior = simulate_prior(seq.depth, seed=1)
+    seq, prior = room
     rgb = distort_images(seq.rgb, seq.intrinsics, -0.1)
     depth = distort_images(prior, seq.intrinsics, -0.1, nearest=True)
-    res = estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3)
+    res = estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
+                         num_threads=1)
     assert abs(res.diagnostics["lens_k1"] + 0.1) < 0.02, res.diagnostics["lens_k1"]
-    assert res.diagnostics["frame_status"].count("aligned") == 19
+    assert res.diagnostics["frame_status"].count("tracked") == 19
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * path_length(seq.poses)
     assert scale_error(res.poses, seq.poses) <= 0.10
 
 
+def _grays(rgb: np.ndarray) -> tuple[list[np.ndarray], float]:
+    geo = make_geometry(rgb.shape[2], rgb.shape[1], sfm.SfMConfig().frontend.ba_stride)
+    return [fl.prepare_gray(f, geo.flow_size) for f in rgb], geo.px_scale
+
+
+def test_keyframes_follow_the_motion(room):
+    """The room moves ~4 px per frame (at 640 px width): at stride 1 about every 5th frame is
+    a keyframe, in every 5th frame (~20 px per step) nearly all; max_keyframes caps the
+    count, and a cut (unrelated frames) puts keyframes on both sides of it."""
+    seq, _ = room
+    cfg = sfm.SfMConfig(keyframe_motion=16.0)
+    dense, spacing = sfm.choose_keyframes(*_grays(seq.rgb), cfg)
+    assert spacing == 16.0 and dense[0] == 0 and dense[-1] == 29 and 5 <= len(dense) <= 9
+    sparse, _ = sfm.choose_keyframes(*_grays(seq.rgb[::5]), cfg)
+    assert len(sparse) >= 5  # of 6
+    capped, spacing = sfm.choose_keyframes(*_grays(seq.rgb), sfm.SfMConfig(keyframe_motion=16.0, max_keyframes=4))
+    assert len(capped) <= 4 and capped[0] == 0 and capped[-1] == 29 and spacing > 16.0
+    noise = np.random.default_rng(0).integers(0, 256, (3, 240, 320, 3), dtype=np.uint8)
+    cut, _ = sfm.choose_keyframes(*_grays(np.concatenate([seq.rgb[:12], noise])), cfg)
+    assert {11, 12, 13, 14} <= set(cut)
+
+
+def test_loop_pairs_find_where_the_path_comes_back(room):
+    """Out along the room and back: the proposed loop pairs (beyond the sequential window)
+    join views of the same place (frames 0-28 all overlap a little, so some pairs are
+    looser), and every frame on the way back is paired with its outward twin or a
+    neighbour of it."""
+    seq, _ = room
+    order = list(range(0, 30, 2)) + list(range(28, -1, -2))  # 30 keyframes, revisiting in reverse
+    sift = cv2.SIFT_create(1024)
+    desc = [sift.detectAndCompute(cv2.cvtColor(seq.rgb[i], cv2.COLOR_RGB2GRAY), None)[1] for i in order]
+    pairs = skf.loop_pairs(skf.bow_vectors([np.clip(d, 0, 255).astype(np.uint8) for d in desc], 256),
+                           skf.sequential_gaps(3), 2)
+    assert skf.sequential_gaps(3) == {1, 2, 3, 4}
+    assert pairs and all(b - a > 4 for a, b in pairs)
+    gaps = np.array([abs(order[a] - order[b]) for a, b in pairs])
+    assert np.median(gaps) <= 2 and gaps.max() <= 12, gaps  # random pairs: median ~10 frames apart
+    for b in range(18, 30):  # the way back, beyond the sequential window of the turn
+        assert any(abs(order[a] - order[b]) <= 2 for a, c in pairs if c == b), order[b]
+
+
+def test_dense_registration_reaches_one_keyframe_beyond_the_model():
+    # Keyframes 0, 3, 6, 9; only 0 and 3 in the model: frames up to the next chosen
+    # keyframe (6) may be registered densely, frames 7-8 (between two keyframes COLMAP
+    # could not place) are not even tried.
+    assert skf.dense_candidates(10, [0, 3, 6, 9], {0, 3}) == [1, 2, 4, 5, 6]
+    assert skf.dense_candidates(7, [0, 3, 6], {3}) == [0, 1, 2, 4, 5, 6]
+
+
+def test_registration_error_names_the_unregistered_range():
+    status = ["keyframe", "tracked"] * 5 + ["interpolated"] * 4 + ["keyframe", "tracked", "interpolated", "keyframe"]
+    err = skf.registration_error(status, 7, 0.8)
+    assert isinstance(err, TrackingLostError) and err.frame == 10
+    assert str(err) == ("SfM registered only 13 of 18 frames (7 of 7 keyframes in COLMAP's model, 6 densely; need "
+                        "80%): frames 10-13 and 1 shorter range(s) could not be registered")
+    assert skf.registration_error(status, 7, 0.7) is None
+    assert skf.unregistered_ranges(np.array([s in TRUSTED_STATES for s in status])) == [(10, 13), (16, 16)]
+
+
+def test_sfm_refuses_a_partial_model(room, monkeypatch):
+    """The room followed by frames of noise: COLMAP registers the room only. With a lenient
+    gate the noise frames are marked "interpolated" (their flow to the last room keyframe
+    fails), not padded out as registered; with the default gate (80 %) the same COLMAP
+    result fails, naming the noise frames."""
+    seq, prior = room
+    # The whole room (24 of its frames left COLMAP without a good initial pair) and one thread:
+    # COLMAP's multi-threaded mapper does not give the same model twice.
+    noise = np.random.default_rng(1).integers(0, 256, (12, 240, 320, 3), dtype=np.uint8)
+    rgb = np.concatenate([seq.rgb, noise])
+    depth = np.concatenate([prior, prior[:12]])
+    colmap_runs = []
+    run_colmap = sfm._run_colmap
+
+    def once(*args):  # the same COLMAP result for both gates
+        if not colmap_runs:
+            colmap_runs.append(run_colmap(*args))
+        return colmap_runs[0]
+
+    monkeypatch.setattr(sfm, "_run_colmap", once)
+    res = estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False, min_registered=0.5, num_threads=1)
+    d = res.diagnostics
+    # Every noise frame is left unregistered (with the last room frames past COLMAP's last
+    # keyframe, which the one-spacing rule will not pad either); most of the room is in.
+    n, kept = len(rgb), d["registered_frames"]
+    assert len(seq.rgb) - 4 <= kept <= len(seq.rgb)
+    assert d["lost_frames"] == list(range(kept, n)) and d["unregistered_ranges"] == [[kept, n - 1]]
+    assert all(s in TRUSTED_STATES for s in d["frame_status"][:kept])
+    # No evidence for them: no flow to align with (NaN), or an alignment that explains little.
+    assert all(not (v >= 0.25) for v in d["frame_inlier"][36:]), d["frame_inlier"][36:]
+    assert ate_rmse(res.poses[:kept], seq.poses[:kept], "sim3")["rmse"] <= 0.01 * path_length(seq.poses[:kept])
+    with pytest.raises(TrackingLostError, match=rf"^SfM registered only {kept} of {n} frames \(.*\): frames "
+                                                 rf"{kept}-{n - 1} could not be registered$") as err:
+        estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False)
+    assert err.value.frame == kept and len(colmap_runs) == 1
+
+
 def test_sfm_failure_is_a_tracking_lost_error(capfd):
-    frames = np.full((4, 120, 160, 3), 128, dtype=np.uint8)
-    prior = np.ones((4, 120, 160), dtype=np.float32)
-    with pytest.raises(TrackingLostError, match="SfM registered only 0 of 4 keyframes"):
+    frames = np.random.default_rng(0).integers(0, 256, (5, 120, 160, 3), dtype=np.uint8)
+    prior = np.ones((5, 120, 160), dtype=np.float32)
+    with pytest.raises(TrackingLostError, match=r"SfM registered only 0 of 5 frames \(0 of 5 keyframes in COLMAP's "
+                                                r"model, 0 densely; need 80%\): frames 0-4 could not be registered"):
         estimate_poses(frames, prior, (150.0, 150.0, 79.5, 59.5), method="sfm", progress=False)
     # Our message is the whole story: COLMAP's own log lines (C++, straight to fd 2) stay out.
     assert capfd.readouterr().err == ""

@@ -118,6 +118,10 @@ _RANGES = {
     **dict.fromkeys(("max_keyframes", "keyframe_stride", "max_num_features", "overlap", "num_threads"), _AT_LEAST_ONE),
     "correction_grid": ("two numbers >= 1", lambda v: len(v) == 2 and min(v) >= 1),
     "mapper": ("'incremental' or 'global'", lambda v: v in ("incremental", "global")),
+    "keyframe_motion": _POSITIVE,
+    "loop_candidates": _AT_LEAST_ONE,
+    "loop_words": (">= 2", lambda v: v >= 2),
+    "loop_matching": ("'retrieval', 'exhaustive' or 'none'", lambda v: v in ("retrieval", "exhaustive", "none")),
 }
 
 

@@ -38,8 +38,10 @@ def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progr
     out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_size),
                              kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, known,
                              prior_of, progress, state.k1)
-    for i, (T, ok, ratio) in out.items():
+    for i, (T, ok, ratio, inlier) in out.items():
         state.frame_T[i] = T
+        if np.isfinite(inlier):
+            state.inlier[i] = inlier
         if ok:
             if np.isfinite(ratio):
                 state.frame_ratios[i] = ratio
@@ -69,7 +71,8 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     weight)} flow measurements already made (from tracking). prior_of(i): (prior inverse
     depth, tie weight) on the BA grid, for the per-frame metric ratio (``frame_depth_ratios``);
     k1: the lens' radial term.
-    Returns {i: (T_cw (4, 4), ok, ratio)}; ok is False when the alignment kept less than
+    Returns {i: (T_cw (4, 4), ok, ratio, inlier)}: inlier is the share of the flow confidence
+    the alignment explains (NaN without flow to any keyframe); ok is False when the alignment kept less than
     ``cfg.lost_inlier`` of its flow confidence (a keyframe whose flow fails
     ``cfg.min_match_correlation`` is left out), and T_cw is then the initial pose.
     """
@@ -100,7 +103,7 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
                 t, w = fl.pool_edge(fwd, cf, 2, cfg.flow)
                 frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
         if not kfs:
-            results.update({i: (T_init[m], False, float("nan")) for m, i in enumerate(chunk)})
+            results.update({i: (T_init[m], False, float("nan"), float("nan")) for m, i in enumerate(chunk)})
             continue
         kt, ft = torch.tensor(kfs), torch.tensor(frame_idx)
         wt = torch.stack(weights).double()
@@ -114,7 +117,7 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             ratio = frame_depth_ratios(T, T_kf[kt], disp_kf[kt], intr, ft, wt, prior, prior_ok, k1)
         for m, i in enumerate(chunk):
             ok = float(inl[m]) >= cfg.lost_inlier
-            results[i] = (T[m] if ok else T_init[m], ok, float(ratio[m]))
+            results[i] = (T[m] if ok else T_init[m], ok, float(ratio[m]), float(inl[m]))
     return results
 
 

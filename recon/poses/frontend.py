@@ -30,7 +30,6 @@ from tqdm import tqdm
 from recon.errors import ReconInputError
 from recon.poses import ba, backend, calib, filler
 from recon.poses import flow as fl
-from recon.poses.filler import align_to_keyframes
 from recon.poses.frontend_config import FrontendConfig, disp_from_depth, make_geometry
 from recon.poses.result import (
     PoseResult,
@@ -46,7 +45,7 @@ from recon.poses.tracker import Tracker
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FrontendConfig", "align_to_keyframes", "estimate_focal", "estimate_poses_frontend", "make_geometry"]
+__all__ = ["FrontendConfig", "estimate_focal", "estimate_poses_frontend"]
 
 
 # --------------------------------------------------------------------------- focal search

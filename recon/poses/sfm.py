@@ -1,19 +1,26 @@
-"""The SfM fallback: COLMAP (via pycolmap) on keyframes, dense registration of the other
-frames, metric scale from the depth prior.
+"""The SfM fallback: COLMAP (via pycolmap) on keyframes chosen by motion, dense registration
+of the other frames, metric scale from the depth prior, and a check of the result.
 
-This module owns the pycolmap pipeline: every k-th frame is written to a temporary folder,
-SIFT features are extracted (one shared camera: SIMPLE_RADIAL, so that COLMAP's BA
-estimates the lens' radial term k1 as the front end does; the focal length is held when
-given and refined when unknown; PINHOLE without a lens term when given intrinsics have
-fx != fy, which SIMPLE_RADIAL cannot hold), matched sequentially
-(with vocabulary-tree loop detection when a tree file is given: none ships with pycolmap
-and nothing is downloaded), and mapped incrementally (or globally, GLOMAP, when asked). The
-largest model is kept. Its scale is fixed to metres by the robust median ratio of prior
-depth to the SfM depth of the triangulated points seen in each image (a log-mean over
-images). The remaining frames (and keyframes the mapper left out) are registered by the
-front end's motion-only dense alignment (``frontend.align_to_keyframes``) against the
+This module owns the pycolmap pipeline. Keyframes are chosen by image motion
+(``sfm_keyframes.select_keyframes``: DIS flow accumulated between frames, so a slow pan gets
+few keyframes, a fast walk or an already sparse sequence nearly every frame) and written to
+a temporary folder; SIFT features are extracted (one shared camera: SIMPLE_RADIAL, so that
+COLMAP's BA estimates the lens' radial term k1 as the front end does; the focal length is
+held when given and refined when unknown; PINHOLE without a lens term when given
+intrinsics have fx != fy, which SIMPLE_RADIAL cannot hold), matched sequentially with
+overlap, plus pairs far apart in time that look alike (a bag of words over the keyframes'
+own SIFT descriptors, ``sfm_keyframes.loop_pairs``; or exhaustively; or, with a vocabulary
+tree file, COLMAP's loop detection), and mapped incrementally (or globally, GLOMAP, when
+asked). The largest model is kept. Its scale is fixed to metres by the robust median ratio
+of prior depth to the SfM depth of the triangulated points seen in each image (a log-mean
+over images). The remaining frames (and keyframes the mapper left out) are registered by
+the front end's motion-only dense alignment (``filler.align_to_keyframes``) against the
 neighbouring registered keyframes, whose dense depth is the prior corrected by that
-keyframe's own prior / SfM depth ratios on a coarse grid.
+keyframe's own prior / SfM depth ratios on a coarse grid; only frames next to a keyframe in
+the model are tried, so that a partial model is not padded out to the whole video. Too few
+registered frames fail with a TrackingLostError naming the range that could not be
+registered. What is read from the model (poses, per-frame evidence, depth ratios) is in
+``sfm_model``, keyframes, loop pairs and the registration check in ``sfm_keyframes``.
 """
 
 from __future__ import annotations
@@ -30,8 +37,12 @@ import torch
 
 from recon.errors import ReconInputError
 from recon.poses import flow as fl
-from recon.poses.frontend import FrontendConfig, align_to_keyframes, make_geometry
+from recon.poses import sfm_keyframes as skf
+from recon.poses import sfm_model as sm
+from recon.poses.filler import align_to_keyframes
+from recon.poses.frontend_config import FrontendConfig, make_geometry
 from recon.poses.result import (
+    TRUSTED_STATES,
     PoseResult,
     PriorSource,
     TrackingLostError,
@@ -44,35 +55,65 @@ from recon.poses.result import (
 
 log = logging.getLogger(__name__)
 
+LOOP_MATCHING = ("retrieval", "exhaustive", "none")
+
 
 @dataclass
 class SfMConfig:
     """SfM fallback settings.
 
-    max_keyframes: at most this many frames go to COLMAP (every k-th frame, k chosen so),
-        which bounds the time; the rest are registered densely.
-    keyframe_stride: force k (None: from max_keyframes).
+    max_keyframes: at most this many frames go to COLMAP, which bounds the time; the rest
+        are registered densely.
+    keyframe_motion: keyframe spacing by motion: a frame becomes a keyframe when the mean
+        DIS flow (pixels as if the frames were 640 px wide, confidence-weighted) summed
+        over the frames since the last keyframe reaches this, and both frames of a step
+        the flow cannot follow do (``sfm_keyframes.select_keyframes``). Raised as needed
+        to respect max_keyframes. 7-Scenes moves ~4.3 px per frame: 91 keyframes of 400
+        (the fixed stride gave 101: same ATE, 0.248 -> 0.228 s per frame), 33 of every
+        12th frame's 34; TUM fr1/rpy (fast rotation) 88 of 100, 33 of every 3rd frame's 34.
+    keyframe_stride: every k-th frame (and the last) instead of the motion selection
+        (None: by motion).
     max_num_features: SIFT features per image.
     overlap: sequential matching links each keyframe to the next `overlap` ones.
-    vocab_tree_path: a COLMAP vocabulary tree file enabling loop detection (none by default:
-        pycolmap would download one, and nothing may be downloaded at run time).
+    loop_matching: how keyframes far apart in time get matched, for paths that come back:
+        "retrieval" (each keyframe with its `loop_candidates` most similar keyframes
+        beyond the sequential window, by a bag of `loop_words` visual words over their
+        SIFT descriptors: ``sfm_keyframes.loop_pairs``), "exhaustive" (every pair; the
+        matching time grows with the square of the keyframe count) or "none". Cost on
+        every 12th 7-Scenes frame (33 keyframes): sequential matching 3.0 s, retrieval
+        +2.9 s (124 pairs, 34 verified), exhaustive 7.4 s in all, same ATE; on all 400
+        frames retrieval adds 6.6 s (7 %). Without the loop pairs every 3rd TUM fr1/rpy
+        frame registered 27 of 34 frames (below min_registered), with them all 34.
+    loop_candidates: retrieval pairs per keyframe (each verified by COLMAP like any pair).
+    loop_words: size of the visual vocabulary learnt on the keyframes (k-means).
+    vocab_tree_path: a COLMAP vocabulary tree file enabling COLMAP's own loop detection in
+        sequential matching (none by default: pycolmap would download one, and nothing may
+        be downloaded at run time).
     mapper: "incremental" (COLMAP) or "global" (GLOMAP).
-    min_registered: fraction of keyframes the model must register, else SfM fails.
+    min_registered: fraction of all frames that must be registered, in COLMAP's model
+        ("keyframe") or densely next to a keyframe in it ("tracked"); else SfM fails,
+        naming the longest range of frames it could not register.
     num_threads: threads for feature extraction, matching and mapping.
     correction_grid: (rows, cols) of the per-keyframe prior correction from SfM points
         (the keyframe depth used to register the other frames).
     calibrate_lens: estimate the radial term k1 in COLMAP's bundle adjustment (reported as
         ``lens_k1``, used to register the other frames and by the pipeline to undistort).
-    frontend: flow / alignment settings used to register the remaining frames.
+    frontend: flow / alignment settings used to choose keyframes (its flow settings,
+        ``min_match_correlation`` and ``min_edge_weight`` decide which steps the flow can
+        follow) and to register the remaining frames (``lost_inlier`` and the rest).
     """
 
     max_keyframes: int = 100
+    keyframe_motion: float = 16.0
     keyframe_stride: int | None = None
     max_num_features: int = 4096
     overlap: int = 10
+    loop_matching: str = "retrieval"
+    loop_candidates: int = 5
+    loop_words: int = 256
     vocab_tree_path: str | None = None
     mapper: str = "incremental"
-    min_registered: float = 0.5
+    min_registered: float = 0.8
     num_threads: int = 2
     correction_grid: tuple[int, int] = (3, 4)
     calibrate_lens: bool = True
@@ -88,7 +129,8 @@ def _import_pycolmap():
 
 
 def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: SfMConfig, workdir: Path):
-    """Run extraction, matching and mapping; returns the largest reconstruction (or None)."""
+    """Run extraction, matching and mapping; returns the largest reconstruction (or None)
+    and what the stages took ({"seconds": {stage: s}, "loop_pairs": ..., ...})."""
     pycolmap = _import_pycolmap()
     level = pycolmap.logging.minloglevel
     # COLMAP's INFO lines would flood the console, and so would its warnings: Ceres reports
@@ -102,18 +144,9 @@ def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: Sf
         pycolmap.logging.minloglevel = level
 
 
-def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workdir: Path):
-    image_dir = workdir / "images"
-    image_dir.mkdir()
-    names = []
-    for i in kf_ids:
-        name = f"{i:06d}.png"
-        cv2.imwrite(str(image_dir / name), cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR))
-        names.append(name)
-    height, width = frames[0].shape[:2]
-    db = workdir / "database.db"
+def _reader_options(pycolmap, intrinsics, lens: bool):
+    """COLMAP's camera for the frames, and whether it has the radial term."""
     reader = pycolmap.ImageReaderOptions()
-    lens = cfg.calibrate_lens
     if intrinsics is not None:
         # COLMAP puts pixel centres at +0.5, recon at integers.
         fx, fy, cx, cy = intrinsics
@@ -123,105 +156,120 @@ def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workd
         reader.camera_params = ",".join(f"{v:.6f}" for v in params)
     else:
         reader.camera_model = "SIMPLE_RADIAL" if lens else "SIMPLE_PINHOLE"
+    return reader, lens
+
+
+def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workdir: Path):
+    seconds = {}
+    t = time.perf_counter()
+    image_dir = workdir / "images"
+    image_dir.mkdir()
+    names = []
+    for i in kf_ids:
+        name = f"{i:06d}.png"
+        cv2.imwrite(str(image_dir / name), cv2.cvtColor(frames[i], cv2.COLOR_RGB2BGR))
+        names.append(name)
+    height, width = frames[0].shape[:2]
+    db = workdir / "database.db"
+    reader, lens = _reader_options(pycolmap, intrinsics, cfg.calibrate_lens)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = max(width, height)
     extraction.sift.max_num_features = cfg.max_num_features
     pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = cfg.overlap
-    pairing.num_threads = cfg.num_threads
-    if cfg.vocab_tree_path:
-        if not Path(cfg.vocab_tree_path).is_file():
-            raise ReconInputError(f"{cfg.vocab_tree_path}: vocabulary tree file not found")
-        pairing.loop_detection = True
-        pairing.vocab_tree_path = str(cfg.vocab_tree_path)
+    seconds["features"] = time.perf_counter() - t
+    t = time.perf_counter()
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.num_threads
-    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    verification = pycolmap.TwoViewGeometryOptions()
+    stats = {"loop_pairs": 0, "loop_pairs_verified": 0}
+    if cfg.loop_matching == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = cfg.overlap
+        pairing.quadratic_overlap = True  # the gaps loop_pairs leaves out (sequential_gaps)
+        pairing.num_threads = cfg.num_threads
+        if cfg.vocab_tree_path:
+            if not Path(cfg.vocab_tree_path).is_file():
+                raise ReconInputError(f"{cfg.vocab_tree_path}: vocabulary tree file not found")
+            pairing.loop_detection = True
+            pairing.vocab_tree_path = str(cfg.vocab_tree_path)
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+    seconds["matching"] = time.perf_counter() - t
+    if cfg.loop_matching == "retrieval" and len(names) > cfg.overlap + 1:
+        t = time.perf_counter()
+        stats.update(_match_loop_pairs(pycolmap, db, names, matching, verification, cfg, workdir))
+        seconds["loop_matching"] = time.perf_counter() - t
+    t = time.perf_counter()
     out = workdir / "sparse"
     out.mkdir()
     if cfg.mapper == "global":
         models = pycolmap.global_mapping(db, image_dir, out)
-    elif cfg.mapper == "incremental":
+    else:
         opts = pycolmap.IncrementalPipelineOptions()
         opts.num_threads = cfg.num_threads
         opts.ba_refine_focal_length = intrinsics is None
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = lens
         models = pycolmap.incremental_mapping(db, image_dir, out, opts)
-    else:
-        raise ReconInputError(f"SfM mapper must be 'incremental' or 'global', got {cfg.mapper!r}")
+    seconds["mapping"] = time.perf_counter() - t
+    stats["seconds"] = seconds
     if not models:
-        return None
-    return max(models.values(), key=lambda r: r.num_reg_images())
+        return None, stats
+    t = time.perf_counter()
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    stats["evidence"] = sm.model_evidence(pycolmap, db, rec, verification.min_num_inliers)
+    seconds["evidence"] = time.perf_counter() - t
+    return rec, stats
 
 
-def _model_poses(rec) -> tuple[dict[int, np.ndarray], tuple[float, float, float, float], float]:
-    """World-to-camera 4x4 poses {frame index: T_cw}, the camera's (fx, fy, cx, cy) and its
-    radial term k1 (0 for the pinhole models; SIMPLE_RADIAL's k is OpenCV's k1, as
-    ``projective.undistort``)."""
-    poses = {}
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        T = np.eye(4)
-        T[:3] = image.cam_from_world().matrix()
-        poses[int(Path(image.name).stem)] = T
-    cam = next(iter(rec.cameras.values()))
-    p = np.asarray(cam.params, dtype=np.float64)
-    fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if cam.model.name.startswith("SIMPLE") else (p[0], p[1], p[2], p[3])
-    k1 = float(p[3]) if cam.model.name == "SIMPLE_RADIAL" else 0.0
-    return poses, (float(fx), float(fy), float(cx) - 0.5, float(cy) - 0.5), k1
+def _match_loop_pairs(pycolmap, db_path: Path, names: list[str], matching, verification, cfg: SfMConfig,
+                      workdir: Path) -> dict:
+    """Match (and verify) the retrieval pairs of the keyframes `names` (in time order) that
+    sequential matching did not reach; returns {"loop_pairs": proposed, "loop_pairs_verified":
+    those with a verified two-view geometry}."""
+    db = pycolmap.Database.open(db_path)
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        desc = [np.asarray(db.read_descriptors(ids[name]).data) for name in names]
+    finally:
+        db.close()
+    vectors = skf.bow_vectors(desc, cfg.loop_words)
+    # COLMAP's sequential matching also pairs keyframes 2^j apart (its quadratic overlap).
+    pairs = skf.loop_pairs(vectors, skf.sequential_gaps(cfg.overlap), cfg.loop_candidates)
+    if not pairs:
+        return {"loop_pairs": 0, "loop_pairs_verified": 0}
+    pair_file = workdir / "loop_pairs.txt"
+    pair_file.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = pair_file
+    pycolmap.match_image_pairs(db_path, matching_options=matching, pairing_options=pairing,
+                               verification_options=verification, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(db_path)
+    try:
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    verified = {int(p) for p, m in zip(pair_ids, inliers) if m >= verification.min_num_inliers}
+    wanted = {int(pycolmap.image_pair_to_pair_id(ids[names[a]], ids[names[b]])) for a, b in pairs}
+    return {"loop_pairs": len(pairs), "loop_pairs_verified": len(wanted & verified)}
 
 
-def _depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray], grid: tuple[int, int]
-                  ) -> dict[int, tuple[float, np.ndarray]]:
-    """Per registered image: the median ratio prior depth / SfM depth over its triangulated
-    points, and the same median per cell of a coarse (rows, cols) grid over the image (the
-    image median where a cell has fewer than 5 points). Network depth errors are mostly
-    smooth, so the grid corrects the prior's shape as well as its scale."""
-    out = {}
-    rows, cols = grid
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        i = int(Path(image.name).stem)
-        pts = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in image.points2D if p.has_point3D()]
-        if len(pts) < 10:
-            continue
-        xy = np.array([a for a, _ in pts])
-        xyz = np.array([b for _, b in pts])
-        T = image.cam_from_world().matrix()
-        z = xyz @ T[:, :3].T + T[:, 3]
-        depth = prior.get(i, frames[i])
-        height, width = frames[i].shape[:2]
-        # COLMAP pixel coordinates start at the image corner: floor() gives the pixel.
-        u = np.clip((xy[:, 0] * depth.shape[1] / width).astype(int), 0, depth.shape[1] - 1)
-        v = np.clip((xy[:, 1] * depth.shape[0] / height).astype(int), 0, depth.shape[0] - 1)
-        d = depth[v, u]
-        ok = (d > 0) & (z[:, 2] > 1e-6)
-        if ok.sum() < 10:
-            continue
-        ratio = d[ok] / z[ok, 2]
-        total = float(np.median(ratio))
-        cell = (v[ok] * rows // depth.shape[0]) * cols + (u[ok] * cols // depth.shape[1])
-        cells = np.full(rows * cols, total)
-        for c in range(rows * cols):
-            if (cell == c).sum() >= 5:
-                cells[c] = np.median(ratio[cell == c])
-        out[i] = (total, cells.reshape(rows, cols))
-    return out
-
-
-def _corrected_disp(depth: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Inverse depth (h, w) in SfM units of a pooled prior depth (h, w) and its per-cell
-    ratios (rows, cols) prior / SfM depth (bilinear between cell centres)."""
-    h, w = depth.shape
-    ratio = np.exp(cv2.resize(np.log(cells).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR))
-    fill = np.median(depth[depth > 0])
-    return ratio / np.where(depth > 0, depth, fill)
+def choose_keyframes(grays: list[np.ndarray], px_scale: float, cfg: SfMConfig) -> tuple[list[int], float | None]:
+    """Keyframe indices (sorted; first and last frame included) of N frames given as
+    flow-resolution grey images (h, w) uint8, and the motion spacing used (None with a
+    forced keyframe_stride)."""
+    n = len(grays)
+    if cfg.keyframe_stride:
+        kf_ids = list(range(0, n, cfg.keyframe_stride))
+        return kf_ids + ([n - 1] if kf_ids[-1] != n - 1 else []), None
+    fcfg = cfg.frontend
+    motion, ok = skf.step_motion(grays, fcfg.flow, px_scale, fcfg.min_match_correlation, fcfg.min_edge_weight)
+    return skf.select_keyframes(motion, ok, cfg.keyframe_motion, max(cfg.max_keyframes, 2))
 
 
 def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = True,
@@ -229,11 +277,21 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     """Metric camera-to-world poses of every frame by COLMAP SfM on keyframes.
 
     Same inputs as ``frontend.estimate_poses_frontend``. diagnostics: method "sfm",
-    keyframe stride, registered keyframes, model points, mean reprojection error, the metric
-    scale factor and its spread over images, per-frame status ("sfm", "aligned",
-    "interpolated"). Raises TrackingLostError when COLMAP registers too few keyframes.
+    keyframe selection, registered keyframes and frames, loop pairs (proposed, verified),
+    seconds per stage, model points, mean reprojection error, the metric scale factor and
+    its spread over images, per-frame ``frame_status`` (``result.FRAME_STATES``:
+    "keyframe" in COLMAP's model, "tracked" registered densely, "interpolated" a guess
+    between registered neighbours), ``frame_inlier`` (per frame: the share of a model
+    frame's 2D-3D correspondences its pose explains, ``sfm_model.model_evidence``; the
+    dense alignment's inlier fraction where ``align_to_keyframes`` reports one, else NaN),
+    ``lost_frames`` (the interpolated ones) and ``unregistered_ranges``. Raises
+    TrackingLostError when fewer than ``min_registered`` of the frames are registered.
     """
     cfg = config or SfMConfig()
+    if cfg.loop_matching not in LOOP_MATCHING:
+        raise ReconInputError(f"SfM loop_matching must be one of {', '.join(LOOP_MATCHING)}, got {cfg.loop_matching!r}")
+    if cfg.mapper not in ("incremental", "global"):
+        raise ReconInputError(f"SfM mapper must be 'incremental' or 'global', got {cfg.mapper!r}")
     t0 = time.perf_counter()
     frames_list = [f for _, f in iterate_frames(frames)]
     n = len(frames_list)
@@ -243,65 +301,86 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     if not prior.is_callable and len(prior) != n:
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {n}")
     intr_in = parse_intrinsics(intrinsics)
-    stride = cfg.keyframe_stride or max(1, int(np.ceil(n / cfg.max_keyframes)))
-    kf_ids = list(range(0, n, stride))
-    if kf_ids[-1] != n - 1:
-        kf_ids.append(n - 1)
-    with tempfile.TemporaryDirectory(prefix="recon-sfm-") as tmp:
-        if progress:
-            print(f"recon: SfM (pycolmap) on {len(kf_ids)} keyframes of {n} frames")
-        rec = _run_colmap(frames_list, kf_ids, intr_in, cfg, Path(tmp))
-    registered = 0 if rec is None else rec.num_reg_images()
-    if registered < max(2, cfg.min_registered * len(kf_ids)):
-        raise TrackingLostError(
-            f"SfM registered only {registered} of {len(kf_ids)} keyframes (need {cfg.min_registered:.0%}); "
-            "the video may lack texture or overlap", frame=None)
-    T_model, intr, k1 = _model_poses(rec)
-    ratios = _depth_ratios(rec, prior, frames_list, cfg.correction_grid)
-    if not ratios:
-        raise TrackingLostError("SfM: no triangulated point has a valid prior depth; cannot fix the metric scale")
-    scale = robust_log_mean(np.array([r for r, _ in ratios.values()]))
-
-    # Dense registration of the other frames against registered keyframes (SfM units).
     fcfg = cfg.frontend
     height, width = frames_list[0].shape[:2]
     geo = make_geometry(width, height, fcfg.ba_stride)
+    grays = [fl.prepare_gray(f, geo.flow_size) for f in frames_list]
+    kf_ids, spacing = choose_keyframes(grays, geo.px_scale, cfg)
+    t_select = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory(prefix="recon-sfm-") as tmp:
+        if progress:
+            print(f"recon: SfM (pycolmap) on {len(kf_ids)} keyframes of {n} frames")
+        rec, stats = _run_colmap(frames_list, kf_ids, intr_in, cfg, Path(tmp))
+    stats["seconds"] = {"keyframes": t_select, **stats["seconds"]}
+    T_model, intr, k1 = sm.model_poses(rec) if rec is not None else ({}, None, 0.0)
+    model_only = ["keyframe" if i in T_model else "interpolated" for i in range(n)]
+    if len(T_model) < 2:  # nothing to register the other frames against
+        raise skf.registration_error(model_only, len(kf_ids), cfg.min_registered)
+    ratios = sm.depth_ratios(rec, prior, frames_list, cfg.correction_grid)
+    if not ratios:
+        # Without depth no frame can be registered densely: usually a model of a few images
+        # and points (COLMAP's mapper now and then ends with one on fast rotation).
+        raise (skf.registration_error(model_only, len(kf_ids), cfg.min_registered) or TrackingLostError(
+            "SfM: no triangulated point has a valid prior depth; cannot fix the metric scale"))
+    scale = robust_log_mean(np.array([r for r, _ in ratios.values()]))
+
+    # Dense registration of the frames next to the model against its keyframes (SfM units).
+    t = time.perf_counter()
+    jobs = skf.dense_candidates(n, kf_ids, set(T_model))
     kf_reg = sorted(i for i in T_model if i in ratios)
     kf_frames = np.array(kf_reg)
-    kf_gray = [fl.prepare_gray(frames_list[i], geo.flow_size) for i in kf_reg]
     T_kf = torch.from_numpy(np.stack([T_model[i] for i in kf_reg]))
     disp_kf = torch.from_numpy(np.stack([
-        _corrected_disp(pool_depth(prior.get(i, frames_list[i]), geo.ba_size).astype(np.float64), ratios[i][1])
+        sm.corrected_disp(pool_depth(prior.get(i, frames_list[i]), geo.ba_size).astype(np.float64), ratios[i][1])
         for i in kf_reg]))
-    jobs = [i for i in range(n) if i not in set(kf_reg)]
-    aligned = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_list[i], geo.flow_size), kf_frames, kf_gray,
+    aligned = align_to_keyframes(jobs, lambda i: grays[i], kf_frames, [grays[i] for i in kf_reg],
                                  T_kf, disp_kf, geo.ba_intrinsics(intr), fcfg, progress=progress, k1=k1)
+    stats["seconds"]["dense"] = time.perf_counter() - t
     T_all = np.zeros((n, 4, 4))
-    status = ["sfm"] * n
-    for i in kf_reg:
-        T_all[i] = T_model[i]
-    for i, (T, ok, _) in aligned.items():
+    status = ["interpolated"] * n
+    inlier = np.full(n, np.nan)
+    for i, fraction in stats["evidence"].items():
+        T_all[i], status[i], inlier[i] = T_model[i], "keyframe", fraction
+    T_kf_np = T_kf.numpy()
+    for i in range(n):
+        if status[i] != "keyframe" and i not in aligned:
+            T_all[i] = skf.interpolated_pose(i, kf_frames, T_kf_np)
+    for i, (T, ok, _, fraction) in aligned.items():
         T_all[i] = T.numpy()
-        status[i] = "aligned" if ok else "interpolated"
+        status[i] = "tracked" if ok else "interpolated"
+        inlier[i] = fraction
+    if (err := skf.registration_error(status, len(kf_ids), cfg.min_registered)) is not None:
+        raise err
     poses = invert_poses(T_all)
     poses[:, :3, 3] *= scale
     log_r = np.log(np.array([r for r, _ in ratios.values()]))
+    trusted = np.array([s in TRUSTED_STATES for s in status])
     diagnostics = {
         "method": "sfm",
         "mapper": cfg.mapper,
-        "keyframe_stride": stride,
+        "keyframe_selection": "stride" if spacing is None else "motion",
+        "keyframe_stride": cfg.keyframe_stride,
+        "keyframe_spacing_px": spacing,
         "num_keyframes": len(kf_ids),
-        "registered_keyframes": registered,
+        "registered_keyframes": len(T_model),
+        "registered_frames": int(trusted.sum()),
+        "registered_fraction": float(trusted.mean()),
+        "loop_matching": cfg.loop_matching,
+        "loop_pairs": stats["loop_pairs"],
+        "loop_pairs_verified": stats["loop_pairs_verified"],
+        "seconds_per_stage": stats["seconds"],
         "num_points3d": rec.num_points3D(),
         "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
         "metric_scale_factor": float(scale),
         "scale_spread_log_std": float(log_r.std()),
         "loop_detection": bool(cfg.vocab_tree_path),
         "frame_status": status,
+        "frame_inlier": inlier.tolist(),
         "lost_frames": [i for i, s in enumerate(status) if s == "interpolated"],
+        "unregistered_ranges": [list(r) for r in sorted(skf.unregistered_ranges(trusted))],
         "lens_k1": k1,
     }
     if intr_in is None:
         diagnostics["focal_estimate"] = {"focal": intr[0], "source": "COLMAP bundle adjustment"}
-    return PoseResult(poses=poses, intrinsics=intr, keyframes=np.array(kf_reg, dtype=np.int64),
+    return PoseResult(poses=poses, intrinsics=intr, keyframes=np.array(sorted(T_model), dtype=np.int64),
                       seconds=time.perf_counter() - t0, diagnostics=diagnostics)
