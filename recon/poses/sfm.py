@@ -268,7 +268,8 @@ def choose_keyframes(grays: list[np.ndarray], px_scale: float, cfg: SfMConfig) -
         kf_ids = list(range(0, n, cfg.keyframe_stride))
         return kf_ids + ([n - 1] if kf_ids[-1] != n - 1 else []), None
     fcfg = cfg.frontend
-    motion, ok = skf.step_motion(grays, fcfg.flow, px_scale, fcfg.min_match_correlation, fcfg.min_edge_weight)
+    motion, ok = skf.step_motion(grays, fcfg.flow, px_scale, fcfg.min_match_correlation, fcfg.min_edge_weight,
+                                 fcfg.min_local_correlation)
     return skf.select_keyframes(motion, ok, cfg.keyframe_motion, max(cfg.max_keyframes, 2))
 
 

@@ -31,13 +31,14 @@ from recon.poses.result import TRUSTED_STATES, TrackingLostError
 
 
 def step_motion(grays: list[np.ndarray], flow_cfg: fl.FlowConfig, px_scale: float, min_correlation: float,
-                min_confidence: float) -> tuple[np.ndarray, np.ndarray]:
+                min_confidence: float, min_local_correlation: float = -1.0) -> tuple[np.ndarray, np.ndarray]:
     """Flow between consecutive frames: mean magnitude (N-1,) in 640-px-wide pixels
     (``px_scale``: such pixels per flow pixel) and whether the flow is trusted (N-1,) bool.
 
     grays: N flow-resolution grey images (h, w) uint8. A step is untrusted when the grey
     levels the flow joins correlate less than ``min_correlation`` (unrelated images give a
-    smooth, self-consistent but meaningless flow: ``flow.match_correlation``) or its mean
+    smooth, self-consistent but meaningless flow: ``flow.match_correlation``), its 7x7
+    windows less than ``min_local_correlation`` (``flow.local_correlation``), or its mean
     confidence is below ``min_confidence``; its magnitude is then NaN.
     """
     n = len(grays)
@@ -45,7 +46,9 @@ def step_motion(grays: list[np.ndarray], flow_cfg: fl.FlowConfig, px_scale: floa
     ok = np.zeros(max(n - 1, 0), dtype=bool)
     for i in range(1, n):
         fwd, _, cf, _ = fl.flow_pair(grays[i - 1], grays[i], flow_cfg)
-        if float(cf.mean()) < min_confidence or fl.match_correlation(grays[i - 1], grays[i], fwd, cf) < min_correlation:
+        if (float(cf.mean()) < min_confidence
+                or fl.match_correlation(grays[i - 1], grays[i], fwd, cf) < min_correlation
+                or fl.local_correlation(grays[i - 1], grays[i], fwd, cf) < min_local_correlation):
             continue
         motion[i - 1] = fl.mean_magnitude(fwd, cf) * px_scale
         ok[i - 1] = True
