@@ -103,8 +103,9 @@ def main() -> None:
             px = ((points - corner) / PIXEL).astype(int)
             ok = (px[:, 0] >= 0) & (px[:, 0] < size[0]) & (px[:, 1] >= 0) & (px[:, 1] < size[1])
             panel[px[ok, 1], px[ok, 0]] = colour[::-1]
-        title = f"{name}: {100 * close:.0f}% within 5 cm"
-        cv2.putText(panel, title, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 2, cv2.LINE_AA)
+        # Two short lines: one long title ran off the panel.
+        for row, text in enumerate((name, f"{100 * close:.0f}% within 5 cm")):
+            cv2.putText(panel, text, (10, 26 + 26 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
         bar = int(1.0 / PIXEL)
         cv2.line(panel, (10, size[1] - 15), (10 + bar, size[1] - 15), (0, 0, 0), 3)
         cv2.putText(panel, "1 m", (10 + bar // 2 - 15, size[1] - 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1)
