@@ -1,11 +1,11 @@
 # Two entry points (see README "Quick start"):
 #   make demo   set up .venv and run the built-in synthetic sample end to end
-#   make test   set up .venv and run the test suite
+#   make test   set up .venv, lint (ruff check) and run the test suite
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.recon-installed
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test lint bench clean
 
 setup: $(STAMP)
 
@@ -17,7 +17,11 @@ demo: setup
 	$(VENV)/bin/recon demo
 
 test: setup
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
 
 bench: setup
 	$(PY) benchmarks/medea_synthetic.py

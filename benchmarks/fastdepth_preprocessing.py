@@ -118,8 +118,8 @@ def main() -> None:
                 row["ms_per_frame"] = None
             row["mean_metric_abs_rel"] = float(np.mean([row[d]["metric"]["abs_rel"] for d in datasets]))
             results[label] = row
-            print(f"{label}: 7scenes {row['7scenes']['metric']['abs_rel']:.4f}  tum {row['tum']['metric']['abs_rel']:.4f}",
-                  flush=True)
+            print(f"{label}: 7scenes {row['7scenes']['metric']['abs_rel']:.4f}  "
+                  f"tum {row['tum']['metric']['abs_rel']:.4f}", flush=True)
 
     for label, row in results.items():
         if row["ms_per_frame"] is None:

@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from priors import VARIANTS, medea_config  # noqa: E402
 from report import DATA, MAX_DEPTH, refined_run  # noqa: E402
 
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
@@ -34,7 +35,6 @@ from recon.io.datasets import open_dataset  # noqa: E402
 from recon.medea import adjust_sequence  # noqa: E402
 from recon.poses.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
-from priors import VARIANTS, medea_config  # noqa: E402
 
 OUT = ROOT / "docs" / "images" / "mesh_slice_7scenes.png"
 BAND = 0.025  # metres either side of the slice height

@@ -5,9 +5,10 @@ Two runs on the same rendered sequence (default 300 frames at 640x480, written a
 
 * ``speed``: what `recon run VIDEO --poses FILE` costs: decode, FastDepth prior (with
   encoder features for MEDeA), poses from a file (ground truth; "given poses", polished
-  against the frames), MEDeA (fast preset), the MVS refinement (``refine``), TSDF fusion, export (PLY, GLB, TUM, 16-bit PNG + npy depth) and Rerun
-  logging (saved .rrd). With ``--estimate`` a third run estimates the poses instead, when
-  the pose estimator is installed.
+  against the frames), MEDeA (fast preset), the MVS refinement (``refine``), TSDF fusion,
+  export (PLY, GLB, TUM, 16-bit PNG + npy depth) and Rerun logging (saved .rrd). With
+  ``--estimate`` a third run estimates the poses instead, when the pose estimator is
+  installed.
 * ``quality``: `recon demo` at the same size: the simulated prior (ground truth distorted
   like a network) adjusted by MEDeA with ground-truth poses, then refined; mesh accuracy,
   completeness, precision, recall and F-score at 5 cm for the refined depth (the written
@@ -26,23 +27,22 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, table, write_json  # noqa: E402
 from recon.demo import DemoOptions, pose_estimator_available, run_demo, write_demo_inputs  # noqa: E402
-from recon.export import OutputFolder  # noqa: E402
+from recon.io.output_folder import OutputFolder  # noqa: E402
 from recon.pipeline import STAGES, PipelineConfig, run_pipeline  # noqa: E402
 from recon.synthetic import render_sequence  # noqa: E402
 
 
 def stage_rows(name: str, seconds: dict, frames: int) -> list[list]:
     total = sum(seconds.values())
-    return [[name, stage, f"{seconds.get(stage, 0.0):.1f}", f"{seconds.get(stage, 0.0) / frames:.3f}"] for stage in STAGES] + [
-        [name, "total", f"{total:.1f}", f"{total / frames:.3f}"]
-    ]
+    rows = [[name, stage, f"{seconds.get(stage, 0.0):.1f}", f"{seconds.get(stage, 0.0) / frames:.3f}"]
+            for stage in STAGES]
+    return rows + [[name, "total", f"{total:.1f}", f"{total / frames:.3f}"]]
 
 
 def speed_run(seq, workdir: Path, poses: str, progress: bool) -> dict:
@@ -97,10 +97,12 @@ def main() -> None:
                       flush=True)
             del seq
         if not args.skip_quality:
-            report = run_demo(DemoOptions(output=tmp / "quality", frames=args.quality_frames or args.frames, width=args.width,
-                                          height=args.height, poses="gt", rerun="off", progress=args.progress),
+            report = run_demo(DemoOptions(output=tmp / "quality", frames=args.quality_frames or args.frames,
+                                          width=args.width, height=args.height, poses="gt", rerun="off",
+                                          progress=args.progress),
                               say=lambda _: None)
-            payload["runs"]["quality"] = {"frames": len(report.result.frames), "evaluation": report.evaluation, "seconds": report.result.seconds}
+            payload["runs"]["quality"] = {"frames": len(report.result.frames), "evaluation": report.evaluation,
+                                          "seconds": report.result.seconds}
             rows += stage_rows("quality (sim. prior)", report.result.seconds, len(report.result.frames))
 
     print(table(["run", "stage", "seconds", "s/frame"], rows))

@@ -275,7 +275,8 @@ def accuracy_table(results: dict) -> str:
             label += f" [{r['preset']}]"
         rows.append([f"{r['dataset']} ({r['frames']}, every {r['every']})", label, f"{m['abs_rel']:.3f}",
                      f"{m['abs_diff']:.3f}", f"{100 * m['delta1']:.1f}", f"{s['abs_rel']:.3f}", f"{s['abs_diff']:.3f}",
-                     f"{100 * s['delta1']:.1f}", f"{r['inconsistency']:.3f}", "" if seconds is None else f"{seconds:.2f}"])
+                     f"{100 * s['delta1']:.1f}", f"{r['inconsistency']:.3f}",
+                     "" if seconds is None else f"{seconds:.2f}"])
     return table(headers, rows)
 
 
@@ -284,7 +285,8 @@ def main() -> None:
     parser.add_argument("--datasets", nargs="*", default=list(FOLDERS), choices=list(FOLDERS))
     parser.add_argument("--step7", type=int, default=4, help="every k-th 7-Scenes frame (400 in all)")
     parser.add_argument("--steptum", type=int, default=2, help="every k-th TUM frame (100 in all)")
-    parser.add_argument("--preset", choices=("fast", "paper"), default="fast", help="MedeaConfig.fast() or paper defaults")
+    parser.add_argument("--preset", choices=("fast", "paper"), default="fast",
+                        help="MedeaConfig.fast() or paper defaults")
     parser.add_argument("--variants", nargs="*", default=["none", "S8", "S4", "M8", "M4"], choices=list(VARIANTS))
     parser.add_argument("--colour-focal7", type=float, default=0.0,
                         help="7-Scenes colour focal (px) overriding the reader's 525; 0: the reader's")

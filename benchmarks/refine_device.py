@@ -60,9 +60,10 @@ def read_input(path: Path):
 
 
 def make_input(path: Path) -> None:
+    from refine_study import load_set
+
     from medea_core import MedeaConfig
     from recon.medea import adjust_sequence
-    from refine_study import load_set
 
     rgb, _, poses, intrinsics, prior, features = load_set("7s4")
     depth = adjust_sequence(rgb, prior, poses, tuple(intrinsics), features, MedeaConfig.fast(),

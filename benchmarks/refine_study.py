@@ -47,8 +47,13 @@ from recon.lens import undistort_features, undistort_images, worth_undistorting 
 from recon.medea import adjust_sequence  # noqa: E402
 from recon.poses.polish import PolishConfig, polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
-from recon.refine import (FILLED_CONFIDENCE, MIN_CONFIDENCE_GIVEN, default_min_confidence,  # noqa: E402
-                          fusion_confidence, refine_sequence)
+from recon.refine import (  # noqa: E402
+    FILLED_CONFIDENCE,
+    MIN_CONFIDENCE_GIVEN,
+    default_min_confidence,
+    fusion_confidence,
+    refine_sequence,
+)
 
 DATA = ROOT.parent / "shared" / "data"
 MAX_DEPTH = 10.0
@@ -156,10 +161,10 @@ def run_set(name: str, pose_kinds, variants, threads: int, fusions=("pipeline",)
         poses, k1, pose_info = pose_variant(kind, rgb, prior, gt_poses, intrinsics)
         pose_seconds = time.perf_counter() - start
         K = tuple(intrinsics)
-        lens = worth_undistorting(K, (rgb.shape[2], rgb.shape[1]), k1)
+        lens = worth_undistorting(K, rgb.shape[1:3], k1)
         frames = undistort_images(rgb, K, k1) if lens else rgb
         p_depth = undistort_images(prior, K, k1, nearest=True) if lens else prior
-        feats = undistort_features(features, K, (rgb.shape[2], rgb.shape[1]), k1) if lens and features is not None \
+        feats = undistort_features(features, K, rgb.shape[1:3], k1) if lens and features is not None \
             else features
         truth = undistort_images(gt, K, k1, nearest=True) if lens else gt
         estimated = kind.startswith("estimate")

@@ -56,7 +56,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -67,7 +67,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from common import RESULTS, machine, table, write_json  # noqa: E402
+from common import machine, table, write_json  # noqa: E402
 from priors import MAX_DEPTH, VARIANTS, medea_config, oracles  # noqa: E402
 
 from recon.eval.depth import METRIC_NAMES, depth_metrics, multiview_inconsistency  # noqa: E402
@@ -304,7 +304,7 @@ def pipeline_inputs(rgb, prior, gt, intrinsics, k1: float):
     """Frames, prior depth, features and sensor depth moved into the pinhole image of lens
     k1 when it matters (as `recon run` does after the poses), else unchanged."""
     k = tuple(float(v) for v in intrinsics)
-    size = (rgb.shape[2], rgb.shape[1])
+    size = rgb.shape[1:3]
     if not worth_undistorting(k, size, k1):
         return rgb, prior.depth, prior.features, gt
     return (undistort_images(rgb, k, k1), undistort_images(prior.depth, k, k1, nearest=True),
@@ -334,8 +334,46 @@ def refined_run(rgb, prior, gt, poses, intrinsics, k1: float, quick: bool) -> di
 # ------------------------------------------------------------------ one recording
 
 
+@dataclass
+class Recording:
+    """One recording as every table sees it: the frames, ground truth and prior, and the
+    results the later tables reuse (depths for the meshes, MEDeA and refinement runs)."""
+
+    path: Path
+    quick: bool
+    dataset: object
+    kind: str
+    indices: np.ndarray  # frame numbers in the full recording
+    rgb: np.ndarray
+    gt: np.ndarray
+    gt_poses: np.ndarray
+    intrinsics: np.ndarray
+    diff_common: str  # what every row differs from the paper in
+    record: dict
+    prior: object = None
+    depths: dict = field(default_factory=dict)  # depth source -> (N, H, W), meshed in table C
+    medea_info: dict = field(default_factory=dict)
+    refine_runs: dict = field(default_factory=dict)
+    pipeline_runs: dict = field(default_factory=dict)
+
+
 def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
-    quick = args.quick
+    rec = load_recording(path, step, args.quick)
+    # Table D first: the pipeline runs, each in a fresh process (clean peak memory); the
+    # estimated-pose run also gives table B its poses.
+    if not args.no_pipeline:
+        run_table_d(rec, step, args.threads, workdir)
+    compute_prior(rec)
+    rows_a = run_table_a(rec)
+    run_ablations(rec, rows_a, args.ablation_base)
+    est_poses = run_table_b(rec)
+    run_table_c(rec, est_poses, 20_000 if rec.quick else args.mesh_points)
+    check_pipeline_depth(rec)
+    rec.record["medea_runs"] = rec.medea_info
+    return rec.record
+
+
+def load_recording(path: Path, step: int, quick: bool) -> Recording:
     max_frames = 12 if quick else None
     full = open_dataset(path)
     dataset = full.select(stride=step, max_frames=max_frames).with_valid_poses()
@@ -354,35 +392,44 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         "frames": n, "frame_indices": indices.tolist(), "size": [dataset.width, dataset.height],
         "intrinsics": intrinsics.tolist(), "path_length_m": path_length(gt_poses),
     }
-
-    # ---- table D first: the pipeline runs, each in a fresh process (clean peak memory);
-    # the estimated-pose run also gives table B its poses.
-    pipeline_runs: dict = {}
-    if not args.no_pipeline:
-        for mode in ("gt", "estimate"):
-            say(f"{path.name}: pipeline, poses {mode}")
-            try:
-                pipeline_runs[mode] = run_pipeline_fresh(path, workdir / f"{path.name}-{mode}", step, max_frames, mode,
-                                                         args.threads, quick)
-            except Exception as error:  # a failed run is a result too (e.g. tracking lost)
-                pipeline_runs[mode] = {"error": f"{type(error).__name__}: {error}"}
-                say(f"  failed: {error}")
-        record["table_d"] = {mode: (stage_summary(run) if "error" not in run else {"error": run["error"]})
-                             for mode, run in pipeline_runs.items()}
-
-    # ---- the prior, once (FastDepth + stride-8 features, as the pipeline builds it)
-    say(f"{path.name}: FastDepth prior")
-    start = time.perf_counter()
-    prior = make_prior("fastdepth", features=True, progress=False)(rgb, intrinsics)
-    record["prior"] = {"seconds_per_frame": (time.perf_counter() - start) / n, "info": prior.info,
-                       "features": list(prior.features.shape[1:])}
-    depths: dict[str, np.ndarray] = {"prior": prior.depth, "sensor": gt}
-    paper1 = PAPER_T1.get(kind, {})
-    paper2 = PAPER_T2.get(kind, {})
     subset = "all frames" if step == 1 and n == len(full) else f"{n} of {len(full)} frames"
     diff_common = f"FastDepth prior; {subset}; 640x480 input, CPU"
+    return Recording(path, quick, dataset, kind, indices, rgb, gt, gt_poses, intrinsics, diff_common, record)
 
-    # ---- table A: GT poses, metric
+
+def run_table_d(rec: Recording, step: int, threads: int, workdir: Path) -> None:
+    path, quick = rec.path, rec.quick
+    max_frames = 12 if quick else None
+    pipeline_runs = rec.pipeline_runs
+    for mode in ("gt", "estimate"):
+        say(f"{path.name}: pipeline, poses {mode}")
+        try:
+            pipeline_runs[mode] = run_pipeline_fresh(path, workdir / f"{path.name}-{mode}", step, max_frames, mode,
+                                                     threads, quick)
+        except Exception as error:  # a failed run is a result too (e.g. tracking lost)
+            pipeline_runs[mode] = {"error": f"{type(error).__name__}: {error}"}
+            say(f"  failed: {error}")
+    rec.record["table_d"] = {mode: (stage_summary(run) if "error" not in run else {"error": run["error"]})
+                             for mode, run in pipeline_runs.items()}
+
+
+def compute_prior(rec: Recording) -> None:
+    """The prior, once (FastDepth + stride-8 features, as the pipeline builds it)."""
+    say(f"{rec.path.name}: FastDepth prior")
+    start = time.perf_counter()
+    prior = make_prior("fastdepth", features=True, progress=False)(rec.rgb, rec.intrinsics)
+    rec.record["prior"] = {"seconds_per_frame": (time.perf_counter() - start) / len(rec.rgb), "info": prior.info,
+                           "features": list(prior.features.shape[1:])}
+    rec.prior = prior
+    rec.depths.update({"prior": prior.depth, "sensor": rec.gt})
+
+
+def run_table_a(rec: Recording) -> dict:
+    """Table A: GT poses, metric. Returns its rows (the ablations start from one)."""
+    path, quick, kind, prior, diff_common = rec.path, rec.quick, rec.kind, rec.prior, rec.diff_common
+    rgb, gt, gt_poses, intrinsics = rec.rgb, rec.gt, rec.gt_poses, rec.intrinsics
+    depths, medea_info = rec.depths, rec.medea_info
+    paper1 = PAPER_T1.get(kind, {})
     rows_a: dict = {}
 
     def add_a(key, label, depth, extra=None, paper=None, note="", truth=None, poses=None):
@@ -394,7 +441,6 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
     add_a("prior", "prior (FastDepth)", prior.depth, paper=paper1.get("ZoeDepth"),
           note=f"paper's nearest: ZoeDepth, single-view metric (its MEDeA priors are not in Table 1; "
                f"SimpleRecon, MEDeA-M's prior: {paper_text(paper1.get('SimpleRecon'))}); {diff_common}")
-    medea_info: dict = {}
     for key, (label, variant) in MEDEA_ROWS.items():
         say(f"{path.name}: MEDeA {label}, GT poses")
         depth, info = run_medea(rgb, prior, gt_poses, intrinsics, variant, None, quick)
@@ -412,20 +458,29 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         key = "oracle grid" if "grid" in label else "oracle scale"
         depths[f"gt/{key}"] = depth
         add_a(key, label, depth, paper=None, note="bound, uses the ground truth: " + (
-            "the best 8x10 log-scale grid (MEDeA's deformation model), median-pooled gt/prior" if key == "oracle grid"
-            else "each frame's true median scale"))
+            "the best 8x10 log-scale grid (MEDeA's deformation model), median-pooled gt/prior"
+            if key == "oracle grid" else "each frame's true median scale"))
     if "gt/oracle scale" in depths:
         del depths["gt/oracle scale"]
     add_a("sensor", "sensor depth (reference)", gt, paper=None,
           note="ground truth itself: 0 error by construction; inconsistency = the sensor's own floor")
+    add_refinement_rows_a(rec, add_a)
+    rec.record["table_a"] = rows_a
+    return rows_a
 
-    # ---- the refinement on ground-truth poses: polished (the pipeline's default), and as given
+
+def add_refinement_rows_a(rec: Recording, add_a) -> None:
+    """Table A's refinement rows on ground-truth poses: polished (the pipeline's default), and as given."""
+    path, quick, prior, diff_common = rec.path, rec.quick, rec.prior, rec.diff_common
+    rgb, gt, gt_poses, intrinsics = rec.rgb, rec.gt, rec.gt_poses, rec.intrinsics
+    depths, refine_runs = rec.depths, rec.refine_runs
+    n = len(rgb)
     say(f"{path.name}: pose polish, MEDeA-S and MVS refinement, GT poses")
     start = time.perf_counter()
     polished = polish_poses(rgb, prior.depth, gt_poses, tuple(intrinsics), progress=False)
     polish_info = {**{k: v for k, v in polished.info.items() if k != "config"},
                    "seconds_per_frame": (time.perf_counter() - start) / n}
-    refine_runs = {"gt": refined_run(rgb, prior, gt, polished.poses, intrinsics, polished.lens_k1, quick)}
+    refine_runs["gt"] = refined_run(rgb, prior, gt, polished.poses, intrinsics, polished.lens_k1, quick)
     run = refine_runs["gt"]
     run["polish"] = polish_info
     lens = f"lens k1 {run['k1']:+.3f}" if run["truth"] is not gt else "no lens"
@@ -449,14 +504,17 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
     add_a("refine raw", "MVS refinement, GT poses not polished", refine_runs["gt raw"]["refined"], None, None,
           f"the refinement on table A's MEDeA-S depth with the poses as given: where their disagreement with the "
           f"colour frames leaves it; reconstructed {100 * refine_runs['gt raw']['reconstructed']:.0f} %")
-    record["table_a"] = rows_a
 
-    # ---- ablations (GT poses, metric), on the base row
-    base = args.ablation_base
+
+def run_ablations(rec: Recording, rows_a: dict, base: str) -> None:
+    """Ablations (GT poses, metric), on the base row of table A."""
+    path, quick, kind, prior = rec.path, rec.quick, rec.kind, rec.prior
+    rgb, gt, gt_poses, intrinsics = rec.rgb, rec.gt, rec.gt_poses, rec.intrinsics
     base_label, base_variant = MEDEA_ROWS[base]
     ablations: dict = {"base": base_label, "rows": {}}
     full_row = rows_a[base]
-    ablations["rows"]["full"] = {"label": f"{base_label} (full)", **{k: full_row[k] for k in (*METRIC_NAMES, "inconsistency")},
+    ablations["rows"]["full"] = {"label": f"{base_label} (full)",
+                                 **{k: full_row[k] for k in (*METRIC_NAMES, "inconsistency")},
                                  "seconds_per_frame": full_row["medea"]["seconds_per_frame"]}
     for label, overrides in ABLATIONS.items():
         if overrides is None:
@@ -473,84 +531,114 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         say(f"  ablation {label}: abs rel {row['abs_rel']:.4f}")
     for key, row in ablations["rows"].items():
         row["paper"] = PAPER_ABLATION.get(key) if kind == "tum" and base == "M" else None
-    record["ablations"] = ablations
+    rec.record["ablations"] = ablations
 
-    # ---- estimated poses (table B)
-    est = pipeline_runs.get("estimate")
-    if est is not None and "error" not in est and est["indices"] == indices.tolist():
+
+def estimated_poses(rec: Recording) -> tuple[np.ndarray | None, dict, float, str]:
+    """Table B's poses: from table D's estimated-pose run when it covers the same frames, else estimated here.
+
+    Returns:
+        poses (None if estimation failed), pose info, seconds, where they came from.
+    """
+    est = rec.pipeline_runs.get("estimate")
+    if est is not None and "error" not in est and est["indices"] == rec.indices.tolist():
         est_poses, pose_info = np.asarray(est["poses"], np.float64), dict(est["pose_info"])
-        pose_seconds, pose_from = est["seconds"]["poses"], "pipeline run of table D"
-    else:
-        from recon.poses import estimate_poses
+        return est_poses, pose_info, est["seconds"]["poses"], "pipeline run of table D"
+    from recon.poses import estimate_poses
 
-        say(f"{path.name}: estimating poses")
-        start = time.perf_counter()
-        try:
-            result = estimate_poses(rgb, prior.depth, intrinsics=tuple(intrinsics), method="auto", progress=False)
-            est_poses = np.asarray(result.poses, np.float64)
-            pose_info = {"keyframes": len(result.keyframes),
-                         "diagnostics": {k: v for k, v in result.diagnostics.items()
-                                         if np.ndim(v) == 0 or (hasattr(v, "__len__") and len(v) < 50)}}
-        except Exception as error:
-            est_poses, pose_info = None, {"error": f"{type(error).__name__}: {error}"}
-        pose_seconds, pose_from = time.perf_counter() - start, "estimate_poses in this script"
-    if est_poses is not None:
-        sim3, se3 = ate_rmse(est_poses, gt_poses, "sim3"), ate_rmse(est_poses, gt_poses, "se3")
-        record["trajectory"] = {
-            "source": pose_from, "method": "auto (front end, SfM fallback)",
-            "fallback": pose_info.get("diagnostics", {}).get("fallback"),
-            "ate_sim3_m": sim3["rmse"], "ate_se3_m": se3["rmse"], "sim3_scale": sim3["scale"],
-            "scale_error": scale_error(est_poses, gt_poses), "path_length_m": path_length(gt_poses),
-            "seconds_per_frame": pose_seconds / n, "keyframes": pose_info.get("keyframes"),
-        }
-        say(f"  poses: ATE Sim(3) {sim3['rmse'] * 100:.2f} cm, scale error {record['trajectory']['scale_error']:.3f}")
-        rows_b: dict = {}
+    say(f"{rec.path.name}: estimating poses")
+    start = time.perf_counter()
+    try:
+        result = estimate_poses(rec.rgb, rec.prior.depth, intrinsics=tuple(rec.intrinsics), method="auto",
+                                progress=False)
+        est_poses = np.asarray(result.poses, np.float64)
+        pose_info = {"keyframes": len(result.keyframes),
+                     "diagnostics": {k: v for k, v in result.diagnostics.items()
+                                     if np.ndim(v) == 0 or (hasattr(v, "__len__") and len(v) < 50)}}
+    except Exception as error:
+        est_poses, pose_info = None, {"error": f"{type(error).__name__}: {error}"}
+    return est_poses, pose_info, time.perf_counter() - start, "estimate_poses in this script"
 
-        def add_b(key, label, depth, extra=None, paper=None, note="", truth=None):
-            seq = depth_scores(depth, gt if truth is None else truth, est_poses, intrinsics, "median_sequence")
-            frame = depth_scores(depth, gt if truth is None else truth, est_poses, intrinsics, "median_frame")
-            rows_b[key] = {"label": label, "median_sequence": seq, "median_frame": frame,
-                           "inconsistency": inconsistency(depth, est_poses, intrinsics), **(extra or {}),
-                           "paper": paper, "paper_note": note}
-            say(f"  B {label}: abs rel (seq) {seq['abs_rel']:.4f} (frame) {frame['abs_rel']:.4f}")
 
-        add_b("prior", "prior (FastDepth)", prior.depth, paper=paper2.get("Romanov et al."),
-              note=f"paper: Romanov et al., MEDeA-S's prior; {diff_common}")
-        for key, (label, variant) in MEDEA_ROWS.items():
-            say(f"{path.name}: MEDeA {label}, estimated poses")
-            depth, info = run_medea(rgb, prior, est_poses, intrinsics, variant, None, quick)
-            if key in ("S", "M"):
-                depths[f"est/{key}"] = depth
-            medea_info[f"est/{key}"] = info
-            paper = paper2.get(label) if key != "none" else None
-            note = (f"paper {label} on DROID-SLAM poses" if key != "none" else "not in the paper") + \
-                f"; our poses: recon front end; {diff_common}" + (f"; {FEATURE_NOTE[key]}" if key != "none" else "")
-            add_b(key, f"{label} [{PRESET}]", depth, {"medea": info}, paper, note)
-            del depth
-        say(f"{path.name}: MEDeA-S and MVS refinement, estimated poses")
-        k1 = float(pose_info.get("lens_k1", pose_info.get("diagnostics", {}).get("lens_k1", 0.0)) or 0.0)
-        run = refine_runs["est"] = refined_run(rgb, prior, gt, est_poses, intrinsics, k1, quick)
-        lens = f"frames undistorted with the front end's lens k1 {k1:+.3f}" if run["truth"] is not gt else "no lens"
-        add_b("S undistorted", "MEDeA-S [fast], as the pipeline", run["medea"], {"medea": {
-            "seconds_per_frame": run["medea_seconds_per_frame"]}}, None,
-            f"as the MEDeA-S row, {lens} (as `recon run`); {diff_common}", run["truth"])
-        add_b("refine", "MVS refinement [default]", run["refined"], {"refine": {
-            "seconds_per_frame": run["refine_seconds_per_frame"], "reconstructed": run["reconstructed"]}}, None,
-            f"{REFINE_NOTE} (estimated poses are not polished); reconstructed {100 * run['reconstructed']:.0f} %",
-            run["truth"])
-        add_b("sensor", "sensor depth (reference)", gt, note="ground truth itself; inconsistency under estimated poses")
-        record["table_b"] = rows_b
-    else:
+def run_table_b(rec: Recording) -> np.ndarray | None:
+    """Table B: estimated poses, median-scaled depth. Returns the poses (None if estimation failed)."""
+    path, quick, prior, diff_common = rec.path, rec.quick, rec.prior, rec.diff_common
+    rgb, gt, gt_poses, intrinsics = rec.rgb, rec.gt, rec.gt_poses, rec.intrinsics
+    record, depths, medea_info = rec.record, rec.depths, rec.medea_info
+    n = len(rgb)
+    paper2 = PAPER_T2.get(rec.kind, {})
+    est_poses, pose_info, pose_seconds, pose_from = estimated_poses(rec)
+    if est_poses is None:
         record["trajectory"] = {"error": pose_info.get("error", "no poses")}
+        return None
+    sim3, se3 = ate_rmse(est_poses, gt_poses, "sim3"), ate_rmse(est_poses, gt_poses, "se3")
+    record["trajectory"] = {
+        "source": pose_from, "method": "auto (front end, SfM fallback)",
+        "fallback": pose_info.get("diagnostics", {}).get("fallback"),
+        "ate_sim3_m": sim3["rmse"], "ate_se3_m": se3["rmse"], "sim3_scale": sim3["scale"],
+        "scale_error": scale_error(est_poses, gt_poses), "path_length_m": path_length(gt_poses),
+        "seconds_per_frame": pose_seconds / n, "keyframes": pose_info.get("keyframes"),
+    }
+    say(f"  poses: ATE Sim(3) {sim3['rmse'] * 100:.2f} cm, scale error {record['trajectory']['scale_error']:.3f}")
+    rows_b: dict = {}
 
-    # ---- table C: meshes
-    say(f"{path.name}: meshes")
+    def add_b(key, label, depth, extra=None, paper=None, note="", truth=None):
+        seq = depth_scores(depth, gt if truth is None else truth, est_poses, intrinsics, "median_sequence")
+        frame = depth_scores(depth, gt if truth is None else truth, est_poses, intrinsics, "median_frame")
+        rows_b[key] = {"label": label, "median_sequence": seq, "median_frame": frame,
+                       "inconsistency": inconsistency(depth, est_poses, intrinsics), **(extra or {}),
+                       "paper": paper, "paper_note": note}
+        say(f"  B {label}: abs rel (seq) {seq['abs_rel']:.4f} (frame) {frame['abs_rel']:.4f}")
+
+    add_b("prior", "prior (FastDepth)", prior.depth, paper=paper2.get("Romanov et al."),
+          note=f"paper: Romanov et al., MEDeA-S's prior; {diff_common}")
+    for key, (label, variant) in MEDEA_ROWS.items():
+        say(f"{path.name}: MEDeA {label}, estimated poses")
+        depth, info = run_medea(rgb, prior, est_poses, intrinsics, variant, None, quick)
+        if key in ("S", "M"):
+            depths[f"est/{key}"] = depth
+        medea_info[f"est/{key}"] = info
+        paper = paper2.get(label) if key != "none" else None
+        note = (f"paper {label} on DROID-SLAM poses" if key != "none" else "not in the paper") + \
+            f"; our poses: recon front end; {diff_common}" + (f"; {FEATURE_NOTE[key]}" if key != "none" else "")
+        add_b(key, f"{label} [{PRESET}]", depth, {"medea": info}, paper, note)
+        del depth
+    say(f"{path.name}: MEDeA-S and MVS refinement, estimated poses")
+    k1 = float(pose_info.get("lens_k1", pose_info.get("diagnostics", {}).get("lens_k1", 0.0)) or 0.0)
+    run = rec.refine_runs["est"] = refined_run(rgb, prior, gt, est_poses, intrinsics, k1, quick)
+    lens = f"frames undistorted with the front end's lens k1 {k1:+.3f}" if run["truth"] is not gt else "no lens"
+    add_b("S undistorted", "MEDeA-S [fast], as the pipeline", run["medea"], {"medea": {
+        "seconds_per_frame": run["medea_seconds_per_frame"]}}, None,
+        f"as the MEDeA-S row, {lens} (as `recon run`); {diff_common}", run["truth"])
+    add_b("refine", "MVS refinement [default]", run["refined"], {"refine": {
+        "seconds_per_frame": run["refine_seconds_per_frame"], "reconstructed": run["reconstructed"]}}, None,
+        f"{REFINE_NOTE} (estimated poses are not polished); reconstructed {100 * run['reconstructed']:.0f} %",
+        run["truth"])
+    add_b("sensor", "sensor depth (reference)", gt, note="ground truth itself; inconsistency under estimated poses")
+    record["table_b"] = rows_b
+    return est_poses
+
+
+def run_table_c(rec: Recording, est_poses: np.ndarray | None, points: int) -> None:
+    """Table C: meshes of every depth source, and of the refinement as the pipeline fuses it."""
+    say(f"{rec.path.name}: meshes")
+    gt = rec.gt
     sensor_valid = gt[(gt > 0) & (gt <= MAX_DEPTH)]
     voxel = auto_voxel_size(float(np.median(sensor_valid)))
-    points = 20_000 if quick else args.mesh_points
-    reference = reference_tsdf_mesh(dataset, np.arange(n), voxel, MAX_DEPTH, False, gt)
+    reference = reference_tsdf_mesh(rec.dataset, np.arange(len(rec.rgb)), voxel, MAX_DEPTH, False, gt)
     rows_c: dict = {}
     options = FusionOptions(voxel_size=voxel, max_depth=MAX_DEPTH, progress=False)
+    mesh_depth_sources(rec, est_poses, options, reference, points, rows_c)
+    mesh_refinement(rec, options, reference, points, rows_c)
+    rec.record["refine"] = {k: {f: v for f, v in run.items() if not isinstance(v, np.ndarray)}
+                            for k, run in rec.refine_runs.items()}
+    rec.record["table_c"] = {"voxel_size": voxel, "max_depth": MAX_DEPTH, "points": points,
+                             "reference_triangles": int(len(reference.triangles)), "rows": rows_c}
+
+
+def mesh_depth_sources(rec: Recording, est_poses, options, reference, points: int, rows_c: dict) -> None:
+    """Table C's rows for the prior, MEDeA, the oracle and the sensor, on GT and estimated poses."""
+    gt_poses, intrinsics, depths = rec.gt_poses, rec.intrinsics, rec.depths
     sources = [("prior", "prior (FastDepth)", "gt"), ("gt/S", "MEDeA-S [fast]", "gt"), ("gt/M", "MEDeA-M [fast]", "gt"),
                ("gt/none", "MEDeA, no feature loss [fast]", "gt"),
                ("gt/oracle grid", "oracle: 8x10 grid (bound)", "gt"), ("sensor", "sensor depth (sanity: F = 1)", "gt")]
@@ -559,7 +647,7 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
                     ("est/S", "MEDeA-S [fast], estimated poses", "est"),
                     ("est/M", "MEDeA-M [fast], estimated poses", "est")]
     for key, label, pose_kind in sources:
-        depth = depths.get(key) if key != "est/prior" else prior.depth
+        depth = depths.get(key) if key != "est/prior" else rec.prior.depth
         if depth is None:
             continue
         start = time.perf_counter()
@@ -585,16 +673,22 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
         for k in keys:
             say(f"  C {rows_c[k]['label']}: F {rows_c[k]['fscore']:.3f} (P {rows_c[k]['precision']:.3f}, "
                 f"R {rows_c[k]['recall']:.3f})")
-    # The refinement's meshes: fused as the pipeline fuses (reconstructed pixels with given
-    # poses, also filled pixels near evidence with estimated ones; frames it could not
-    # support whole), in the poses it ran with.
+
+
+def mesh_refinement(rec: Recording, options, reference, points: int, rows_c: dict) -> None:
+    """Table C's rows for the refinement, fused as the pipeline fuses it.
+
+    Reconstructed pixels with given poses, also filled pixels near evidence with estimated
+    ones (frames it could not support whole), in the poses it ran with.
+    """
+    gt_poses, intrinsics = rec.gt_poses, rec.intrinsics
     refine_meshes = [("gt", "refine", "MVS refinement [default], polished GT poses"),
                      ("gt", "medea", "MEDeA-S [fast], polished GT poses"),
                      ("gt raw", "refined", "MVS refinement, GT poses not polished"),
                      ("est", "refined", "MVS refinement [default], estimated poses"),
                      ("est", "medea", "MEDeA-S [fast], estimated poses, undistorted (as the pipeline)")]
     for run_key, depth_key, label in refine_meshes:
-        run = refine_runs.get(run_key)
+        run = rec.refine_runs.get(run_key)
         if run is None:
             continue
         start = time.perf_counter()
@@ -613,24 +707,22 @@ def evaluate_recording(path: Path, step: int, args, workdir: Path) -> dict:
                            **mesh_scores(mesh, reference, points, alignment), "seconds": time.perf_counter() - start}
             say(f"  C {rows_c[key]['label']}: F {rows_c[key]['fscore']:.3f} (P {rows_c[key]['precision']:.3f}, "
                 f"R {rows_c[key]['recall']:.3f})")
-    record["refine"] = {k: {f: v for f, v in run.items() if not isinstance(v, np.ndarray)}
-                        for k, run in refine_runs.items()}
-    record["table_c"] = {"voxel_size": voxel, "max_depth": MAX_DEPTH, "points": points,
-                         "reference_triangles": int(len(reference.triangles)), "rows": rows_c}
 
-    # ---- sanity: the GT-pose pipeline's depth (MEDeA-S, fast) equals table A's MEDeA-S row
-    run = pipeline_runs.get("gt")
-    if run is not None and "error" not in run and run["indices"] == indices.tolist() and not quick:
-        files = sorted((Path(run["output"]) / "depth").glob("*.npy"))
-        if len(files) == n:
-            pipeline_depth = np.stack([np.load(f) for f in files])
-            ours = refine_runs["gt"]["refined"]
-            if pipeline_depth.shape == ours.shape:
-                record["pipeline_vs_table_a_S_max_abs_diff_m"] = float(np.abs(pipeline_depth - ours).max())
-                pipe_scores = depth_scores(pipeline_depth, refine_runs["gt"]["truth"], gt_poses, intrinsics)
-                record["pipeline_gt_abs_rel"] = pipe_scores["abs_rel"]
-    record["medea_runs"] = medea_info
-    return record
+
+def check_pipeline_depth(rec: Recording) -> None:
+    """Sanity: the GT-pose pipeline's depth (MEDeA-S, fast) equals table A's MEDeA-S row."""
+    run = rec.pipeline_runs.get("gt")
+    if run is None or "error" in run or run["indices"] != rec.indices.tolist() or rec.quick:
+        return
+    files = sorted((Path(run["output"]) / "depth").glob("*.npy"))
+    if len(files) != len(rec.rgb):
+        return
+    pipeline_depth = np.stack([np.load(f) for f in files])
+    ours = rec.refine_runs["gt"]["refined"]
+    if pipeline_depth.shape == ours.shape:
+        rec.record["pipeline_vs_table_a_S_max_abs_diff_m"] = float(np.abs(pipeline_depth - ours).max())
+        pipe_scores = depth_scores(pipeline_depth, rec.refine_runs["gt"]["truth"], rec.gt_poses, rec.intrinsics)
+        rec.record["pipeline_gt_abs_rel"] = pipe_scores["abs_rel"]
 
 
 # ------------------------------------------------------------------ goals
@@ -679,8 +771,8 @@ def goals(record: dict) -> list[dict]:
                         "met": f >= goal, "by": f"{abs(f - goal):.3f}", "default": True})
     for mode, run in record.get("table_d", {}).items():
         if "error" in run:
-            out.append({"goal": f"pipeline <= {GOALS['seconds_per_frame']} s/frame ({mode} poses)", "value": run["error"],
-                        "met": False, "by": "-", "default": True})
+            out.append({"goal": f"pipeline <= {GOALS['seconds_per_frame']} s/frame ({mode} poses)",
+                        "value": run["error"], "met": False, "by": "-", "default": True})
             continue
         total = run["total_per_frame"]
         out.append({"goal": f"whole pipeline <= {GOALS['seconds_per_frame']} s/frame, {mode} poses (all stages incl. "
@@ -709,8 +801,10 @@ def render(record: dict) -> str:
     out = [f"### {name}", ""]
     k = record["intrinsics"]
     out.append(f"Intrinsics fx {k[0]:.1f}, fy {k[1]:.1f}, cx {k[2]:.1f}, cy {k[3]:.1f} (the reader's); "
-               f"camera path {record['path_length_m']:.2f} m; prior {record['prior']['seconds_per_frame']:.3f} s/frame "
-               f"(network input {record['prior']['info'].get('network_input')}, features {record['prior']['features']}).")
+               f"camera path {record['path_length_m']:.2f} m; "
+               f"prior {record['prior']['seconds_per_frame']:.3f} s/frame "
+               f"(network input {record['prior']['info'].get('network_input')}, "
+               f"features {record['prior']['features']}).")
     out.append("")
 
     a = record["table_a"]
@@ -718,7 +812,8 @@ def render(record: dict) -> str:
     rows = [[r["label"], *metric_cells(r), fmt(r["inconsistency"]),
              fmt(r.get("medea", {}).get("seconds_per_frame"), 2), paper_text(r["paper"]), r["paper_note"]]
             for r in a.values()]
-    out += [table(["row", *METRIC_HEADERS, "inconsist.", "MEDeA s/frame", PAPER_HEADER, "paper row / difference"], rows), ""]
+    out += [table(["row", *METRIC_HEADERS, "inconsist.", "MEDeA s/frame", PAPER_HEADER, "paper row / difference"],
+                  rows), ""]
 
     t = record.get("trajectory", {})
     if "table_b" in record:
@@ -742,8 +837,9 @@ def render(record: dict) -> str:
     c = record["table_c"]
     out += [f"**Table C** - TSDF meshes against the sensor-depth TSDF mesh (ground-truth poses, voxel "
             f"{1000 * c['voxel_size']:.1f} mm, depth <= {c['max_depth']:g} m, {c['points']} points sampled per mesh; "
-            f"estimated-pose rows fused in the estimate's frame, then aligned by the cameras' orientations and centres, "
-            f"with the trajectory's Sim(3) scale (which rescales the depth too) or without scale (SE(3))). The paper reports no mesh numbers (Fig. 3 is "
+            f"estimated-pose rows fused in the estimate's frame, then aligned by the cameras' orientations and "
+            f"centres, with the trajectory's Sim(3) scale (which rescales the depth too) or without scale (SE(3))). "
+            f"The paper reports no mesh numbers (Fig. 3 is "
             f"qualitative):", ""]
     rows = [[r["label"], fmt(r["accuracy"], 4), fmt(r["completeness"], 4), fmt(r["precision"]), fmt(r["recall"]),
              fmt(r["fscore"]), r["triangles"]] for r in c["rows"].values()]
@@ -763,11 +859,13 @@ def render(record: dict) -> str:
         out += ["**Table D** - `recon.pipeline.run_pipeline` on the folder (same frames), seconds per frame per stage; "
                 "peak RSS = VmHWM (/proc/self/status, the high-water mark of resident memory) of a fresh process "
                 "running only the pipeline, in parentheses the same after imports, before the run (not `ru_maxrss`: "
-                "Linux carries the forking parent's peak across exec into it). Paper (Table 3): MEDeA-S 0.44, MEDeA-M 0.88 s/frame on a Tesla P40 GPU:", "",
+                "Linux carries the forking parent's peak across exec into it). "
+                "Paper (Table 3): MEDeA-S 0.44, MEDeA-M 0.88 s/frame on a Tesla P40 GPU:", "",
                 table(["run", "frames", *STAGES, "total", "total w/o logging", "peak RSS MB"], rows), ""]
         if "pipeline_vs_table_a_S_max_abs_diff_m" in record:
             out += [f"Check: the GT-pose pipeline's depth differs from table A's MVS refinement row by at most "
-                    f"{record['pipeline_vs_table_a_S_max_abs_diff_m']:.2e} m (abs rel {record['pipeline_gt_abs_rel']:.4f}).",
+                    f"{record['pipeline_vs_table_a_S_max_abs_diff_m']:.2e} m "
+                    f"(abs rel {record['pipeline_gt_abs_rel']:.4f}).",
                     ""]
 
     ab = record["ablations"]
@@ -841,7 +939,8 @@ def update_docs(section: str) -> None:
 
 def git_commit() -> str:
     try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                             text=True).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--", "recon", "medea_core", "benchmarks/report.py"],
                                cwd=ROOT, capture_output=True, text=True).stdout.strip()
         return sha + ("+changes" if dirty else "")

@@ -28,8 +28,8 @@ def scale_intrinsics(intrinsics: torch.Tensor, sx: float, sy: float) -> torch.Te
     return torch.stack([fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5], dim=-1)
 
 
-def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
-    """(H, W, 2) pixel-centre coordinates (u, v)."""
+def pixel_grid(height: int, width: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(H, W, 2) pixel-centre coordinates (u, v) of an image of `height` x `width` pixels."""
     v, u = torch.meshgrid(
         torch.arange(height, device=device, dtype=dtype),
         torch.arange(width, device=device, dtype=dtype),
@@ -40,7 +40,7 @@ def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> tor
 
 def camera_rays(intrinsics: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Rays with unit z through every pixel centre: (B, H, W, 3) from intrinsics (B, 4)."""
-    uv = pixel_grid(height, width, intrinsics.device, intrinsics.dtype)
+    uv = pixel_grid(height, width, dtype=intrinsics.dtype, device=intrinsics.device)
     fx, fy, cx, cy = (x[:, None, None] for x in intrinsics.unbind(-1))
     x = (uv[..., 0] - cx) / fx
     y = (uv[..., 1] - cy) / fy
@@ -162,7 +162,7 @@ def reproject(
     height, width = depth_i.shape[-2:]
     m, b = _pixel_homography(intrinsics_i, intrinsics_j, i_to_j)
     if pixels_i is None:
-        pixels_i = pixel_grid(height, width, depth_i.device, depth_i.dtype)
+        pixels_i = pixel_grid(height, width, dtype=depth_i.dtype, device=depth_i.device)
     u, v = pixels_i[..., 0], pixels_i[..., 1]
     m = m[..., None, None]
     direction = m[:, :, 0] * u + m[:, :, 1] * v + m[:, :, 2]  # (B, 3, H, W), no gradient

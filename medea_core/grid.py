@@ -19,7 +19,9 @@ def interpolation_matrix(size_out: int, size_in: int, device=None) -> torch.Tens
     return F.interpolate(eye, size=size_out, mode="linear", align_corners=True)[0].T
 
 
-def scale_field(log_scales: torch.Tensor, size: tuple[int, int], lattice: tuple[slice, slice] | None = None) -> torch.Tensor:
+def scale_field(
+    log_scales: torch.Tensor, size: tuple[int, int], lattice: tuple[slice, slice] | None = None
+) -> torch.Tensor:
     """S = B(exp(l), H, W): bilinear interpolation with the vertices on the image corners.
 
     Evaluated as two small matrix products (rows, then columns), which is the same

@@ -59,7 +59,7 @@ def warp_level(
     packed_i = level.packed[batch.i, :, lattice[0], lattice[1]]
     maps_i, prior_i, valid_i = packed_i[:, :-2], packed_i[:, -2], packed_i[:, -1] > 0.5
     depth_i = prior_i * scale_field(log_scales_i, size, lattice)
-    pixels_i = pixel_grid(*size, depth_i.device, depth_i.dtype)[lattice[0], lattice[1]]
+    pixels_i = pixel_grid(*size, dtype=depth_i.dtype, device=depth_i.device)[lattice[0], lattice[1]]
     rep = reproject(depth_i, level.intrinsics[batch.i], level.intrinsics[batch.j], batch.i_to_j, size, pixels_i)
     # One grid_sample fetches frame j's maps, prior depth and validity; none of them
     # needs a gradient, only the sampling positions do. Frame j's scale is smooth, so

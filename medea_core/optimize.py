@@ -176,7 +176,8 @@ def run_medea(
     start = time.perf_counter()
     # Unused features are not prepared: for many channels they are most of the memory.
     features = features if config.use_features else None
-    data = prepare_frames(images, prior, poses, intrinsics, features, config.image_scale, device, config.feature_channels)
+    data = prepare_frames(images, prior, poses, intrinsics, features, config.image_scale, device,
+                          config.feature_channels)
     grid = config.grid_for(*prior.shape[-2:])
     log_scales = torch.zeros((num, *grid), device=device)
     pairs1, keyframes, pairs2 = stage_pairs(num, config.stage1_levels, config.stage2_levels)
@@ -210,4 +211,5 @@ def run_medea(
 
     out_device = prior.device
     depth = adjust_depth(torch.nan_to_num(prior.float(), nan=0.0).clamp(min=0), log_scales.to(out_device))
-    return MedeaResult(depth=depth, log_scales=log_scales.to(out_device), keyframes=keyframes, history=history, seconds=seconds)
+    return MedeaResult(depth=depth, log_scales=log_scales.to(out_device), keyframes=keyframes, history=history,
+                       seconds=seconds)

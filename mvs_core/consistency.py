@@ -41,7 +41,7 @@ def consistent_views(
     num, height, width = depth.shape
     poses = poses.double().to(depth.device)
     intr = intrinsics.to(depth.dtype)
-    uv_i = pixel_grid(height, width, depth.device, depth.dtype)
+    uv_i = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
     count = torch.zeros_like(depth)
     mean = torch.zeros_like(depth)
     for i in range(num):

@@ -55,7 +55,7 @@ def hypothesis_grid(depth: torch.Tensor, offsets: torch.Tensor, intrinsics: torc
     k = intrinsics_matrix(intrinsics.double())
     m = (k @ ref_to_src[:, :3, :3].double() @ torch.linalg.inv(k)).to(depth.dtype)  # (S, 3, 3)
     b = (k @ ref_to_src[:, :3, 3:].double())[..., 0].to(depth.dtype)  # (S, 3)
-    uv = pixel_grid(height, width, depth.device, depth.dtype)
+    uv = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
     # Pixel p at depth d lands at d * m [u, v, 1] + b (homogeneous); each hypothesis only
     # rescales d, so the ray direction is computed once per source.
     direction = m[:, :, 0, None, None] * uv[..., 0] + m[:, :, 1, None, None] * uv[..., 1] + m[:, :, 2, None, None]

@@ -64,7 +64,8 @@ def view_scores(
     cos = (ray_ref[:, None] * ray_src).sum(-1) / (ray_ref.norm(dim=-1)[:, None] * ray_src.norm(dim=-1)).clamp(min=1e-12)
     angle = torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
     weight = torch.where(angle < min_angle, angle / max(min_angle, 1e-9),
-                         torch.where(angle > max_angle, (max_angle / angle.clamp(min=1e-9)) ** 2, torch.ones_like(angle)))
+                         torch.where(angle > max_angle, (max_angle / angle.clamp(min=1e-9)) ** 2,
+                                     torch.ones_like(angle)))
     return (weight * inside).sum(-1) / valid.sum(-1, keepdim=True).clamp(min=1)
 
 

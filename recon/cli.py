@@ -1,11 +1,17 @@
 """The `recon` command line: `recon run` (the pipeline), `recon demo` (the synthetic sample
-end to end) and `recon view` (Rerun inspection of a result).
+end to end), `recon view` (Rerun inspection of a result) and `recon eval` (scores against a
+dataset's ground truth).
 
 Options mirror the typed configs (recon.pipeline.PipelineConfig, MedeaConfig,
-FusionOptions); this module only parses them.
+FusionOptions); this module only parses them. Named choices come from recon.choices.
 
-Bad input raises ReconInputError anywhere below; `main` prints its single line and exits
-with code 2, without a traceback.
+What the user reads: results and stage names on stdout; on stderr, progress bars (unless
+--quiet) and one line per message. The library never prints: its warnings go through the
+``recon`` logger, which `main` gives one handler that writes each as ``recon: warning:
+...``. INFO records of the library (the estimated focal length, TSDF sizes, SfM keyframes)
+are details for Python callers who configure logging; the command line does not show them.
+Bad input raises ReconInputError anywhere below; `main` prints it as the single line
+``recon: error: ...`` and exits with code 2, without a traceback.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import torch
 
 from medea_core import MedeaConfig
 
+from .choices import DEMO_PRIORS, POSE_CHOICES, POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES
 from .errors import ReconInputError
 
 
@@ -30,7 +37,8 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
                    help="paper: the paper's settings; fast: pixel stride 2 and Stage II lr 0.01, "
                         "about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
     g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
-    g.add_argument("--image-scale", type=float, help=f"working resolution relative to the input (paper {d.image_scale})")
+    g.add_argument("--image-scale", type=float,
+                   help=f"working resolution relative to the input (paper {d.image_scale})")
     g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
     g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
     g.add_argument("--feature-stride", type=int, help="the same on the feature grid (paper 1)")
@@ -41,11 +49,13 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
     g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")
     g.add_argument("--no-stage2", action="store_true", help="skip Stage II")
-    g.add_argument("--no-propagation", action="store_true", help="start Stage II from scale 1 instead of the keyframes' scale")
+    g.add_argument("--no-propagation", action="store_true",
+                   help="start Stage II from scale 1 instead of the keyframes' scale")
     g.add_argument("--no-photometric", action="store_true", help="drop the photometric loss")
     g.add_argument("--no-depth-loss", action="store_true", help="drop the depth consistency loss")
     g.add_argument("--no-feature-loss", action="store_true", help="drop the feature-metric loss")
-    g.add_argument("--feature-loss", choices=["S", "M"], help="S: normalised L1 (MEDeA-S, paper default), M: dot product (MEDeA-M)")
+    g.add_argument("--feature-loss", choices=["S", "M"],
+                   help="S: normalised L1 (MEDeA-S, paper default), M: dot product (MEDeA-M)")
     g.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
 
 
@@ -109,8 +119,6 @@ def add_rerun_argument(parser: argparse.ArgumentParser, default: str | None, wha
 
 def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None]:
     """(mode, path or None) from --rerun MODE [PATH]."""
-    from .pipeline import RERUN_MODES
-
     values = args.rerun or [default]
     mode, rest = values[0], values[1:]
     if mode not in RERUN_MODES:
@@ -139,7 +147,6 @@ def _wait_for_ctrl_c(url: str | None) -> None:
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     from .fusion import FusionOptions
     from .pipeline import PipelineConfig
-    from .refine import REFINE_CHOICES
 
     d, fd = PipelineConfig(Path(), Path()), FusionOptions()
     g = parser.add_argument_group("frames")
@@ -160,16 +167,16 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
 
     g = parser.add_argument_group("poses")
-    g.add_argument("--poses", default="auto", metavar="SOURCE",
+    g.add_argument("--poses", default="auto", metavar="{%s}|PATH" % ",".join(POSE_CHOICES),
                    help="auto (dataset ground truth if any, else estimate), gt, estimate, or a pose file/folder "
                         "(TUM, COLMAP, nerfstudio transforms.json, per-frame 4x4 matrices, Open3D .log); "
                         "default %(default)s")
-    g.add_argument("--pose-method", choices=["auto", "frontend", "sfm"], default="auto",
+    g.add_argument("--pose-method", choices=POSE_METHODS, default=d.pose_method,
                    help="pose estimator (default %(default)s)")
     add_pose_option_argument(g)
 
     g = parser.add_argument_group("depth prior")
-    g.add_argument("--prior", choices=["fastdepth", "sensor", "folder"], default=d.prior,
+    g.add_argument("--prior", choices=PRIOR_CHOICES, default=d.prior,
                    help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (--prior-path)")
     g.add_argument("--prior-path", type=Path, help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; "
                                                    "16-bit PNG in millimetres), matched by frame name")
@@ -178,7 +185,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
 
     g = parser.add_argument_group("multi-view stereo refinement (after MEDeA)")
-    g.add_argument("--refine", choices=list(REFINE_CHOICES), default=d.refine,
+    g.add_argument("--refine", choices=REFINE_CHOICES, default=d.refine,
                    help="mvs: per-pixel depth from the frames around MEDeA's depth, with a confidence; only the "
                         "pixels it reconstructs are fused. none: MEDeA's depth, the paper's pipeline "
                         "(default %(default)s)")
@@ -228,7 +235,7 @@ class _PoseOptionAction(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         if values == "list":
-            from .poses import pose_option_table
+            from .poses.options import pose_option_table
 
             print("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
                   "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
@@ -276,7 +283,7 @@ def add_pose_option_argument(parser) -> None:
 
 
 def pose_options_from_args(args: argparse.Namespace) -> dict:
-    from .poses import parse_pose_option
+    from .poses.options import parse_pose_option
 
     return dict(parse_pose_option(text) for text in args.pose_option)
 
@@ -338,7 +345,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         compare_prior=not args.no_compare,
         adjust=not args.no_medea, medea=medea,
         rerun=mode, device=medea.device, progress=not args.quiet,
-    ))
+    ), say=print)
     print(format_summary(report.result))
     print()
     print(format_demo(report))
@@ -352,11 +359,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from .eval.evaluate import EvalOptions, evaluate_output, format_evaluation
-    from .export.writers import atomic_write_bytes, json_bytes
+    from .io.output_folder import EVAL_JSON, atomic_write_bytes, json_bytes
 
     options = EvalOptions(min_depth=args.min_depth, max_depth=args.max_depth, threshold=args.threshold,
                           reference_mesh=args.reference_mesh, mesh_align=args.mesh_align, progress=not args.quiet)
-    target = Path(args.output) / "eval.json"
+    target = Path(args.output) / EVAL_JSON
     if target.exists() and not args.overwrite:
         raise ReconInputError(f"{target}: already exists (use --overwrite to replace it)")
     result = evaluate_output(args.output, args.gt, options)
@@ -370,7 +377,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
     import subprocess
 
     from viewer import RerunLogger
-    from viewer.output_folder import log_output_folder, recording_of
+
+    from .view import log_output_folder, recording_of
 
     display_default = "spawn" if default_rerun_mode() == "spawn" else "serve"
     mode, path = rerun_mode(args, display_default)
@@ -421,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Video to multi-view-consistent metric depth (MEDeA) and a mesh. "
                     "Start with `recon demo`, then `recon run YOUR_VIDEO -o OUT`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,demo,view}")
+    sub = parser.add_subparsers(dest="command", required=True)  # the metavar lists every sub-command
 
     run = sub.add_parser(
         "run", help="video / image folder / RGB-D dataset -> depth maps, camera trajectory and mesh",
@@ -452,11 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--width", type=int, default=640, help="rendered width (default %(default)s)")
     demo.add_argument("--height", type=int, default=480, help="rendered height (default %(default)s)")
     demo.add_argument("--scene-seed", type=int, default=0, help="seed of the synthetic scene and prior")
-    demo.add_argument("--poses", choices=["auto", "gt", "estimate"], default="auto",
+    demo.add_argument("--poses", choices=POSE_CHOICES, default="auto",
                       help="estimate (pose front end), gt (rendered trajectory), auto: estimate when the estimator "
                            "is installed, else gt with a note (default %(default)s)")
     add_pose_option_argument(demo)
-    demo.add_argument("--prior", choices=["simulated", "fastdepth"], default="simulated",
+    demo.add_argument("--prior", choices=DEMO_PRIORS, default="simulated",
                       help="simulated: ground truth distorted like a monocular network (default); fastdepth: the "
                            "real network")
     demo.add_argument("--no-compare", action="store_true", help="skip fusing the raw prior for the F-score comparison")
@@ -484,10 +492,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "OUT/eval.json.",
     )
     ev.add_argument("output", help="output folder of `recon run`")
-    ev.add_argument("--gt", required=True, help="dataset folder with ground truth (TUM, 7-Scenes, ScanNet, ARKitScenes, Redwood)")
-    ev.add_argument("--min-depth", type=float, default=1e-3, help="evaluated ground-truth depth range, metres (default %(default)s)")
+    ev.add_argument("--gt", required=True,
+                    help="dataset folder with ground truth (TUM, 7-Scenes, ScanNet, ARKitScenes, Redwood)")
+    ev.add_argument("--min-depth", type=float, default=1e-3,
+                    help="evaluated ground-truth depth range, metres (default %(default)s)")
     ev.add_argument("--max-depth", type=float, default=10.0, help="(default %(default)s)")
-    ev.add_argument("--threshold", type=float, default=0.05, help="mesh precision/recall distance, metres (default %(default)s)")
+    ev.add_argument("--threshold", type=float, default=0.05,
+                    help="mesh precision/recall distance, metres (default %(default)s)")
     ev.add_argument("--reference-mesh", type=Path, help="compare with this mesh instead of a TSDF of the sensor depth")
     ev.add_argument("--mesh-align", choices=["auto", "none", "se3", "sim3"], default="auto",
                     help="bring the mesh into the ground truth's frame first; auto: Sim(3) from the trajectory "

@@ -16,13 +16,13 @@ mesh the pipeline wrote and for MEDeA's depth and the raw prior fused the same w
 
 Poses: ``"estimate"`` runs the pose front end on the video (``recon.poses``), ``"gt"``
 uses the rendered trajectory, ``"auto"`` estimates when the estimator is installed and
-falls back to ground truth with a printed note otherwise. Estimated trajectories are
+falls back to ground truth with a logged warning otherwise. Estimated trajectories are
 aligned to the ground truth (similarity, Umeyama) before the mesh is scored.
 """
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime
@@ -33,19 +33,19 @@ import numpy as np
 
 from medea_core import MedeaConfig
 
+from .choices import DEMO_PRIORS, POSE_CHOICES
 from .errors import ReconInputError
 from .eval.depth import depth_metrics, multiview_inconsistency
 from .eval.mesh import mesh_metrics, visible_mask
-from .export import OutputFolder
-from .export.writers import REPORT_JSON, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from .fusion import FusionOptions, fuse
+from .io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from .pipeline import PipelineConfig, PipelineResult, run_pipeline
 from .synthetic import render_sequence, simulate_prior
 from .synthetic.scene import SyntheticSequence
 
+log = logging.getLogger(__name__)
+
 DEMO_FPS = 30.0
-DEMO_POSES = ("auto", "gt", "estimate")
-DEMO_PRIORS = ("simulated", "fastdepth")
 
 
 def depth_report(depth, gt, poses, intrinsics) -> dict:
@@ -70,7 +70,7 @@ def pose_estimator_available() -> bool:
 
 @dataclass
 class DemoOptions:
-    """frames, width, height: the rendered sequence; seed: scene and prior; poses: DEMO_POSES;
+    """frames, width, height: the rendered sequence; seed: scene and prior; poses: POSE_CHOICES;
     pose_options: estimator settings (PipelineConfig.pose_options) when poses are estimated;
     prior: "simulated" (ground truth distorted like a network, see recon.synthetic.prior)
     or "fastdepth"; compare_prior: also fuse the raw prior to score it (not written)."""
@@ -104,8 +104,8 @@ class DemoReport:
 
 def write_demo_inputs(out: OutputFolder, seq: SyntheticSequence, prior: np.ndarray | None) -> dict[str, Path]:
     """The rendered video, the prior maps and the ground-truth trajectory under OUT/input/."""
-    from .poses.formats import write_poses
-    from .synthetic import write_video
+    from .io.trajectories import write_poses
+    from .io.video import write_video
 
     video = out.path_for("input/synthetic.mp4")
     with out.atomic("input/synthetic.mp4") as tmp:
@@ -145,7 +145,9 @@ def aligned_mesh(mesh, poses: np.ndarray, gt_poses: np.ndarray):
     return moved, fit
 
 
-def evaluate(result: PipelineResult, seq: SyntheticSequence, compare_prior: bool = True, estimated: bool = False) -> dict:
+def evaluate(
+    result: PipelineResult, seq: SyntheticSequence, compare_prior: bool = True, estimated: bool = False
+) -> dict:
     """Depth error of the prior, MEDeA and the refinement, and their mesh scores (module docstring)."""
     idx = result.frames.indices
     gt_depth, gt_poses = seq.depth[idx], seq.poses[idx]
@@ -174,10 +176,12 @@ def evaluate(result: PipelineResult, seq: SyntheticSequence, compare_prior: bool
     return evaluation
 
 
-def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoReport:
-    """Render, write the inputs, run the pipeline, evaluate; returns the report (also on disk)."""
-    if options.poses not in DEMO_POSES:
-        raise ReconInputError(f"demo poses must be one of {', '.join(DEMO_POSES)}, got {options.poses!r}")
+def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> DemoReport:
+    """Render, write the inputs, run the pipeline, evaluate; returns the report (also on disk).
+    say: called with each step's name (the CLI prints them); None says nothing."""
+    say = say or (lambda _: None)
+    if options.poses not in POSE_CHOICES:
+        raise ReconInputError(f"demo poses must be one of {', '.join(POSE_CHOICES)}, got {options.poses!r}")
     if options.prior not in DEMO_PRIORS:
         raise ReconInputError(f"demo prior must be one of {', '.join(DEMO_PRIORS)}, got {options.prior!r}")
     if options.frames < 2:
@@ -189,8 +193,8 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
     if poses == "auto":
         poses = "estimate" if pose_estimator_available() else "gt"
         if poses == "gt":
-            say("note: pose estimation is not installed in this build; using the ground-truth poses "
-                "(--poses estimate to require it)")
+            log.warning("pose estimation is not installed in this build; using the ground-truth poses "
+                        "(--poses estimate to require it)")
     start = time.perf_counter()
     say(f"rendering the synthetic room: {options.frames} frames at {options.width}x{options.height}")
     seq = render_sequence(options.frames, options.width, options.height, seed=options.seed)
@@ -203,11 +207,12 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] = print) -> DemoRe
         input=inputs["video"], output=out.path, overwrite=True, width=None, intrinsics=seq.intrinsics,
         poses=str(inputs["poses"]) if poses == "gt" else "estimate", pose_options=dict(options.pose_options),
         prior="folder" if prior is not None else "fastdepth", prior_path=inputs.get("prior"),
-        adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device, progress=options.progress,
+        adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device,
+        progress=options.progress,
     )
     pose_options = ""
     if config.pose_options:  # the estimator, which owns the syntax, is there when options are given
-        from .poses import format_pose_option
+        from .poses.options import format_pose_option
 
         pose_options = "".join(f" --pose-option {format_pose_option(k, v)}" for k, v in config.pose_options.items())
     command = (
@@ -239,14 +244,16 @@ def format_demo(report: DemoReport) -> str:
     if "depth_refined" in ev:
         columns.append(("refined", ev["depth_refined"]))
     rows = [("abs rel", "abs_rel", "{:.4f}"), ("abs diff [m]", "abs_diff", "{:.4f}"), ("sq rel", "sq_rel", "{:.4f}"),
-            ("RMSE [m]", "rmse", "{:.4f}"), ("delta < 1.25", "delta1", "{:.4f}"), ("inconsistency", "inconsistency", "{:.4f}")]
+            ("RMSE [m]", "rmse", "{:.4f}"), ("delta < 1.25", "delta1", "{:.4f}"),
+            ("inconsistency", "inconsistency", "{:.4f}")]
     lines = [f"{'depth metric':<16}" + "".join(f"{name:>10}" for name, _ in columns) + f"{'change':>10}"]
     for label, key, fmt in rows:
         values = [depth[key] for _, depth in columns]
         change = (values[-1] - values[0]) / values[0] if values[0] else float("nan")
         lines.append(f"{label:<16}" + "".join(f"{fmt.format(v):>10}" for v in values) + f"{change:>+10.0%}")
     lines.append("")
-    lines.append(f"{'mesh vs ground truth (5 cm)':<28}{'accuracy':>10}{'complete':>10}{'precision':>10}{'recall':>10}{'F-score':>10}")
+    lines.append(f"{'mesh vs ground truth (5 cm)':<28}{'accuracy':>10}{'complete':>10}{'precision':>10}"
+                 f"{'recall':>10}{'F-score':>10}")
     for label, key in (("refined depth (written)", "mesh_refined"), ("MEDeA depth", "mesh_adjusted"),
                        ("raw prior", "mesh_prior")):
         if key in ev:

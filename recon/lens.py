@@ -23,19 +23,19 @@ from recon.poses import projective as pj
 MIN_SHIFT_PX = 0.5
 
 
-def largest_shift(intrinsics, size: tuple[int, int], k1: float) -> float:
+def largest_shift(intrinsics, shape: tuple[int, int], k1: float) -> float:
     """Largest distance (pixels) between a pixel and its recorded position, over the
-    corners of a frame of size (W, H): where the lens moves pixels most."""
-    width, height = size
+    corners of a frame of shape (H, W): where the lens moves pixels most."""
+    height, width = shape
     corners = torch.tensor([[0.0, 0.0], [width - 1, 0.0], [0.0, height - 1], [width - 1, height - 1]],
                            dtype=torch.float64)
     moved = pj.distort(corners, torch.tensor(intrinsics, dtype=torch.float64), k1)
     return float((moved - corners).norm(dim=-1).max())
 
 
-def worth_undistorting(intrinsics, size: tuple[int, int], k1: float) -> bool:
+def worth_undistorting(intrinsics, shape: tuple[int, int], k1: float) -> bool:
     """Whether the lens moves some pixel of a (W, H) frame by at least MIN_SHIFT_PX."""
-    return largest_shift(intrinsics, size, k1) >= MIN_SHIFT_PX
+    return largest_shift(intrinsics, shape, k1) >= MIN_SHIFT_PX
 
 
 def _source_map(width: int, height: int, intrinsics, k1: float, recording: bool = False
@@ -73,11 +73,11 @@ def distort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = Fa
                   borderMode=cv2.BORDER_REFLECT)
 
 
-def undistort_features(features: np.ndarray, intrinsics, size: tuple[int, int], k1: float) -> np.ndarray:
-    """Feature maps (N, C, h, w) covering frames of size (W, H) with intrinsics in frame
+def undistort_features(features: np.ndarray, intrinsics, shape: tuple[int, int], k1: float) -> np.ndarray:
+    """Feature maps (N, C, h, w) covering frames of shape (H, W) with intrinsics in frame
     pixels, resampled into the pinhole image (bilinear, zeros outside)."""
     n, c, h, w = features.shape
-    width, height = size
+    height, width = shape
     intr = pj.scale_intrinsics(intrinsics, w / width, h / height)
     mx, my = _source_map(w, h, intr, k1)
     grid = torch.from_numpy(np.stack([mx / max(w - 1, 1), my / max(h - 1, 1)], -1) * 2 - 1)[None]

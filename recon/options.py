@@ -28,7 +28,8 @@ def typed_value(raw: str, kind):
             raise ValueError(raw)
         return tuple(typed_value(p.strip(), args[0] if args else float) for p in parts)
     if kind is bool:
-        value = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
+        value = {"true": True, "1": True, "yes": True, "on": True,
+                 "false": False, "0": False, "no": False, "off": False}
         if raw.lower() not in value:
             raise ValueError(raw)
         return value[raw.lower()]

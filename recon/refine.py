@@ -14,7 +14,7 @@ from tqdm.auto import tqdm
 from medea_core.frames import working_size
 from mvs_core import MvsConfig, RefineResult, refine_depth
 
-REFINE_CHOICES = ("mvs", "none")
+from .choices import REFINE_CHOICES
 
 # Filled (not reconstructed) pixels get this times their support, the Gaussian share of
 # reconstructed pixels around them: always below a reconstructed pixel's confidence
@@ -47,7 +47,9 @@ def grey_at(rgb, size: tuple[int, int], device: str = "cpu") -> torch.Tensor:
     return torch.cat(out)
 
 
-def refine_sequence(rgb, depth, poses, intrinsics, config: MvsConfig | None = None, progress: bool = True) -> RefineResult:
+def refine_sequence(
+    rgb, depth, poses, intrinsics, config: MvsConfig | None = None, progress: bool = True
+) -> RefineResult:
     """Multi-view stereo refinement of a sequence's depth.
 
     rgb: (N, H', W', 3) uint8 frames (any size with the depth's aspect); depth: (N, H, W)

@@ -1,15 +1,15 @@
-"""Shared fixtures: where ../shared lives, and tiny analytic scenes for geometry tests."""
+"""Shared fixtures: two torch threads per test, the ../shared data and weights (tests that need
+them skip when they are absent), and the synthetic rooms that several test files use,
+rendered once per session. Plain helper functions are in helpers.py."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+from helpers import FASTDEPTH_WEIGHTS, SHARED
 
 
 @pytest.fixture(autouse=True)
@@ -24,66 +24,56 @@ def shared_dir() -> Path:
     return SHARED
 
 
-def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(up, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z], axis=1)
-    pose[:3, 3] = eye
-    return pose
+@pytest.fixture(scope="session")
+def fastdepth_weights() -> Path:
+    """The FastDepth TF.js folder in ../shared/weights."""
+    if not (FASTDEPTH_WEIGHTS / "model.json").is_file():
+        pytest.skip("../shared/weights/fastdepth is not present next to the checkout")
+    return FASTDEPTH_WEIGHTS
 
 
-def plane_depth(pose: np.ndarray, intrinsics, height: int, width: int, normal, offset) -> np.ndarray:
-    """z-depth (H, W) of the world plane normal . X = offset seen from a camera-to-world pose."""
-    fx, fy, cx, cy = intrinsics
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    rays_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
-    rays_world = rays_cam @ pose[:3, :3].T
-    normal = np.asarray(normal, dtype=np.float64)
-    t = (offset - pose[:3, 3] @ normal) / (rays_world @ normal)
-    return t.astype(np.float32)
+# Synthetic rooms shared between test files. Tests only read them: nothing may write into
+# their arrays.
 
 
-def wall_texture(seed: int = 0, size: int = 512, extent: float = 6.0):
-    """A band-limited random texture of a wall: (image (size, size) float32 in [0, 1], metres
-    per texel). The wall spans [-extent / 2, extent / 2]^2 in its own x, y; its finest
-    detail (~4 cm) is coarser than a pixel's footprint at a few metres, so views of it do
-    not alias."""
-    import cv2
+@pytest.fixture(scope="session")
+def small_room():
+    """12 frames of the synthetic room at 160x120 (synthetic scene and prior tests, video writing)."""
+    from recon.synthetic import render_sequence
 
-    rng = np.random.default_rng(seed)
-    noise = rng.standard_normal((size, size)).astype(np.float32)
-    image = cv2.GaussianBlur(noise, (0, 0), 3.0) + 0.5 * cv2.GaussianBlur(noise, (0, 0), 8.0)
-    image = (image - image.min()) / (image.max() - image.min())
-    return image, extent / size
+    return render_sequence(num_frames=12, width=160, height=120, seed=0)
 
 
-def render_wall(poses, intrinsics, height: int, width: int, distance: float = 3.0, flat_right: bool = False,
-                seed: int = 0):
-    """Grey images (N, H, W) float32 in [0, 1] and depth (N, H, W) of a textured wall z = distance
-    (world frame) seen from camera-to-world poses. flat_right: the wall's half x > 0 is a
-    uniform grey (no texture at all), for textureless-surface tests."""
-    import cv2
+@pytest.fixture(scope="session")
+def pose_room():
+    """36 frames of the synthetic room at 320x240 and a simulated prior (flow, BA, front end)."""
+    from recon.synthetic import render_sequence, simulate_prior
 
-    texture, texel = wall_texture(seed)
-    size = texture.shape[0]
-    images, depths = [], []
-    for pose in poses:
-        depth = plane_depth(pose, intrinsics, height, width, normal=[0.0, 0.0, 1.0], offset=distance)
-        fx, fy, cx, cy = intrinsics
-        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-        rays = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1) * depth[..., None]
-        world = rays @ pose[:3, :3].T + pose[:3, 3]
-        tx = (world[..., 0] / texel + size / 2).astype(np.float32)
-        ty = (world[..., 1] / texel + size / 2).astype(np.float32)
-        grey = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        if flat_right:
-            grey = np.where(world[..., 0] > 0, np.float32(0.5), grey)
-        images.append(grey)
-        depths.append(depth)
-    return np.stack(images).astype(np.float32), np.stack(depths).astype(np.float32)
+    seq = render_sequence(36, 320, 240, seed=0)
+    return seq, simulate_prior(seq.depth, seed=1)
+
+
+@pytest.fixture(scope="session")
+def sfm_room():
+    """30 frames of the synthetic room at 320x240 and a simulated prior (SfM and its keyframes)."""
+    from recon.synthetic import render_sequence, simulate_prior
+
+    seq = render_sequence(30, 320, 240, seed=0)
+    return seq, simulate_prior(seq.depth, seed=1)
+
+
+@pytest.fixture(scope="session")
+def fusion_room():
+    """20 frames of the synthetic room at 320x240 (TSDF fusion and export)."""
+    from recon.synthetic import render_sequence
+
+    return render_sequence(20, 320, 240, seed=0)
+
+
+@pytest.fixture(scope="session")
+def fused_room(fusion_room):
+    """fusion_room fused with automatic parameters, with a point cloud (TSDF fusion and export)."""
+    from recon.fusion import FusionOptions, fuse
+
+    room = fusion_room
+    return fuse(room.depth, room.rgb, room.poses, room.intrinsics, FusionOptions(point_cloud=True, progress=False))

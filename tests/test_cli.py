@@ -15,9 +15,10 @@ import trimesh
 
 from recon.cli import build_parser, main
 from recon.demo import pose_estimator_available
-from recon.export import read_depth_png_mm
-from recon.poses.formats import read_poses
-from test_viewer import _read_back  # rerun's chunk API reader, shared with the viewer tests
+from recon.io.output_folder import read_depth_png_mm
+from recon.io.trajectories import read_poses
+
+from helpers import read_recording
 
 FRAMES, WIDTH, HEIGHT = 24, 320, 240
 
@@ -51,7 +52,8 @@ def test_demo_writes_every_output(demo):
     assert not any(p.name.startswith(".") for p in out.rglob("*")), "temporary files left behind"
     # report.json: inputs, options, versions, per-stage timings, MEDeA loss summary.
     assert report["frames"]["count"] == FRAMES and report["input"]["kind"] == "video"
-    assert set(report["seconds"]) == {"decode", "prior", "poses", "medea", "refine", "fusion", "export", "logging"}
+    assert set(report["seconds"]) == {"decode", "prior", "poses", "undistort", "medea", "refine", "fusion", "export",
+                                     "logging"}
     assert report["poses"]["polish"]["polished"] is False and report["poses"]["polish"]["cost_gain"] < 1.5
     assert report["refine"]["method"] == "mvs" and 0.5 < report["refine"]["reconstructed"] <= 1.0
     assert all(v >= 0 for v in report["seconds"].values()) and report["seconds"]["medea"] > 0
@@ -91,7 +93,7 @@ def test_glb_matches_ply_and_is_y_up(demo):
 
 def test_recording_has_frames_cameras_mesh_losses(demo):
     out, report = demo
-    entities, components, frames, _ = _read_back(out / "recording.rrd")
+    entities, components, frames, _ = read_recording(out / "recording.rrd")
     for entity in ("/world/camera", "/world/camera/rgb", "/world/camera/prior_depth", "/world/camera/adjusted_depth",
                    "/world/trajectory", "/world/mesh", "/medea/stage1/total"):
         assert entity in entities, entity
@@ -106,7 +108,7 @@ def test_view_logs_an_output_folder(demo, tmp_path):
     out, report = demo
     rrd = tmp_path / "view.rrd"
     assert main(["view", str(out), "--rerun", "save", str(rrd), "--quiet"]) == 0
-    entities, _, frames, _ = _read_back(rrd)
+    entities, _, frames, _ = read_recording(rrd)
     assert "/world/mesh" in entities
     assert sorted(frames["/world/camera/adjusted_depth"]) == report["frames"]["indices"]
     assert main(["view", str(out), "--rerun", "save", str(rrd), "--quiet"]) == 2  # exists: refused
@@ -140,7 +142,8 @@ def test_run_on_an_image_folder_with_a_pose_file(demo, tmp_path):
 
 
 def _video(path: Path, frames: int, size=(64, 48)) -> Path:
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG" if path.suffix == ".avi" else "mp4v"), 10.0, size)
+    fourcc = cv2.VideoWriter_fourcc(*"MJPG" if path.suffix == ".avi" else "mp4v")
+    writer = cv2.VideoWriter(str(path), fourcc, 10.0, size)
     rng = np.random.default_rng(0)
     for _ in range(frames):
         writer.write(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8))
@@ -170,7 +173,8 @@ def _run_fails(capsys, argv, *expected) -> str:
     "make_input, expected",
     [
         (lambda d: d / "missing.mp4", ["missing.mp4", "no such file"]),
-        (lambda d: (d / "notes.mp4", (d / "notes.mp4").write_text("not a video\n" * 50))[0], ["notes.mp4", "not a video"]),
+        (lambda d: (d / "notes.mp4", (d / "notes.mp4").write_text("not a video\n" * 50))[0],
+         ["notes.mp4", "not a video"]),
         (lambda d: _video(d / "empty.avi", 0), ["empty.avi", "no decodable frames"]),
         (lambda d: _video(d / "one.mp4", 1), ["one.mp4", "at least 2 frames"]),
         (lambda d: (d / "empty").mkdir() or d / "empty", ["empty", "no images"]),
@@ -258,7 +262,7 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
 @pytest.mark.parametrize("key, value", [("correction_grid", (2, 5)), ("torch_threads", None), ("calibrate_lens", False),
                                         ("keyframe_flow", 12.5), ("mapper", "global")])
 def test_demo_replay_command_reads_back_its_pose_options(key, value):
-    from recon.poses import format_pose_option, parse_pose_option
+    from recon.poses.options import format_pose_option, parse_pose_option
 
     assert parse_pose_option(format_pose_option(key, value)) == (key, value)
 
@@ -292,12 +296,12 @@ def test_missing_pose_estimator_is_a_clear_error(tmp_path, capsys):
 
 
 def test_frame_budget_raises_the_stride(tmp_path):
-    from recon.pipeline import PipelineConfig, select_frames
+    from recon.stages import select_frames
 
     video = _video(tmp_path / "clip.mp4", 12)
-    source = select_frames(PipelineConfig(video, tmp_path / "out", frame_budget=5, width=None))
+    source = select_frames(video, frame_budget=5)
     assert source.selection.stride == 3 and source.count == 4
-    source = select_frames(PipelineConfig(video, tmp_path / "out", frame_budget=5, stride=1, width=None))
+    source = select_frames(video, frame_budget=5, stride=1)
     assert source.count == 12
 
 
@@ -389,6 +393,6 @@ def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path,
     assert quality["dropped"] == 3 and quality["dropped_ranges"] == [[12, 14]]
     assert report["frames"]["count"] == 24 and 12 not in report["frames"]["indices"]
     assert len(list((result / "depth").glob("*.png"))) == 24
-    entities, _, frames, _ = _read_back(result / "recording.rrd")
+    entities, _, frames, _ = read_recording(result / "recording.rrd")
     assert "/tracking" in entities and "/world/dropped" in entities
     assert sorted(frames["/tracking"]) == list(range(27))

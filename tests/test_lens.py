@@ -34,7 +34,7 @@ def test_features_are_resampled_at_their_own_resolution():
     # A feature that is the recorded x pixel coordinate (at feature resolution).
     ramp = np.broadcast_to(np.arange(w, dtype=np.float32), (h, w))
     features = np.stack([ramp, 2 * ramp])[None]
-    out = undistort_features(features, intrinsics, (320, 240), k1)
+    out = undistort_features(features, intrinsics, (240, 320), k1)
     assert out.shape == features.shape
     feat_intr = torch.tensor(pj.scale_intrinsics(intrinsics, w / 320, h / 240), dtype=torch.float64)
     expected = pj.distort(pj.pixel_grid(h, w), feat_intr, k1)[..., 0].numpy()
@@ -43,7 +43,7 @@ def test_features_are_resampled_at_their_own_resolution():
 
 
 def test_only_lenses_that_move_pixels_are_worth_resampling():
-    intrinsics, size = (525.0, 525.0, 319.5, 239.5), (640, 480)
+    intrinsics, size = (525.0, 525.0, 319.5, 239.5), (480, 640)
     # Corner: normalised radius^2 0.58, 400 px from the centre.
     assert abs(largest_shift(intrinsics, size, -0.037) - 0.037 * 0.58 * 400) < 0.3
     assert worth_undistorting(intrinsics, size, -0.037)

@@ -15,7 +15,7 @@ from medea_core.grid import median_pool_to_grid, scale_field
 from medea_core.losses import feature_loss_m, feature_loss_s, photometric_loss
 from medea_core.propagate import propagate_scales
 
-from conftest import look_at, plane_depth
+from helpers import look_at, plane_depth
 
 H, W = 96, 128
 INTR = (110.0, 110.0, 63.5, 47.5)
@@ -152,7 +152,8 @@ def test_propagation_recovers_known_scale_field():
     prior = gt.clone()
     prior[1] = gt[1] / scale_field(log_true[None], (H, W))[0]
     images = torch.zeros(2, 3, H, W)
-    data = prepare_frames(images, prior, torch.as_tensor(np.stack([pose_key, pose_other])), torch.tensor(INTR), None, 1.0, "cpu")
+    poses = torch.as_tensor(np.stack([pose_key, pose_other]))
+    data = prepare_frames(images, prior, poses, torch.tensor(INTR), None, 1.0, "cpu")
     recovered = propagate_scales(data, torch.zeros(2, 8, 10), torch.tensor([1]), torch.tensor([0]))[0]
     assert (recovered - log_true).abs().max() < 0.03
     assert (recovered - log_true).abs().mean() < 0.01
@@ -173,7 +174,8 @@ def test_run_is_deterministic_for_a_seed_and_keeps_shapes():
     assert first.keyframes.tolist() == [0, 8]
     assert first.history["stage1"].epochs == 8
     assert len(first.history["stage1"].losses["total"]) == 8
-    portrait = run_medea(images.transpose(-1, -2), prior.transpose(-1, -2), poses, torch.tensor([INTR[1], INTR[0], INTR[3], INTR[2]]), config=config)
+    transposed_intrinsics = torch.tensor([INTR[1], INTR[0], INTR[3], INTR[2]])
+    portrait = run_medea(images.transpose(-1, -2), prior.transpose(-1, -2), poses, transposed_intrinsics, config=config)
     assert portrait.log_scales.shape == (10, 10, 8)
 
 
@@ -194,7 +196,7 @@ def test_feature_channel_selection_keeps_the_most_varying():
     assert most_varying_channels(features, 3).tolist() == [1, 3, 5]
     assert most_varying_channels(features, 10).tolist() == list(range(6))
     prior = torch.full((5, 8, 14), 2.0)
-    data = prepare_frames(torch.rand(5, 3, 8, 14), prior, torch.eye(4).expand(5, 4, 4), torch.tensor([10.0, 10.0, 7.0, 4.0]),
-                          features, 0.5, "cpu", feature_channels=2)
+    data = prepare_frames(torch.rand(5, 3, 8, 14), prior, torch.eye(4).expand(5, 4, 4),
+                          torch.tensor([10.0, 10.0, 7.0, 4.0]), features, 0.5, "cpu", feature_channels=2)
     assert data.features.maps.shape[1] == 2
     assert torch.allclose(data.features.maps, features[:, [1, 5]])

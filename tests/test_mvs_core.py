@@ -7,9 +7,17 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from mvs_core import MvsConfig, consistent_views, patch_statistics, refine_depth, select_sources, select_winner, sweep_cost
+from mvs_core import (
+    MvsConfig,
+    consistent_views,
+    patch_statistics,
+    refine_depth,
+    select_sources,
+    select_winner,
+    sweep_cost,
+)
 
-from conftest import look_at, render_wall
+from helpers import look_at, render_wall
 
 H, W = 96, 128
 INTR = (100.0, 100.0, 63.5, 47.5)

@@ -20,7 +20,8 @@ def _relative_errors(poses: np.ndarray, truth: np.ndarray, gap: int = 3) -> tupl
     """Median rotation (degrees) and translation (m) error of the motion between frames `gap` apart."""
     rel = np.linalg.inv(poses[:-gap]) @ poses[gap:]
     rel_t = np.linalg.inv(truth[:-gap]) @ truth[gap:]
-    return float(np.median(_angle_deg(rel, rel_t))), float(np.median(np.linalg.norm(rel[:, :3, 3] - rel_t[:, :3, 3], axis=1)))
+    angle = float(np.median(_angle_deg(rel, rel_t)))
+    return angle, float(np.median(np.linalg.norm(rel[:, :3, 3] - rel_t[:, :3, 3], axis=1)))
 
 
 @pytest.fixture(scope="module")

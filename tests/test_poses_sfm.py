@@ -1,35 +1,24 @@
-"""The pycolmap SfM fallback on the synthetic room: accuracy, metric scale from the prior,
-dense registration of the frames COLMAP did not see, the lens' radial term, keyframes by
-motion, loop pairs by image similarity, and the check that refuses a partial model."""
+"""The pycolmap SfM fallback (recon.poses.sfm) on the synthetic room (conftest: sfm_room):
+accuracy, metric scale from the prior, dense registration of the frames COLMAP did not see,
+the lens' radial term, keyframes by motion, and the check that refuses a partial model."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 
 from recon.eval.trajectory import ate_rmse, path_length, scale_error
 from recon.lens import distort_images
-from recon.poses import TrackingLostError, estimate_poses
+from recon.poses import TrackingLostError, estimate_poses, sfm
 from recon.poses import flow as fl
-from recon.poses import sfm
-from recon.poses import sfm_keyframes as skf
 from recon.poses.frontend_config import make_geometry
 from recon.poses.result import FRAME_STATES, TRUSTED_STATES
-from recon.synthetic import render_sequence, simulate_prior
 
 pytest.importorskip("pycolmap")
 
 
-@pytest.fixture(scope="module")
-def room():
-    """30 frames of the synthetic room (320x240) and a simulated prior."""
-    seq = render_sequence(30, 320, 240, seed=0)
-    return seq, simulate_prior(seq.depth, seed=1)
-
-
-def test_sfm_synthetic_accuracy_and_metric_scale(room):
-    seq, prior = room
+def test_sfm_synthetic_accuracy_and_metric_scale(sfm_room):
+    seq, prior = sfm_room
     res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
                          num_threads=1)
     assert res.poses.shape == (30, 4, 4) and np.isfinite(res.poses).all()
@@ -52,10 +41,10 @@ def test_sfm_synthetic_accuracy_and_metric_scale(room):
     assert abs(d["lens_k1"]) < 0.01  # a pinhole camera
 
 
-def test_sfm_estimates_the_lens_radial_term(room):
+def test_sfm_estimates_the_lens_radial_term(sfm_room):
     """The room filmed through a barrel lens (k1 = -0.1): COLMAP's SIMPLE_RADIAL camera finds
     it, and the frames it did not see are registered through it."""
-    seq, prior = room
+    seq, prior = sfm_room
     rgb = distort_images(seq.rgb, seq.intrinsics, -0.1)
     depth = distort_images(prior, seq.intrinsics, -0.1, nearest=True)
     res = estimate_poses(rgb, depth, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
@@ -71,11 +60,11 @@ def _grays(rgb: np.ndarray) -> tuple[list[np.ndarray], float]:
     return [fl.prepare_gray(f, geo.flow_size) for f in rgb], geo.px_scale
 
 
-def test_keyframes_follow_the_motion(room):
+def test_keyframes_follow_the_motion(sfm_room):
     """The room moves ~4 px per frame (at 640 px width): at stride 1 about every 5th frame is
     a keyframe, in every 5th frame (~20 px per step) nearly all; max_keyframes caps the
     count, and a cut (unrelated frames) puts keyframes on both sides of it."""
-    seq, _ = room
+    seq, _ = sfm_room
     cfg = sfm.SfMConfig(keyframe_motion=16.0)
     dense, spacing = sfm.choose_keyframes(*_grays(seq.rgb), cfg)
     assert spacing == 16.0 and dense[0] == 0 and dense[-1] == 29 and 5 <= len(dense) <= 9
@@ -88,49 +77,12 @@ def test_keyframes_follow_the_motion(room):
     assert {11, 12, 13, 14} <= set(cut)
 
 
-def test_loop_pairs_find_where_the_path_comes_back(room):
-    """Out along the room and back: the proposed loop pairs (beyond the sequential window)
-    join views of the same place (frames 0-28 all overlap a little, so some pairs are
-    looser), and every frame on the way back is paired with its outward twin or a
-    neighbour of it."""
-    seq, _ = room
-    order = list(range(0, 30, 2)) + list(range(28, -1, -2))  # 30 keyframes, revisiting in reverse
-    sift = cv2.SIFT_create(1024)
-    desc = [sift.detectAndCompute(cv2.cvtColor(seq.rgb[i], cv2.COLOR_RGB2GRAY), None)[1] for i in order]
-    pairs = skf.loop_pairs(skf.bow_vectors([np.clip(d, 0, 255).astype(np.uint8) for d in desc], 256),
-                           skf.sequential_gaps(3), 2)
-    assert skf.sequential_gaps(3) == {1, 2, 3, 4}
-    assert pairs and all(b - a > 4 for a, b in pairs)
-    gaps = np.array([abs(order[a] - order[b]) for a, b in pairs])
-    assert np.median(gaps) <= 2 and gaps.max() <= 12, gaps  # random pairs: median ~10 frames apart
-    for b in range(18, 30):  # the way back, beyond the sequential window of the turn
-        assert any(abs(order[a] - order[b]) <= 2 for a, c in pairs if c == b), order[b]
-
-
-def test_dense_registration_reaches_one_keyframe_beyond_the_model():
-    # Keyframes 0, 3, 6, 9; only 0 and 3 in the model: frames up to the next chosen
-    # keyframe (6) may be registered densely, frames 7-8 (between two keyframes COLMAP
-    # could not place) are not even tried.
-    assert skf.dense_candidates(10, [0, 3, 6, 9], {0, 3}) == [1, 2, 4, 5, 6]
-    assert skf.dense_candidates(7, [0, 3, 6], {3}) == [0, 1, 2, 4, 5, 6]
-
-
-def test_registration_error_names_the_unregistered_range():
-    status = ["keyframe", "tracked"] * 5 + ["interpolated"] * 4 + ["keyframe", "tracked", "interpolated", "keyframe"]
-    err = skf.registration_error(status, 7, 0.8)
-    assert isinstance(err, TrackingLostError) and err.frame == 10
-    assert str(err) == ("SfM registered only 13 of 18 frames (7 of 7 keyframes in COLMAP's model, 6 densely; need "
-                        "80%): frames 10-13 and 1 shorter range(s) could not be registered")
-    assert skf.registration_error(status, 7, 0.7) is None
-    assert skf.unregistered_ranges(np.array([s in TRUSTED_STATES for s in status])) == [(10, 13), (16, 16)]
-
-
-def test_sfm_refuses_a_partial_model(room, monkeypatch):
+def test_sfm_refuses_a_partial_model(sfm_room, monkeypatch):
     """The room followed by frames of noise: COLMAP registers the room only. With a lenient
     gate the noise frames are marked "interpolated" (their flow to the last room keyframe
     fails), not padded out as registered; with the default gate (80 %) the same COLMAP
     result fails, naming the noise frames."""
-    seq, prior = room
+    seq, prior = sfm_room
     # The whole room (24 of its frames left COLMAP without a good initial pair) and one thread:
     # COLMAP's multi-threaded mapper does not give the same model twice.
     noise = np.random.default_rng(1).integers(0, 256, (12, 240, 320, 3), dtype=np.uint8)

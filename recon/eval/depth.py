@@ -107,7 +107,8 @@ def multiview_inconsistency(
     if pairs.numel() == 0:
         return float("nan")
     placeholder = torch.zeros((num, 1, height, width))
-    data = prepare_frames(placeholder, depth, torch.as_tensor(poses), torch.as_tensor(intrinsics), None, image_scale, "cpu")
+    data = prepare_frames(placeholder, depth, torch.as_tensor(poses), torch.as_tensor(intrinsics), None, image_scale,
+                          "cpu")
     i_to_j, j_to_i = pair_transforms(data.poses, pairs)
     zeros = torch.zeros((num, 2, 2))
     scores = []

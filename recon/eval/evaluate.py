@@ -1,7 +1,7 @@
 """`recon eval`: score an output folder of `recon run` against a dataset's ground truth.
 
-This module owns reading an output folder back (depth maps, trajectory, mesh, which source
-frames they belong to) and the three evaluations, each built from the metric modules:
+This module owns the three evaluations, each built from the metric modules, of an output
+folder read back by :func:`recon.io.output_folder.load_output`:
 
 * depth (DeepVideoMVS protocol, as in the MEDeA paper): ground truth resized to the output
   depth's resolution by nearest neighbour (never blending valid and invalid pixels), pixels
@@ -18,7 +18,6 @@ frames they belong to) and the three evaluations, each built from the metric mod
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
@@ -31,10 +30,8 @@ from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
 from recon.eval.mesh import DEFAULT_THRESHOLD, mesh_metrics
 from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
-from recon.export.writers import DEPTH_DIR, MESH_PLY, REPORT_JSON, TRAJECTORY, read_depth_png_mm
 from recon.io.datasets import open_dataset
-from recon.io.datasets.base import natural_key
-from recon.poses.formats import read_tum
+from recon.io.output_folder import load_output
 
 
 @dataclass
@@ -52,67 +49,6 @@ class EvalOptions:
     reference_mesh: Path | None = None
     mesh_align: Literal["auto", "none", "se3", "sim3"] = "auto"
     progress: bool = True
-
-
-@dataclass
-class OutputFolderData:
-    """What `recon run` left in a folder: depth (N, H, W) metres, poses (N, 4, 4),
-    source frame indices (N,), the mesh (or None) and the parsed report."""
-
-    path: Path
-    report: dict
-    indices: np.ndarray
-    depth: np.ndarray | None
-    poses: np.ndarray | None
-    mesh: o3d.geometry.TriangleMesh | None
-
-
-def _depth_files(folder: Path, names: list[str] | None) -> list[Path]:
-    if names is not None:
-        files = []
-        for name in names:
-            npy, png = folder / f"{name}.npy", folder / f"{name}.png"
-            if not (npy.exists() or png.exists()):
-                raise ReconInputError(f"{folder}: no depth map for frame {name!r} (neither .npy nor .png)")
-            files.append(npy if npy.exists() else png)
-        return files
-    files = sorted(folder.glob("*.npy"), key=lambda p: natural_key(p.name)) or sorted(
-        folder.glob("*.png"), key=lambda p: natural_key(p.name)
-    )
-    return files
-
-
-def _read_depth(path: Path) -> np.ndarray:
-    return np.load(path).astype(np.float32) if path.suffix == ".npy" else read_depth_png_mm(path)
-
-
-def load_output(path) -> OutputFolderData:
-    """Read an output folder of `recon run` (report.json, depth/, trajectory.txt, mesh.ply)."""
-    path = Path(path)
-    report_path = path / REPORT_JSON
-    if not report_path.is_file():
-        raise ReconInputError(f"{path}: not an output folder of 'recon run' (no {REPORT_JSON})")
-    try:
-        report = json.loads(report_path.read_text())
-        indices = np.asarray(report["frames"]["indices"], dtype=np.int64)
-    except (ValueError, KeyError, TypeError) as error:
-        raise ReconInputError(f"{report_path}: unreadable report ({error})") from None
-    depth = None
-    depth_dir = path / DEPTH_DIR
-    if depth_dir.is_dir():
-        files = _depth_files(depth_dir, report["frames"].get("names"))
-        if len(files) != len(indices):
-            raise ReconInputError(f"{depth_dir}: {len(files)} depth maps for {len(indices)} frames in {report_path.name}")
-        depth = np.stack([_read_depth(f) for f in files]) if files else None
-    poses = None
-    if (path / TRAJECTORY).is_file():
-        poses = read_tum(path / TRAJECTORY).poses
-        if len(poses) != len(indices):
-            raise ReconInputError(f"{path / TRAJECTORY}: {len(poses)} poses for {len(indices)} frames in {report_path.name}")
-    mesh = None
-    if (path / MESH_PLY).is_file():
-        mesh = o3d.io.read_triangle_mesh(str(path / MESH_PLY))
-    return OutputFolderData(path, report, indices, depth, poses, mesh)
 
 
 def _gt_depth_at(gt: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -136,7 +72,8 @@ def evaluate_depth(depth: np.ndarray, gt_depth: np.ndarray, options: EvalOptions
 def evaluate_trajectory(poses: np.ndarray, gt_poses: np.ndarray) -> dict:
     """ATE (SE(3), Sim(3)), RPE and scale error of camera-to-world poses against gt."""
     keep = ("rmse", "mean", "median", "max", "scale", "n")
-    out = {f"ate_{mode}": {k: v for k, v in ate_rmse(poses, gt_poses, mode).items() if k in keep} for mode in ("se3", "sim3")}
+    out = {f"ate_{mode}": {k: v for k, v in ate_rmse(poses, gt_poses, mode).items() if k in keep}
+           for mode in ("se3", "sim3")}
     out["rpe"] = {k: v for k, v in rpe(poses, gt_poses).items() if not isinstance(v, np.ndarray)}
     out["scale_error"] = scale_error(poses, gt_poses)
     return out
@@ -151,7 +88,9 @@ def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, 
     from recon.fusion import FusionOptions, fuse
 
     if not dataset.has_depth or not dataset.has_poses:
-        raise ReconInputError(f"{dataset.root}: needs sensor depth and poses for a reference mesh (or pass --reference-mesh)")
+        raise ReconInputError(
+            f"{dataset.root}: needs sensor depth and poses for a reference mesh (or pass --reference-mesh)"
+        )
     if depth is None:
         depth = dataset.load_depth_batch(indices)
     options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress)
@@ -172,8 +111,10 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
             f"{out.path}: frame indices up to {int(out.indices.max())} do not fit {gt_path} ({len(dataset)} frames); "
             "was the output made from this dataset?"
         )
-    result: dict = {"output": str(out.path), "dataset": {"path": str(gt_path), "kind": dataset.kind, "frames": len(dataset)},
-                    "frames": int(len(out.indices)), "options": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(options).items()}}
+    result: dict = {"output": str(out.path),
+                    "dataset": {"path": str(gt_path), "kind": dataset.kind, "frames": len(dataset)},
+                    "frames": int(len(out.indices)),
+                    "options": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(options).items()}}
     gt_depth = dataset.load_depth_batch(out.indices) if dataset.has_depth and out.depth is not None else None
     if gt_depth is not None:
         result["depth"] = evaluate_depth(out.depth, gt_depth, options)
@@ -211,14 +152,15 @@ def format_evaluation(result: dict) -> str:
             lines.append(f"| {setting} | " + " | ".join(f"{metrics[n]:.4f}" for n in names) + " |")
     if "trajectory" in result:
         t = result["trajectory"]
-        lines += ["", "| trajectory | ATE SE(3) rmse [m] | ATE Sim(3) rmse [m] | Sim(3) scale | RPE trans rmse [m] | RPE rot rmse [deg] |",
+        lines += ["", "| trajectory | ATE SE(3) rmse [m] | ATE Sim(3) rmse [m] | Sim(3) scale | RPE trans rmse [m] "
+                      "| RPE rot rmse [deg] |",
                   "|---|---|---|---|---|---|",
                   f"| | {t['ate_se3']['rmse']:.4f} | {t['ate_sim3']['rmse']:.4f} | {t['ate_sim3']['scale']:.4f} | "
                   f"{t['rpe']['trans_rmse']:.4f} | {t['rpe']['rot_rmse_deg']:.3f} |"]
     if "mesh" in result:
         m = result["mesh"]
-        lines += ["", f"| mesh (align {result.get('mesh_align', 'none')}) | accuracy [m] | completeness [m] | chamfer [m] | "
-                  f"precision | recall | F-score@{m['threshold'] * 100:.0f}cm |",
+        lines += ["", f"| mesh (align {result.get('mesh_align', 'none')}) | accuracy [m] | completeness [m] "
+                      f"| chamfer [m] | precision | recall | F-score@{m['threshold'] * 100:.0f}cm |",
                   "|---|---|---|---|---|---|---|",
                   f"| | {m['accuracy']:.4f} | {m['completeness']:.4f} | {m['chamfer']:.4f} | {m['precision']:.4f} | "
                   f"{m['recall']:.4f} | {m['fscore']:.4f} |"]

@@ -170,7 +170,8 @@ def point_metrics(pred_points: np.ndarray, gt_points: np.ndarray, threshold: flo
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     acc, comp = float(d_pred.mean()), float(d_gt.mean())
     return MeshMetrics(
-        acc, comp, (acc + comp) / 2, precision, recall, float(fscore), float(threshold), len(pred_points), len(gt_points)
+        acc, comp, (acc + comp) / 2, precision, recall, float(fscore), float(threshold), len(pred_points),
+        len(gt_points),
     )
 
 

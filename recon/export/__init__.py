@@ -1,14 +1,10 @@
-"""Writing results atomically into an output folder: meshes (PLY, GLB in glTF axes),
-TUM trajectory, intrinsics JSON, depth maps (16-bit PNG mm + float32 .npy), report
-(`writers`)."""
+"""Writing results into an output folder: meshes (PLY, GLB in glTF axes), TUM trajectory,
+intrinsics JSON, depth maps (16-bit PNG mm + float32 .npy), report (`writers`). The
+folder's layout and atomic writing are :mod:`recon.io.output_folder`'s."""
 
 from .writers import (
-    OutputFolder,
-    atomic_path,
-    atomic_write_bytes,
     export_reconstruction,
     glb_bytes,
-    read_depth_png_mm,
     to_gltf_axes,
     write_depth_frame,
     write_depth_maps,
@@ -20,12 +16,8 @@ from .writers import (
 )
 
 __all__ = [
-    "OutputFolder",
-    "atomic_path",
-    "atomic_write_bytes",
     "export_reconstruction",
     "glb_bytes",
-    "read_depth_png_mm",
     "to_gltf_axes",
     "write_depth_frame",
     "write_depth_maps",

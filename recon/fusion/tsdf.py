@@ -115,7 +115,9 @@ class FusionOptions:
         if self.min_confidence is not None and not (0 <= self.min_confidence <= 1):
             raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
-            raise ReconInputError("fusion options min_fragment_triangles must be >= 0 and min_fragment_fraction in [0, 1]")
+            raise ReconInputError(
+                "fusion options min_fragment_triangles must be >= 0 and min_fragment_fraction in [0, 1]"
+            )
 
 
 @dataclass
@@ -275,7 +277,8 @@ def estimate_block_count(
 
 
 def fit_to_budget(
-    depth, poses, intrinsics, voxel_size: float, trunc: float, max_depth: float, block_resolution: int, budget: int, frames
+    depth, poses, intrinsics, voxel_size: float, trunc: float, max_depth: float, block_resolution: int, budget: int,
+    frames,
 ) -> tuple[float, float, int]:
     """(voxel_size, trunc, estimated blocks), the voxel grown until the estimate fits `budget`."""
     estimate = estimate_block_count(depth, poses, intrinsics, voxel_size, trunc, max_depth, block_resolution, frames)
@@ -289,7 +292,8 @@ def fit_to_budget(
             estimate, voxel_size * 1e3, budget, voxel_size * factor * 1e3,
         )
         voxel_size, trunc = voxel_size * factor, trunc * factor
-        estimate = estimate_block_count(depth, poses, intrinsics, voxel_size, trunc, max_depth, block_resolution, frames)
+        estimate = estimate_block_count(depth, poses, intrinsics, voxel_size, trunc, max_depth, block_resolution,
+                                        frames)
     return voxel_size, trunc, estimate
 
 
@@ -476,7 +480,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         log.warning(
             "TSDF fusion: the mesh is empty (%d frames fused, weight_threshold %g)", fused, options.weight_threshold
         )
-    cloud = _extract(lambda: vbg.extract_point_cloud(threshold), o3d.geometry.PointCloud) if options.point_cloud else None
+    cloud = (_extract(lambda: vbg.extract_point_cloud(threshold), o3d.geometry.PointCloud)
+             if options.point_cloud else None)
     return FusionResult(
         mesh=mesh,
         point_cloud=cloud,

@@ -1,11 +1,13 @@
-"""Video files as a streaming frame source (anything OpenCV's FFmpeg backend decodes).
+"""Video files: a streaming frame source (anything OpenCV's FFmpeg backend decodes) and
+writing frames to an mp4.
 
 This module owns :class:`VideoSource`: opening a video with OpenCV, honouring the rotation
 stored in its metadata (phones record portrait video as landscape pixels plus a display
 matrix), frame timestamps, the time range / stride / max-frames selection and the frame
 count estimate. Frames are decoded one at a time, so a long video never sits in memory.
-The common interface, image folders, datasets and :func:`~recon.io.frames.open_source`
-live in :mod:`recon.io.frames`.
+It also owns :func:`write_video`. The common interface is in :mod:`recon.io.source`;
+image folders, datasets and :func:`~recon.io.frames.open_source` are in
+:mod:`recon.io.frames`.
 
 Selection rule (shared with the other sources): frames whose timestamp t satisfies
 ``start_time <= t < end_time`` (seconds from the first frame), then every ``stride``-th of
@@ -16,6 +18,7 @@ frame's position in the whole video (0-based), so outputs can be traced back to 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Iterator
 
@@ -23,10 +26,11 @@ import cv2
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.io.source import Frame, FrameSource, Selection, resize_rgb, size_at_width, wxh
 
-from .frames import Frame, FrameSource, Selection, resize_rgb, working_size
-
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".3gp", ".mts", ".ts")
+VIDEO_SUFFIXES = (
+    ".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".3gp", ".mts", ".ts",
+)
 DEFAULT_FPS = 30.0  # assumed when the container reports no usable frame rate
 
 # Display rotation (degrees, as OpenCV reports CAP_PROP_ORIENTATION_META) -> cv2.rotate code,
@@ -105,8 +109,8 @@ class VideoSource(FrameSource):
         if not ok or frame is None:
             raise ReconInputError(f"{self.path}: video contains no decodable frames")
         frame = self._orient(frame)
-        self.native_size = (frame.shape[1], frame.shape[0])
-        self._size = working_size(self.native_size, width, self.path)
+        self.native_shape = frame.shape[:2]
+        self._shape = size_at_width(*self.native_shape, width, self.path)
 
     # ------------------------------------------------------------------ facts
 
@@ -131,8 +135,8 @@ class VideoSource(FrameSource):
         rot = f", rotated {self.rotation} deg" if self.rotation else ""
         fps = f"{self._fps:g} fps" if self.fps_known else f"{self._fps:g} fps (assumed)"
         return (
-            f"video {self.path} ({self.native_size[0]}x{self.native_size[1]}{rot}, {fps}, "
-            f"~{self.frame_count_meta} frames) -> {self.size[0]}x{self.size[1]}, {self.selection.describe()}"
+            f"video {self.path} ({wxh(self.native_shape)}{rot}, {fps}, "
+            f"~{self.frame_count_meta} frames) -> {wxh(self.shape)}, {self.selection.describe()}"
         )
 
     # ------------------------------------------------------------------ decoding
@@ -178,13 +182,13 @@ class VideoSource(FrameSource):
                 if not ok or bgr is None:
                     raise ReconInputError(f"{self.path}: cannot decode frame {index} (corrupt video?)")
                 bgr = self._orient(bgr)
-                if (bgr.shape[1], bgr.shape[0]) != self.native_size:
+                if bgr.shape[:2] != self.native_shape:
                     raise ReconInputError(
                         f"{self.path}: frame {index} is {bgr.shape[1]}x{bgr.shape[0]}, "
-                        f"expected {self.native_size[0]}x{self.native_size[1]} like the first frame"
+                        f"expected {wxh(self.native_shape)} like the first frame"
                     )
                 rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                yield Frame(index, t, resize_rgb(rgb, self._size))
+                yield Frame(index, t, resize_rgb(rgb, self._shape))
         finally:
             cap.release()
 
@@ -206,3 +210,32 @@ def is_video_file(path) -> bool:
     """True when `path` is a file with a common video suffix (OpenCV may decode others too)."""
     path = Path(path)
     return path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES
+
+
+def write_video(rgb, path, fps: float = 30.0) -> Path:
+    """Write frames (N, H, W, 3) uint8 RGB to an mp4 (mp4v) at `path`; returns the path.
+
+    Writes to a temporary name next to `path` and renames, so a reader never sees a
+    half-written file.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.shape[0] < 1:
+        raise ReconInputError(f"write_video: frames must be (N, H, W, 3) with N >= 1, got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise ReconInputError(f"write_video: frames must be uint8, got {rgb.dtype}")
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise ReconInputError(f"write_video: directory {path.parent} does not exist")
+    # The temporary name keeps the suffix: OpenCV picks the container from it.
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix or '.mp4'}")
+    height, width = rgb.shape[1:3]
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
+    if not writer.isOpened():
+        raise ReconInputError(f"write_video: OpenCV cannot open {path} for writing (mp4v)")
+    try:
+        for frame in rgb:
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    os.replace(tmp, path)
+    return path

@@ -88,7 +88,9 @@ class Edges:
         if k1 == 0.0:
             return self
         if self.source is not None:
-            raise ValueError("these edges are already in a pinhole image; undistorting them again would bend them twice")
+            raise ValueError(
+                "these edges are already in a pinhole image; undistorting them again would bend them twice"
+            )
         height, width = self.target.shape[1:3]
         grid = pj.pixel_grid(height, width, dtype=self.target.dtype)
         intr = intr.to(self.target.dtype)

@@ -13,9 +13,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from recon.poses import ba
+from recon.poses import ba, lie
 from recon.poses import flow as fl
-from recon.poses import lie
 from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig
 from recon.poses.track_state import TrackState

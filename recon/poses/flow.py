@@ -24,7 +24,6 @@ import torch
 import torch.nn.functional as F
 
 
-
 @dataclass
 class FlowConfig:
     """DIS settings and the confidence model.

@@ -94,8 +94,8 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
         for k in range(1, len(kfs)):
             sel = (edges.ii == k - 1) & (edges.jj == k)
             e = edges.select(sel)
-            Tk, _, _ = ba.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr, torch.zeros(1, dtype=torch.int64),
-                                       e.target, e.weight)
+            Tk, _, _ = ba.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
+                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight)
             T[k] = Tk[0]
         T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)
         return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts)

@@ -22,8 +22,7 @@ import cv2
 import numpy as np
 import torch
 
-from recon.poses import ba
-from recon.poses import lie
+from recon.poses import ba, lie
 from recon.poses import projective as pj
 
 
@@ -140,7 +139,8 @@ def induced_flow(
     X = pj.backproject(uv, sub.double(), intr).reshape(1, -1, 4).expand(len(others), -1, -1)
     Tij = T_cw[others] @ lie.inv(T_cw[k : k + 1])
     proj, valid = pj.project(pj.transform(Tij, X), intr)
-    inside = valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5) & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5)
+    inside = (valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5)
+              & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5))
     move = (proj - uv.reshape(1, -1, 2)).norm(dim=-1)
     frac = inside.double().mean(1)
     dist = torch.where(inside, move, torch.zeros_like(move)).sum(1) / inside.sum(1).clamp(min=1)

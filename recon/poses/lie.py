@@ -65,7 +65,8 @@ def so3_log(rot: torch.Tensor) -> torch.Tensor:
     )
     sin = torch.sin(theta)
     small = theta < _SMALL_ANGLE
-    scale = torch.where(small, 0.5 + theta * theta / 12.0, theta / (2.0 * torch.where(small, torch.ones_like(sin), sin)))
+    scale = torch.where(small, 0.5 + theta * theta / 12.0,
+                        theta / (2.0 * torch.where(small, torch.ones_like(sin), sin)))
     w = vee * scale[..., None]
     # Near pi, sin -> 0 and the antisymmetric part vanishes: take the axis from R + I.
     near_pi = theta > np.pi - 1e-3

@@ -36,7 +36,8 @@ from .result import invert_poses, pool_depth
 
 @dataclass
 class PolishConfig:
-    """Settings of :func:`polish_poses`.
+    """Settings of :func:`polish_poses`. How the defaults were chosen (7-Scenes, TUM, the
+    synthetic room): docs/benchmarks.md, "Pose settings: how the defaults were chosen".
 
     ba_stride: BA grid = frame size / ba_stride (flow runs at twice that resolution).
     temporal: each frame is linked to this many following frames.
@@ -45,21 +46,17 @@ class PolishConfig:
         refinement will match.
     pose_weight: strength of the tie to the given poses: moving a pose so that its pixels
         shift by one BA pixel costs pose_weight times as much as all its flow being off by
-        one pixel (so the tie does not depend on how many edges a frame has). 1e-4 on
-        7-Scenes: 1e-3 and 1e-2 kept the colour frames' disagreement (mesh F-score of the
-        refined depth 0.32 / 0.34 against 0.42).
+        one pixel (so the tie does not depend on how many edges a frame has); weak, so
+        that the flow decides relative motion.
     prior_weight: tie of the BA depth to the depth prior (``ba.BAOptions``).
     iters: Levenberg-Marquardt iterations of the joint BA.
     depth_iters, min_gain: first the BA's depth alone is fitted under the given poses
         (depth_iters iterations); the polished poses are kept only when the joint BA lowers
-        that cost at least min_gain times. Polishing is limited by the flow (DIS at 1/4
-        resolution: ~0.1 degree of rotation noise), so poses that already agree with the
-        frames (a rendered sequence, a good SfM model) are left exactly as given; on the
-        synthetic room polishing them anyway lowered MEDeA's mesh F-score from 0.89 to 0.60.
-    calibrate_lens: estimate the lens' radial term k1 as well. TUM fr1's colour camera
-        has a strong one (published k1 0.26, never applied to the frames): with it MEDeA's
-        mesh F-score on polished poses was 0.13, without it 0.03; on 7-Scenes it changed
-        the refined mesh's F-score by 0.01.
+        that cost at least min_gain times, so poses that already agree with the frames (a
+        rendered sequence, a good SfM model) are left exactly as given: polishing is
+        limited by the flow's own noise.
+    calibrate_lens: estimate the lens' radial term k1 as well.
+    flow: the DIS flow settings.
     """
 
     ba_stride: int = 8
@@ -157,9 +154,10 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     moved = np.linalg.norm(out[good, :3, 3] - poses[good, :3, 3], axis=1)
     turned = lie.so3_log(torch.from_numpy(out[good, :3, :3] @ np.transpose(poses[good, :3, :3], (0, 2, 1))))
     info = {
-        "polished": bool(accepted), "cost_gain": float(gain), "pairs": len(pairs), "edges": len(edges), "ba_rmse_px": report.rmse,
-        "ba_inlier_fraction": report.inlier_fraction, "ba_cost": [report.costs[0], report.costs[-1]],
-        "lens_k1": report.k1 if accepted else 0.0, "median_move_m": float(np.median(moved)), "max_move_m": float(moved.max()),
+        "polished": bool(accepted), "cost_gain": float(gain), "pairs": len(pairs), "edges": len(edges),
+        "ba_rmse_px": report.rmse, "ba_inlier_fraction": report.inlier_fraction,
+        "ba_cost": [report.costs[0], report.costs[-1]], "lens_k1": report.k1 if accepted else 0.0,
+        "median_move_m": float(np.median(moved)), "max_move_m": float(moved.max()),
         "median_turn_deg": float(np.degrees(np.median(turned.norm(dim=-1).numpy()))),
         "seconds": time.perf_counter() - t0, "config": cfg.to_dict(),
     }

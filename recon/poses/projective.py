@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import torch
 
+from medea_core import geometry
+from recon.camera import scale_intrinsics  # noqa: F401  (front-end modules call pj.scale_intrinsics)
 from recon.poses import lie
 
 # Points closer than this (metres, in the target camera) count as behind it: their
@@ -27,23 +29,10 @@ from recon.poses import lie
 MIN_DEPTH = 0.05
 
 
-def scale_intrinsics(intrinsics, sx: float, sy: float | None = None) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) of an image resized by sx horizontally and sy (default sx) vertically.
-
-    Pixel centres are at integer coordinates, so the principal point maps as
-    ``c' = (c + 0.5) * s - 0.5`` (exact for area resizing and pooling).
-    """
-    sy = sx if sy is None else sy
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    return (fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5)
-
-
-def pixel_grid(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Pixel coordinates (H, W, 2) = (u, v) of every pixel centre."""
-    v, u = torch.meshgrid(
-        torch.arange(height, dtype=dtype, device=device), torch.arange(width, dtype=dtype, device=device), indexing="ij"
-    )
-    return torch.stack([u, v], -1)
+def pixel_grid(height: int, width: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Pixel coordinates (H, W, 2) = (u, v) of every pixel centre: medea_core's grid, in
+    float64 unless told otherwise (the front end's BA works in double precision)."""
+    return geometry.pixel_grid(height, width, dtype=dtype, device=device)
 
 
 def backproject(uv: torch.Tensor, disp: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:

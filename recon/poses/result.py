@@ -92,7 +92,8 @@ def check_frame(frame, index: int, shape: tuple[int, int] | None) -> np.ndarray:
         raise ReconInputError(f"frame {index}: expected uint8 pixels, got {frame.dtype}")
     if shape is not None and frame.shape[:2] != shape:
         raise ReconInputError(
-            f"frame {index}: size {frame.shape[1]}x{frame.shape[0]} differs from the first frame's {shape[1]}x{shape[0]}"
+            f"frame {index}: size {frame.shape[1]}x{frame.shape[0]} "
+            f"differs from the first frame's {shape[1]}x{shape[0]}"
         )
     if min(frame.shape[:2]) < 16:
         raise ReconInputError(f"frame {index}: {frame.shape[1]}x{frame.shape[0]} is too small to track")
@@ -104,7 +105,9 @@ def iterate_frames(frames) -> Iterator[tuple[int, np.ndarray]]:
     if isinstance(frames, np.ndarray) and frames.ndim != 4:
         raise ReconInputError(f"frames must be (N, H, W, 3) uint8, got shape {frames.shape}")
     if not isinstance(frames, (np.ndarray, Iterable)):
-        raise ReconInputError(f"frames must be an (N, H, W, 3) array or an iterable of frames, got {type(frames).__name__}")
+        raise ReconInputError(
+            f"frames must be an (N, H, W, 3) array or an iterable of frames, got {type(frames).__name__}"
+        )
     shape = None
     for i, frame in enumerate(frames):
         frame = check_frame(frame, i, shape)
@@ -135,7 +138,9 @@ class PriorSource:
             if not isinstance(prior, np.ndarray) and hasattr(prior, "__len__"):
                 prior = np.asarray(prior)
             if getattr(prior, "ndim", 0) != 3:
-                raise ReconInputError(f"prior depth must be (N, H, W) metres, got shape {getattr(prior, 'shape', None)}")
+                raise ReconInputError(
+                    f"prior depth must be (N, H, W) metres, got shape {getattr(prior, 'shape', None)}"
+                )
         self.prior = prior
 
     def __len__(self) -> int:

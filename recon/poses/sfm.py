@@ -56,11 +56,13 @@ from recon.poses.result import (
 log = logging.getLogger(__name__)
 
 LOOP_MATCHING = ("retrieval", "exhaustive", "none")
+MAPPERS = ("incremental", "global")
 
 
 @dataclass
 class SfMConfig:
-    """SfM fallback settings.
+    """SfM fallback settings. How the defaults were chosen: docs/benchmarks.md, "Pose
+    settings: how the defaults were chosen".
 
     max_keyframes: at most this many frames go to COLMAP, which bounds the time; the rest
         are registered densely.
@@ -68,9 +70,7 @@ class SfMConfig:
         DIS flow (pixels as if the frames were 640 px wide, confidence-weighted) summed
         over the frames since the last keyframe reaches this, and both frames of a step
         the flow cannot follow do (``sfm_keyframes.select_keyframes``). Raised as needed
-        to respect max_keyframes. 7-Scenes moves ~4.3 px per frame: 91 keyframes of 400
-        (the fixed stride gave 101: same ATE, 0.248 -> 0.228 s per frame), 33 of every
-        12th frame's 34; TUM fr1/rpy (fast rotation) 88 of 100, 33 of every 3rd frame's 34.
+        to respect max_keyframes.
     keyframe_stride: every k-th frame (and the last) instead of the motion selection
         (None: by motion).
     max_num_features: SIFT features per image.
@@ -79,17 +79,13 @@ class SfMConfig:
         "retrieval" (each keyframe with its `loop_candidates` most similar keyframes
         beyond the sequential window, by a bag of `loop_words` visual words over their
         SIFT descriptors: ``sfm_keyframes.loop_pairs``), "exhaustive" (every pair; the
-        matching time grows with the square of the keyframe count) or "none". Cost on
-        every 12th 7-Scenes frame (33 keyframes): sequential matching 3.0 s, retrieval
-        +2.9 s (124 pairs, 34 verified), exhaustive 7.4 s in all, same ATE; on all 400
-        frames retrieval adds 6.6 s (7 %). Without the loop pairs every 3rd TUM fr1/rpy
-        frame registered 27 of 34 frames (below min_registered), with them all 34.
+        matching time grows with the square of the keyframe count) or "none".
     loop_candidates: retrieval pairs per keyframe (each verified by COLMAP like any pair).
     loop_words: size of the visual vocabulary learnt on the keyframes (k-means).
     vocab_tree_path: a COLMAP vocabulary tree file enabling COLMAP's own loop detection in
         sequential matching (none by default: pycolmap would download one, and nothing may
         be downloaded at run time).
-    mapper: "incremental" (COLMAP) or "global" (GLOMAP).
+    mapper: "incremental" (COLMAP) or "global" (GLOMAP) (``MAPPERS``).
     min_registered: fraction of all frames that must be registered, in COLMAP's model
         ("keyframe") or densely next to a keyframe in it ("tracked"); else SfM fails,
         naming the longest range of frames it could not register.
@@ -291,8 +287,8 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     cfg = config or SfMConfig()
     if cfg.loop_matching not in LOOP_MATCHING:
         raise ReconInputError(f"SfM loop_matching must be one of {', '.join(LOOP_MATCHING)}, got {cfg.loop_matching!r}")
-    if cfg.mapper not in ("incremental", "global"):
-        raise ReconInputError(f"SfM mapper must be 'incremental' or 'global', got {cfg.mapper!r}")
+    if cfg.mapper not in MAPPERS:
+        raise ReconInputError(f"SfM mapper must be one of {', '.join(MAPPERS)}, got {cfg.mapper!r}")
     t0 = time.perf_counter()
     frames_list = [f for _, f in iterate_frames(frames)]
     n = len(frames_list)
@@ -309,8 +305,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     kf_ids, spacing = choose_keyframes(grays, geo.px_scale, cfg)
     t_select = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="recon-sfm-") as tmp:
-        if progress:
-            print(f"recon: SfM (pycolmap) on {len(kf_ids)} keyframes of {n} frames")
+        log.info("SfM (pycolmap) on %d keyframes of %d frames", len(kf_ids), n)
         rec, stats = _run_colmap(frames_list, kf_ids, intr_in, cfg, Path(tmp))
     stats["seconds"] = {"keyframes": t_select, **stats["seconds"]}
     T_model, intr, k1 = sm.model_poses(rec) if rec is not None else ({}, None, 0.0)

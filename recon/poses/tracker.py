@@ -15,13 +15,9 @@ import logging
 import numpy as np
 import torch
 
-from recon.poses import ba
-from recon.poses import backend
-from recon.poses import features
+from recon.poses import ba, backend, features, lie, motion_filter
 from recon.poses import flow as fl
 from recon.poses import graph as gr
-from recon.poses import lie
-from recon.poses import motion_filter
 from recon.poses.result import TrackingLostError
 from recon.poses.track_state import TrackState
 

@@ -7,10 +7,11 @@ Face depth models, optional ``transformers``). Every prior is called as
 """
 
 from .align import align_affine_disparity, fit_affine_disparity
-from .base import PRIOR_KINDS, DepthPrior, PriorOutput, available_priors, make_prior, register_prior
+from .base import PRIOR_KINDS, DepthPrior, PriorOutput
 from .fastdepth import FEATURE_LAYERS, FastDepthPrior, load_fastdepth
 from .folder import FolderDepthPrior, read_depth_file
 from .hf import HFDepthPrior, model_kind
+from .registry import available_priors, make_prior, register_prior
 from .sensor import SensorDepthPrior
 from .weights import find_weights, weight_roots
 

@@ -83,7 +83,9 @@ def align_affine_disparity(disparity, reference_depth, mask=None, min_points: in
     for k in range(len(disparity)):
         m = usable[k]
         if m.sum() < min_points:
-            raise ValueError(f"align_affine_disparity: frame {k} has {int(m.sum())} reference pixels, need {min_points}")
+            raise ValueError(
+                f"align_affine_disparity: frame {k} has {int(m.sum())} reference pixels, need {min_points}"
+            )
         scale, shift = fit_affine_disparity(disparity[k][m], 1.0 / reference_depth[k][m])
         metric = scale * disparity[k] + shift
         ok = finite[k] & (metric > _MIN_DISPARITY)

@@ -1,4 +1,4 @@
-"""The depth-prior interface shared by every prior, and the factory that builds them.
+"""The depth-prior interface shared by every prior (the factory is :mod:`.registry`).
 
 A prior maps RGB frames ``(N, H, W, 3) uint8`` (and optionally their intrinsics
 ``fx, fy, cx, cy``) to a :class:`PriorOutput`: per-frame depth ``(N, H, W)`` at the input
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -165,45 +164,3 @@ class DepthPrior(ABC):
                 )
         depth = align_affine_disparity(output.depth, reference_depth)
         return replace(output, depth=depth, kind="metric", info={**output.info, "aligned_to": source})
-
-
-# ---------------------------------------------------------------------------- registry
-
-_REGISTRY: dict[str, Callable[..., DepthPrior]] = {}
-
-
-def register_prior(name: str):
-    """Class/function decorator adding a factory under ``name``."""
-
-    def add(factory):
-        _REGISTRY[name] = factory
-        return factory
-
-    return add
-
-
-def available_priors() -> tuple[str, ...]:
-    _import_builtin()
-    return tuple(sorted(_REGISTRY))
-
-
-def _import_builtin() -> None:
-    # Importing the modules registers them; "hf" registers without importing transformers.
-    from . import fastdepth, folder, hf, sensor  # noqa: F401
-
-
-def make_prior(name: str, **options) -> DepthPrior:
-    """Build a prior by name: "fastdepth" (default), "folder", "sensor", "hf".
-
-    ``options`` go to the prior's constructor, e.g. ``make_prior("folder", path="depth/",
-    kind="disparity", align_to="fastdepth")``. A string ``align_to`` names another prior
-    (built with the same device/batch/progress options).
-    """
-    _import_builtin()
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown depth prior {name!r}; choose one of {', '.join(sorted(_REGISTRY))}")
-    align_to = options.get("align_to")
-    if isinstance(align_to, str):
-        shared = {k: options[k] for k in ("device", "batch_size", "progress") if k in options}
-        options["align_to"] = make_prior(align_to, **shared)
-    return _REGISTRY[name](**options)

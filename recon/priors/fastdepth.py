@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import ReconInputError
-from .base import DepthPrior, PriorOutput, register_prior
+from .base import DepthPrior, PriorOutput
 from .tfjs import GraphError, GraphNet, activation_bounds, compile_graph, load_tfjs_graph
 from .weights import find_weights
 
@@ -207,7 +207,6 @@ class _Plan:
     crop: tuple[int, int, int, int] | None
 
 
-@register_prior("fastdepth")
 class FastDepthPrior(DepthPrior):
     """Metric depth from FastDepth, with optional encoder features for MEDeA.
 

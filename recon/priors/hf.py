@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..errors import ReconInputError
-from .base import PRIOR_KINDS, DepthPrior, PriorOutput, register_prior
+from .base import PRIOR_KINDS, DepthPrior, PriorOutput
 from .resample import resize_bilinear
 
 # Architectures whose depth head is trained for metric depth in metres.
@@ -46,7 +46,6 @@ def model_kind(config) -> str:
     return "metric" if getattr(config, "model_type", "") in METRIC_MODEL_TYPES else "affine_disparity"
 
 
-@register_prior("hf")
 class HFDepthPrior(DepthPrior):
     """Depth from a local transformers ``AutoModelForDepthEstimation`` checkpoint.
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ReconInputError
-from .base import DepthPrior, PriorOutput, register_prior
+from .base import DepthPrior, PriorOutput
 from .resample import resize_nearest
 
 
@@ -24,7 +24,6 @@ def clean_depth(depth: np.ndarray, scale: float = 1.0, invalid_values=()) -> np.
     return metres
 
 
-@register_prior("sensor")
 class SensorDepthPrior(DepthPrior):
     """Metric depth from given sensor depth maps.
 

@@ -314,161 +314,211 @@ def compile_graph(graph: TFJSGraph) -> GraphNet:
     Raises:
         GraphError: unsupported op or attribute, or tensor shapes that do not fit together.
     """
-    consts = graph.constants
-    consumers: dict[str, int] = {}
-    for node in graph.nodes:
-        for i in node.inputs:
-            consumers[i] = consumers.get(i, 0) + 1
-    by_name = {n.name: n for n in graph.nodes}
+    return _GraphCompiler(graph).compile()
 
-    slots: dict[str, int] = {}  # tensor name -> slot
-    shapes: dict[int, tuple[int, int, int]] = {}  # slot -> (C, H, W) at the reference size
-    producer: dict[int, _Step] = {}
-    deferred_pad: dict[str, tuple[str, int, int]] = {}  # Pad name -> (input, pad_h, pad_w)
-    steps: list[_Step] = []
-    layers: list[FusedConv2d] = []
-    buffers: list[torch.Tensor] = []
-    tensors: dict[str, TensorInfo] = {}
-    input_slot = None
-    in_h = in_w = None
 
-    def new_slot(name: str, shape: tuple[int, int, int], step: _Step | None) -> int:
-        slot = len(shapes)
-        slots[name] = slot
-        shapes[slot] = shape
+class _GraphCompiler:
+    """The state of one :func:`compile_graph` walk; one handler per supported op type."""
+
+    def __init__(self, graph: TFJSGraph):
+        self.graph = graph
+        self.consts = graph.constants
+        self.consumers: dict[str, int] = {}
+        for node in graph.nodes:
+            for i in node.inputs:
+                self.consumers[i] = self.consumers.get(i, 0) + 1
+        self.slots: dict[str, int] = {}  # tensor name -> slot
+        self.shapes: dict[int, tuple[int, int, int]] = {}  # slot -> (C, H, W) at the reference size
+        self.producer: dict[int, _Step] = {}
+        self.deferred_pad: dict[str, tuple[str, int, int]] = {}  # Pad name -> (input, pad_h, pad_w)
+        self.steps: list[_Step] = []
+        self.layers: list[FusedConv2d] = []
+        self.buffers: list[torch.Tensor] = []
+        self.tensors: dict[str, TensorInfo] = {}
+        self.input_slot = None
+        self.in_h = self.in_w = None
+
+    def compile(self) -> GraphNet:
+        graph = self.graph
+        for order, node in enumerate(graph.nodes):
+            if node.op == "Const":
+                continue
+            handler = _OP_HANDLERS.get(node.op)
+            if handler is None:
+                raise GraphError(f"{node.name}: unsupported op {node.op}")
+            handler(self, node)
+            if node.name in self.slots:
+                c, h, w = self.shapes[self.slots[node.name]]
+                self.tensors[node.name] = TensorInfo(
+                    op=node.op, channels=c, stride=(self.in_h / h, self.in_w / w), order=order
+                )
+
+        outputs = [n.name for n in graph.nodes if n.op != "Const" and self.consumers.get(n.name, 0) == 0]
+        if self.input_slot is None or len(outputs) != 1:
+            raise GraphError(f"expected one input and one output, found outputs {outputs}")
+        output_slot = self.slots[outputs[0]]
+        _set_releases(self.steps, output_slot)
+        multiple = int(round(max(max(t.stride) for t in self.tensors.values())))
+        return GraphNet(self.layers, self.buffers, self.steps, self.input_slot, output_slot, self.slots,
+                        self.tensors, len(self.shapes), multiple)
+
+    def new_slot(self, name: str, shape: tuple[int, int, int], step: _Step | None) -> int:
+        slot = len(self.shapes)
+        self.slots[name] = slot
+        self.shapes[slot] = shape
         if step is not None:
             step.output = slot
-            steps.append(step)
-            producer[slot] = step
+            self.steps.append(step)
+            self.producer[slot] = step
         return slot
 
-    def fusable(tensor: str, kind: str) -> _Step | None:
+    def fusable(self, tensor: str, kind: str) -> _Step | None:
         """The conv step producing ``tensor`` if it can absorb the next op of ``kind``."""
-        slot = slots[tensor]
-        step = producer.get(slot)
-        if step is None or step.kind != "conv" or consumers.get(tensor, 0) != 1:
+        slot = self.slots[tensor]
+        step = self.producer.get(slot)
+        if step is None or step.kind != "conv" or self.consumers.get(tensor, 0) != 1:
             return None
-        layer = layers[step.arg]
+        layer = self.layers[step.arg]
         if kind == "bias" and layer.bias is None and layer.activation == "none":
             return step
         if kind == "act" and layer.activation == "none":
             return step
         return None
 
-    for order, node in enumerate(graph.nodes):
-        op, name = node.op, node.name
-        if op == "Const":
-            continue
-        if op == "Placeholder":
-            if not graph.input_shape or len(graph.input_shape) != 4:
-                raise GraphError(f"input {name} needs a static NHWC shape")
-            _, in_h, in_w, channels = graph.input_shape
-            input_slot = new_slot(name, (channels, in_h, in_w), None)
-        elif op == "Identity":
-            slots[name] = slots[node.inputs[0]]
-        elif op == "Pad":
-            source, pads = node.inputs[0], consts[node.inputs[1]].astype(int)
-            (b0, b1), (top, bottom), (left, right), (c0, c1) = pads
-            if b0 or b1 or c0 or c1:
-                raise GraphError(f"{name}: padding of batch or channel axes is not supported")
-            users = [n for n in graph.nodes if name in n.inputs]
-            if top == bottom and left == right and len(users) == 1 and users[0].op in _CONV_OPS:
-                deferred_pad[name] = (source, int(top), int(left))
-                continue
-            c, h, w = shapes[slots[source]]
-            new_slot(name, (c, h + top + bottom, w + left + right),
-                     _Step("pad", (slots[source],), -1, (int(left), int(right), int(top), int(bottom))))
-        elif op in _CONV_OPS:
-            source, kernel = node.inputs[0], consts[node.inputs[1]]
-            pad_h = pad_w = 0
-            if source in deferred_pad:
-                source, pad_h, pad_w = deferred_pad.pop(source)
-            if _attr_string(node, "data_format", "NHWC") != "NHWC":
-                raise GraphError(f"{name}: only NHWC graphs are supported")
-            if any(d != 1 for d in _attr_ints(node, "dilations") or [1]):
-                raise GraphError(f"{name}: dilated convolutions are not supported")
-            strides = _attr_ints(node, "strides") or [1, 1, 1, 1]
-            stride = (strides[1], strides[2])
-            kh, kw = kernel.shape[:2]
-            padding = _attr_string(node, "padding", "VALID")
-            if padding == "SAME":
-                if stride != (1, 1) or kh % 2 == 0 or kw % 2 == 0 or pad_h or pad_w:
-                    raise GraphError(f"{name}: SAME padding is only supported for odd kernels at stride 1")
-                pad_h, pad_w = kh // 2, kw // 2
-            elif padding != "VALID":
-                raise GraphError(f"{name}: padding {padding} is not supported")
-            c_in, h, w = shapes[slots[source]]
-            if op == "Conv2D":
-                if kernel.shape[2] != c_in:
-                    raise GraphError(f"{name}: kernel {kernel.shape} does not fit {c_in} input channels")
-                c_out, groups = kernel.shape[3], 1
-                weight = kernel.transpose(3, 2, 0, 1)  # HWIO -> OIHW
-            else:
-                if kernel.shape[2] != c_in:
-                    raise GraphError(f"{name}: depthwise kernel {kernel.shape} does not fit {c_in} channels")
-                c_out, groups = kernel.shape[2] * kernel.shape[3], c_in
-                # HWCM -> (C*M, 1, H, W); TF orders output channels c*M + m, as does torch.
-                weight = kernel.transpose(2, 3, 0, 1).reshape(c_out, 1, kh, kw)
-            layer = FusedConv2d(
-                c_in, c_out, (kh, kw), stride=stride, padding=(pad_h, pad_w), groups=groups, bias=False
-            )
-            with torch.no_grad():
-                layer.weight.copy_(torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32)))
-            layers.append(layer)
-            out_h = (h + 2 * pad_h - kh) // stride[0] + 1
-            out_w = (w + 2 * pad_w - kw) // stride[1] + 1
-            new_slot(name, (c_out, out_h, out_w), _Step("conv", (slots[source],), -1, len(layers) - 1))
-        elif op in ("AddV2", "Add", "BiasAdd"):
-            a, b = node.inputs
-            if b in consts or a in consts:
-                tensor, const = (a, consts[b]) if b in consts else (b, consts[a])
-                c = shapes[slots[tensor]][0]
-                if const.size != c or (const.ndim and const.shape[-1] != c):
-                    raise GraphError(f"{name}: constant of shape {const.shape} does not fit {c} channels")
-                step = fusable(tensor, "bias")
-                if step is not None:
-                    layers[step.arg].bias = nn.Parameter(torch.from_numpy(const.reshape(c).astype(np.float32)))
-                    slots[name] = slots[tensor]
-                else:
-                    buffers.append(torch.from_numpy(const.reshape(1, c, 1, 1).astype(np.float32)))
-                    new_slot(name, shapes[slots[tensor]], _Step("add_const", (slots[tensor],), -1, len(buffers) - 1))
-            else:
-                if shapes[slots[a]] != shapes[slots[b]]:
-                    raise GraphError(f"{name}: adding shapes {shapes[slots[a]]} and {shapes[slots[b]]}")
-                new_slot(name, shapes[slots[a]], _Step("add", (slots[a], slots[b]), -1))
-        elif op in _ACTIVATIONS:
-            tensor, kind = node.inputs[0], _ACTIVATIONS[op]
-            step = fusable(tensor, "act")
+    def placeholder(self, node: GraphNode) -> None:
+        if not self.graph.input_shape or len(self.graph.input_shape) != 4:
+            raise GraphError(f"input {node.name} needs a static NHWC shape")
+        _, self.in_h, self.in_w, channels = self.graph.input_shape
+        self.input_slot = self.new_slot(node.name, (channels, self.in_h, self.in_w), None)
+
+    def identity(self, node: GraphNode) -> None:
+        self.slots[node.name] = self.slots[node.inputs[0]]
+
+    def pad(self, node: GraphNode) -> None:
+        name = node.name
+        source, pads = node.inputs[0], self.consts[node.inputs[1]].astype(int)
+        (b0, b1), (top, bottom), (left, right), (c0, c1) = pads
+        if b0 or b1 or c0 or c1:
+            raise GraphError(f"{name}: padding of batch or channel axes is not supported")
+        users = [n for n in self.graph.nodes if name in n.inputs]
+        if top == bottom and left == right and len(users) == 1 and users[0].op in _CONV_OPS:
+            self.deferred_pad[name] = (source, int(top), int(left))
+            return
+        c, h, w = self.shapes[self.slots[source]]
+        self.new_slot(name, (c, h + top + bottom, w + left + right),
+                      _Step("pad", (self.slots[source],), -1, (int(left), int(right), int(top), int(bottom))))
+
+    def conv(self, node: GraphNode) -> None:
+        name = node.name
+        source, kernel = node.inputs[0], self.consts[node.inputs[1]]
+        pad_h = pad_w = 0
+        if source in self.deferred_pad:
+            source, pad_h, pad_w = self.deferred_pad.pop(source)
+        stride, (pad_h, pad_w) = _conv_geometry(node, kernel.shape[:2], pad_h, pad_w)
+        kh, kw = kernel.shape[:2]
+        c_in, h, w = self.shapes[self.slots[source]]
+        weight, c_out, groups = _conv_weight(node, kernel, c_in)
+        layer = FusedConv2d(
+            c_in, c_out, (kh, kw), stride=stride, padding=(pad_h, pad_w), groups=groups, bias=False
+        )
+        with torch.no_grad():
+            layer.weight.copy_(torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32)))
+        self.layers.append(layer)
+        out_h = (h + 2 * pad_h - kh) // stride[0] + 1
+        out_w = (w + 2 * pad_w - kw) // stride[1] + 1
+        self.new_slot(name, (c_out, out_h, out_w), _Step("conv", (self.slots[source],), -1, len(self.layers) - 1))
+
+    def add(self, node: GraphNode) -> None:
+        name, slots, shapes, consts = node.name, self.slots, self.shapes, self.consts
+        a, b = node.inputs
+        if b in consts or a in consts:
+            tensor, const = (a, consts[b]) if b in consts else (b, consts[a])
+            c = shapes[slots[tensor]][0]
+            if const.size != c or (const.ndim and const.shape[-1] != c):
+                raise GraphError(f"{name}: constant of shape {const.shape} does not fit {c} channels")
+            step = self.fusable(tensor, "bias")
             if step is not None:
-                layers[step.arg].activation = kind
+                self.layers[step.arg].bias = nn.Parameter(torch.from_numpy(const.reshape(c).astype(np.float32)))
                 slots[name] = slots[tensor]
             else:
-                new_slot(name, shapes[slots[tensor]], _Step("act", (slots[tensor],), -1, kind))
-        elif op == "ResizeNearestNeighbor":
-            if node.attr.get("align_corners", {}).get("b", False):
-                raise GraphError(f"{name}: align_corners resizing is not supported")
-            tensor, size = node.inputs[0], consts[node.inputs[1]].astype(int)
-            c, h, w = shapes[slots[tensor]]
-            # The export bakes the target size for its own input size; only the (integer)
-            # factor matters, which makes the network work at any multiple-of-stride size.
-            # With half_pixel_centers an integer factor picks the same pixels as torch "nearest".
-            if size[0] % h or size[1] % w:
-                raise GraphError(f"{name}: resize {h}x{w} -> {size[0]}x{size[1]} is not an integer factor")
-            factor = (float(size[0] // h), float(size[1] // w))
-            new_slot(name, (c, int(size[0]), int(size[1])), _Step("resize", (slots[tensor],), -1, factor))
+                self.buffers.append(torch.from_numpy(const.reshape(1, c, 1, 1).astype(np.float32)))
+                self.new_slot(name, shapes[slots[tensor]],
+                              _Step("add_const", (slots[tensor],), -1, len(self.buffers) - 1))
         else:
-            raise GraphError(f"{name}: unsupported op {op}")
-        if name in slots:
-            c, h, w = shapes[slots[name]]
-            tensors[name] = TensorInfo(op=op, channels=c, stride=(in_h / h, in_w / w), order=order)
+            if shapes[slots[a]] != shapes[slots[b]]:
+                raise GraphError(f"{name}: adding shapes {shapes[slots[a]]} and {shapes[slots[b]]}")
+            self.new_slot(name, shapes[slots[a]], _Step("add", (slots[a], slots[b]), -1))
 
-    outputs = [n.name for n in graph.nodes if n.op != "Const" and consumers.get(n.name, 0) == 0]
-    if input_slot is None or len(outputs) != 1:
-        raise GraphError(f"expected one input and one output, found outputs {outputs}")
-    output_slot = slots[outputs[0]]
-    _set_releases(steps, output_slot)
-    multiple = int(round(max(max(t.stride) for t in tensors.values())))
-    return GraphNet(layers, buffers, steps, input_slot, output_slot, slots, tensors, len(shapes), multiple)
+    def activation(self, node: GraphNode) -> None:
+        tensor, kind = node.inputs[0], _ACTIVATIONS[node.op]
+        step = self.fusable(tensor, "act")
+        if step is not None:
+            self.layers[step.arg].activation = kind
+            self.slots[node.name] = self.slots[tensor]
+        else:
+            self.new_slot(node.name, self.shapes[self.slots[tensor]], _Step("act", (self.slots[tensor],), -1, kind))
+
+    def resize(self, node: GraphNode) -> None:
+        name = node.name
+        if node.attr.get("align_corners", {}).get("b", False):
+            raise GraphError(f"{name}: align_corners resizing is not supported")
+        tensor, size = node.inputs[0], self.consts[node.inputs[1]].astype(int)
+        c, h, w = self.shapes[self.slots[tensor]]
+        # The export bakes the target size for its own input size; only the (integer)
+        # factor matters, which makes the network work at any multiple-of-stride size.
+        # With half_pixel_centers an integer factor picks the same pixels as torch "nearest".
+        if size[0] % h or size[1] % w:
+            raise GraphError(f"{name}: resize {h}x{w} -> {size[0]}x{size[1]} is not an integer factor")
+        factor = (float(size[0] // h), float(size[1] // w))
+        self.new_slot(name, (c, int(size[0]), int(size[1])), _Step("resize", (self.slots[tensor],), -1, factor))
+
+
+def _conv_geometry(node: GraphNode, kernel_hw, pad_h: int, pad_w: int) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Check a conv node's attributes; returns its (row, col) stride and (pad_h, pad_w).
+
+    ``pad_h``/``pad_w`` come from a fused Pad node (0 if none).
+    """
+    name = node.name
+    if _attr_string(node, "data_format", "NHWC") != "NHWC":
+        raise GraphError(f"{name}: only NHWC graphs are supported")
+    if any(d != 1 for d in _attr_ints(node, "dilations") or [1]):
+        raise GraphError(f"{name}: dilated convolutions are not supported")
+    strides = _attr_ints(node, "strides") or [1, 1, 1, 1]
+    stride = (strides[1], strides[2])
+    kh, kw = kernel_hw
+    padding = _attr_string(node, "padding", "VALID")
+    if padding == "SAME":
+        if stride != (1, 1) or kh % 2 == 0 or kw % 2 == 0 or pad_h or pad_w:
+            raise GraphError(f"{name}: SAME padding is only supported for odd kernels at stride 1")
+        pad_h, pad_w = kh // 2, kw // 2
+    elif padding != "VALID":
+        raise GraphError(f"{name}: padding {padding} is not supported")
+    return stride, (pad_h, pad_w)
+
+
+def _conv_weight(node: GraphNode, kernel: np.ndarray, c_in: int) -> tuple[np.ndarray, int, int]:
+    """A TF conv kernel as a torch weight (OIHW); returns (weight, output channels, groups)."""
+    kh, kw = kernel.shape[:2]
+    if node.op == "Conv2D":
+        if kernel.shape[2] != c_in:
+            raise GraphError(f"{node.name}: kernel {kernel.shape} does not fit {c_in} input channels")
+        return kernel.transpose(3, 2, 0, 1), kernel.shape[3], 1  # HWIO -> OIHW
+    if kernel.shape[2] != c_in:
+        raise GraphError(f"{node.name}: depthwise kernel {kernel.shape} does not fit {c_in} channels")
+    c_out = kernel.shape[2] * kernel.shape[3]
+    # HWCM -> (C*M, 1, H, W); TF orders output channels c*M + m, as does torch.
+    return kernel.transpose(2, 3, 0, 1).reshape(c_out, 1, kh, kw), c_out, c_in
+
+
+_OP_HANDLERS = {
+    "Placeholder": _GraphCompiler.placeholder,
+    "Identity": _GraphCompiler.identity,
+    "Pad": _GraphCompiler.pad,
+    **{op: _GraphCompiler.conv for op in _CONV_OPS},
+    **{op: _GraphCompiler.add for op in ("AddV2", "Add", "BiasAdd")},
+    **{op: _GraphCompiler.activation for op in _ACTIVATIONS},
+    "ResizeNearestNeighbor": _GraphCompiler.resize,
+}
 
 
 def _set_releases(steps: list[_Step], output_slot: int) -> None:
@@ -507,7 +557,8 @@ def activation_bounds(net: GraphNet, low: float, high: float) -> dict[int, tuple
                 else:
                     per_group = w.shape[0] // layer.groups
                     lo_in, hi_in = lo.repeat_interleave(per_group), hi.repeat_interleave(per_group)
-                    lo, hi = (pos * lo_in[:, None] + neg * hi_in[:, None]).sum(1), (pos * hi_in[:, None] + neg * lo_in[:, None]).sum(1)
+                    lo, hi = ((pos * lo_in[:, None] + neg * hi_in[:, None]).sum(1),
+                              (pos * hi_in[:, None] + neg * lo_in[:, None]).sum(1))
                 if layer.bias is not None:
                     lo, hi = lo + layer.bias.detach(), hi + layer.bias.detach()
                 top = {"relu": float("inf"), "relu6": 6.0}.get(layer.activation)

@@ -3,7 +3,7 @@ exact depth, poses and mesh (`scene`), and a simulated monocular depth prior (`p
 """
 
 from .prior import SimulatedPrior, add_shape_errors, simulate_prior, simulate_prior_with_truth
-from .scene import SyntheticSequence, camera_path, intrinsics_for, render_sequence, write_video
+from .scene import SyntheticSequence, camera_path, intrinsics_for, render_sequence
 
 __all__ = [
     "SimulatedPrior",
@@ -14,5 +14,4 @@ __all__ = [
     "render_sequence",
     "simulate_prior",
     "simulate_prior_with_truth",
-    "write_video",
 ]

@@ -1,7 +1,8 @@
 """Synthetic ground truth: a textured, furnished room rendered by ray casting.
 
 This module owns the procedural scene (room + furniture boxes), its procedural textures,
-the hand-held camera path, the renderer (Open3D ``RaycastingScene``) and ``write_video``.
+the hand-held camera path and the renderer (Open3D ``RaycastingScene``); writing its frames
+as a video is :func:`recon.io.video.write_video`.
 
 World frame: metres, **y points down** (gravity) so that a level camera looking along +z
 has the identity rotation in OpenCV axes. The room spans x in [-3, 3], z in [-2.5, 2.5];
@@ -18,10 +19,8 @@ lights, so a surface point has the same colour in every view.
 from __future__ import annotations
 
 import colorsys
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -158,7 +157,8 @@ class SyntheticSequence:
     def o3d_mesh(self) -> o3d.geometry.TriangleMesh:
         """The ground-truth mesh as a legacy Open3D TriangleMesh with vertex colours and normals."""
         mesh = o3d.geometry.TriangleMesh(
-            o3d.utility.Vector3dVector(self.mesh_vertices), o3d.utility.Vector3iVector(self.mesh_triangles.astype(np.int32))
+            o3d.utility.Vector3dVector(self.mesh_vertices),
+            o3d.utility.Vector3iVector(self.mesh_triangles.astype(np.int32)),
         )
         mesh.vertex_colors = o3d.utility.Vector3dVector(self.mesh_colors)
         mesh.compute_triangle_normals()
@@ -296,7 +296,9 @@ def _crates(rng):
 
 
 _INDIVIDUAL_PARTS = {"book", "object", "picture"}
-_FURNITURE = {"table": _table, "cabinet": _cabinet, "shelf": _shelf, "sofa": _sofa, "wardrobe": _wardrobe, "crates": _crates}
+_FURNITURE = {
+    "table": _table, "cabinet": _cabinet, "shelf": _shelf, "sofa": _sofa, "wardrobe": _wardrobe, "crates": _crates,
+}
 # Material family and patterns of each part.
 _PART_STYLE = {
     "top": ("wood", 0.0, 0.35), "leg": ("wood", 0.0, 0.0), "object": ("paint", 0.0, 0.0),
@@ -428,7 +430,8 @@ def scene_layout(seed: int) -> tuple[list[Box], Materials, dict[str, int]]:
     rug = book.add("fabric", checker=0.0, stripes=0.5)
     table = book.add("wood", stripes=0.3)
     for lo, hi, part in middle:
-        boxes.append(Box(lo, hi, rug if part == "rug" else table, _hidden_faces("leg_on_rug" if part == "leg" else part)))
+        boxes.append(Box(lo, hi, rug if part == "rug" else table,
+                         _hidden_faces("leg_on_rug" if part == "leg" else part)))
     return boxes, book.build(), room
 
 
@@ -470,7 +473,8 @@ def scene_mesh(boxes: list[Box], room: dict[str, int]):
 
     lo_room = np.array([-ROOM_HALF_X, -ROOM_HEIGHT, -ROOM_HALF_Z]) - _ROOM_OVERLAP
     hi_room = np.array([ROOM_HALF_X, 0.0, ROOM_HALF_Z]) + _ROOM_OVERLAP
-    room_faces = {(1, 1): "floor", (1, 0): "ceiling", (2, 1): "wall0", (2, 0): "wall1", (0, 1): "wall2", (0, 0): "wall3"}
+    room_faces = {(1, 1): "floor", (1, 0): "ceiling", (2, 1): "wall0", (2, 0): "wall1",
+                  (0, 1): "wall2", (0, 0): "wall3"}
     for (axis, side), name in room_faces.items():
         level = (0.0, -ROOM_HEIGHT)[1 - side] if axis == 1 else (-1, 1)[side] * (ROOM_HALF_X, 0, ROOM_HALF_Z)[axis]
         u, v = [a for a in range(3) if a != axis]
@@ -742,7 +746,9 @@ _SHADE_BLOCK = 16384
 class _Renderer:
     """Renders frames of one scene; holds the ray-casting scene, per-triangle data and textures."""
 
-    def __init__(self, vertices, triangles, triangle_materials, materials: Materials, pyramid, intrinsics, width, height):
+    def __init__(
+        self, vertices, triangles, triangle_materials, materials: Materials, pyramid, intrinsics, width, height
+    ):
         self.scene = _raycasting_scene(vertices, triangles)
         corners = vertices[triangles]
         normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -782,7 +788,8 @@ class _Renderer:
             block = slice(start, start + _SHADE_BLOCK)
             pix = np.arange(start, min(start + _SHADE_BLOCK, n * pixels)) % pixels
             rgb[block] = self._shade(
-                [c[block] for c in points], [c[block] for c in dirs], prim[block].astype(np.int64), flat_depth[block], pix
+                [c[block] for c in points], [c[block] for c in dirs], prim[block].astype(np.int64), flat_depth[block],
+                pix,
             )
         return rgb.reshape(n, *self.shape, 3), depth.reshape(n, *self.shape)
 
@@ -874,7 +881,8 @@ def render_sequence(
     # Sub-frame times, frame-major: blur steps evenly over the exposure around each frame.
     offsets = (np.arange(blur) + 0.5) / blur - 0.5 if blur > 1 else np.zeros(1)
     sub_poses = camera_path(0, seed, times=(times[:, None] + offsets * exposure * float(speed)).reshape(-1))
-    renderer = _Renderer(vertices, triangles, triangle_materials, materials, texture_pyramid(seed), intrinsics, width, height)
+    renderer = _Renderer(vertices, triangles, triangle_materials, materials, texture_pyramid(seed), intrinsics, width,
+                         height)
     rgb = np.empty((num_frames, height, width, 3), dtype=np.uint8)
     depth = np.empty((num_frames, height, width), dtype=np.float32)
     threads = max(1, int(threads))
@@ -912,35 +920,3 @@ def render_sequence(
         boxes=np.array([[b.lo, b.hi] for b in boxes], dtype=np.float64).reshape(-1, 2, 3),
         seed=seed,
     )
-
-
-# --------------------------------------------------------------------------- video
-
-
-def write_video(rgb, path, fps: float = 30.0) -> Path:
-    """Write frames (N, H, W, 3) uint8 RGB to an mp4 (mp4v) at `path`; returns the path.
-
-    Writes to a temporary name next to `path` and renames, so a reader never sees a
-    half-written file.
-    """
-    rgb = np.asarray(rgb)
-    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.shape[0] < 1:
-        raise ReconInputError(f"write_video: frames must be (N, H, W, 3) with N >= 1, got shape {rgb.shape}")
-    if rgb.dtype != np.uint8:
-        raise ReconInputError(f"write_video: frames must be uint8, got {rgb.dtype}")
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise ReconInputError(f"write_video: directory {path.parent} does not exist")
-    # The temporary name keeps the suffix: OpenCV picks the container from it.
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix or '.mp4'}")
-    height, width = rgb.shape[1:3]
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
-    if not writer.isOpened():
-        raise ReconInputError(f"write_video: OpenCV cannot open {path} for writing (mp4v)")
-    try:
-        for frame in rgb:
-            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-    finally:
-        writer.release()
-    os.replace(tmp, path)
-    return path

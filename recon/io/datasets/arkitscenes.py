@@ -23,7 +23,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
-from recon.poses.formats import interpolate_poses, invert_poses, make_poses
+from recon.poses.result import invert_poses
+from recon.poses.rigid import interpolate_poses, make_poses
 
 from .base import RGBDDataset, check_exist, image_size, list_images
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -19,6 +18,7 @@ import cv2
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.io.naming import natural_key
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
@@ -233,11 +233,6 @@ def _registration_lookup(shape, depth_k, colour_k) -> tuple[np.ndarray, np.ndarr
 # ------------------------------------------------------------------------------------
 # Shared file helpers
 # ------------------------------------------------------------------------------------
-
-
-def natural_key(name: str) -> list:
-    """Sort key that orders 'frame-2' before 'frame-10'."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
 def require_dir(path: Path, what: str = "folder") -> Path:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.poses.formats import read_log
+from recon.io.trajectories import read_log
 
 from .base import RGBDDataset, image_size, list_images
 

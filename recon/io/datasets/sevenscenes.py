@@ -18,9 +18,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from recon.errors import ReconInputError
-from recon.poses.formats import read_matrix_folder
+from recon.io.naming import natural_key
+from recon.io.trajectories import read_matrix_folder
 
-from .base import RGBDDataset, image_size, intrinsics_from_K, natural_key, read_matrix_txt
+from .base import RGBDDataset, image_size, intrinsics_from_K, read_matrix_txt
 
 DEPTH_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 # Kinect v1: colour focal / depth focal (525 px / 585 px at 640x480).
@@ -76,7 +77,8 @@ def open_7scenes(root, colour_intrinsics=None) -> RGBDDataset:
         poses, valid = data.poses, data.valid
 
     intr_path = root / "camera-intrinsics.txt"
-    depth_intrinsics = intrinsics_from_K(read_matrix_txt(intr_path, (3, 3))) if intr_path.is_file() else DEPTH_INTRINSICS
+    depth_intrinsics = (intrinsics_from_K(read_matrix_txt(intr_path, (3, 3))) if intr_path.is_file()
+                        else DEPTH_INTRINSICS)
     if colour_intrinsics is None:
         fx, fy, cx, cy = depth_intrinsics
         colour_intrinsics = (fx * COLOUR_FOCAL_RATIO, fy * COLOUR_FOCAL_RATIO, cx, cy)

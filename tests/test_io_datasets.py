@@ -1,4 +1,4 @@
-"""Dataset readers: tiny generated examples of each layout, auto-detection, errors, real data."""
+"""Dataset readers (recon.io.datasets): tiny generated examples of each layout, auto-detection, errors, real data."""
 
 from __future__ import annotations
 
@@ -14,9 +14,12 @@ from recon.errors import ReconInputError
 from recon.eval.trajectory import path_length
 from recon.io.datasets import KINDS, detect_dataset, detect_kind, open_dataset
 from recon.io.datasets.base import register_depth
-from recon.poses.formats import invert_poses, make_poses, write_poses
+from recon.io.trajectories import write_poses
+from recon.poses.result import invert_poses
+from recon.poses.rigid import make_poses
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from helpers import SHARED_DATA
+
 H, W = 6, 8
 
 
@@ -334,7 +337,7 @@ def test_file_errors(tmp_path):
 
 
 def _real(name: str) -> Path:
-    path = DATA / name
+    path = SHARED_DATA / name
     if not path.is_dir():
         pytest.skip(f"{path} is not present")
     return path

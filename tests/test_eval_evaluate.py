@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from recon.errors import ReconInputError
-from recon.eval.evaluate import EvalOptions, evaluate_output, format_evaluation, load_output
-from recon.export.writers import OutputFolder, export_reconstruction
+from recon.eval.evaluate import EvalOptions, evaluate_output, format_evaluation
+from recon.export import export_reconstruction
 from recon.fusion import FusionOptions, fuse
+from recon.io.output_folder import OutputFolder, load_output
 from recon.synthetic import render_sequence
 
 
@@ -35,7 +36,7 @@ def _output(tmp_path, seq, indices, depth, poses, pose_source):
     mesh = fuse(depth, seq.rgb[indices], poses, seq.intrinsics, FusionOptions(progress=False)).mesh
     report = {"frames": {"indices": list(map(int, indices))}, "poses": {"source": pose_source}}
     export_reconstruction(OutputFolder(tmp_path / "out"), mesh=mesh, poses=poses, intrinsics=seq.intrinsics,
-                          size=(160, 120), depth=depth, report=report, glb=False)
+                          shape=(120, 160), depth=depth, report=report, glb=False)
     return tmp_path / "out"
 
 

@@ -1,40 +1,27 @@
-"""FastDepth prior: reference match, features, weights lookup and corrupt-file errors.
+"""The FastDepth prior (recon.priors.fastdepth): the authors' reference output matched, encoder
+features from the same pass, any frame size, the network size from the training focal,
+a real frame, and disparity aligned to FastDepth.
 
-Needs ../shared/weights/fastdepth (skipped cleanly when absent).
+Needs ../shared/weights/fastdepth (conftest: fastdepth_weights; skipped cleanly when absent).
 """
 
 from __future__ import annotations
-
-import json
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from recon.errors import ReconInputError
-from recon.priors import FastDepthPrior, find_weights, load_fastdepth, make_prior
+from recon.priors import FastDepthPrior, load_fastdepth, make_prior
 from recon.priors.fastdepth import TRAIN_FOCAL_AT_INPUT, feature_tensor, kept_channels, network_size
-from recon.priors.tfjs import compile_graph, load_tfjs_graph
-from recon.priors.weights import ENV_VAR
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-WEIGHTS = SHARED / "weights" / "fastdepth"
+from helpers import FASTDEPTH_WEIGHTS
 
 
 @pytest.fixture(scope="module")
-def weights_dir() -> Path:
-    if not (WEIGHTS / "model.json").is_file():
-        pytest.skip("../shared/weights/fastdepth is not present next to the checkout")
-    return WEIGHTS
-
-
-@pytest.fixture(scope="module")
-def reference(weights_dir):
-    rgb = np.load(weights_dir / "reference" / "rgb.npy")
-    pred = np.load(weights_dir / "reference" / "pred.npy")
-    gt = np.load(weights_dir / "reference" / "depth.npy")
+def reference(fastdepth_weights):
+    rgb = np.load(fastdepth_weights / "reference" / "rgb.npy")
+    pred = np.load(fastdepth_weights / "reference" / "pred.npy")
+    gt = np.load(fastdepth_weights / "reference" / "depth.npy")
     # Layout facts the comparison relies on: HWC float64 RGB in [0, 1] (exact 8-bit
     # levels), prediction NCHW (1, 1, 224, 224), ground truth HW with no holes.
     assert rgb.shape == (224, 224, 3) and rgb.dtype == np.float64
@@ -91,7 +78,7 @@ def test_features_from_same_pass(reference):
 
 
 def test_full_frame_any_size_and_layouts():
-    if not (WEIGHTS / "model.json").is_file():
+    if not (FASTDEPTH_WEIGHTS / "model.json").is_file():
         pytest.skip("no FastDepth weights")
     rng = np.random.default_rng(0)
     frames = rng.integers(0, 255, (3, 90, 120, 3), dtype=np.uint8)
@@ -125,83 +112,6 @@ def test_real_frame_is_dense_and_plausible(shared_dir):
     assert (out.depth > 0).mean() > 0.99
     valid = gt > 0
     assert np.mean(np.abs(out.depth[0] - gt)[valid] / gt[valid]) < 0.4
-
-
-# ---------------------------------------------------------------------------- weights lookup
-
-
-def _copy_weights(src: Path, dst: Path) -> Path:
-    dst.mkdir(parents=True)
-    for name in ("model.json", "group1-shard1of1.bin"):
-        shutil.copy(src / name, dst / name)
-    return dst / "model.json"
-
-
-def test_lookup_order(weights_dir, tmp_path, monkeypatch):
-    env_model = _copy_weights(weights_dir, tmp_path / "env" / "fastdepth")
-    monkeypatch.setenv(ENV_VAR, str(tmp_path / "env"))
-    assert find_weights("fastdepth", "model.json") == env_model
-    # An explicit path wins, in any of its three forms.
-    explicit = _copy_weights(weights_dir, tmp_path / "explicit" / "fastdepth")
-    for given in (explicit, explicit.parent, explicit.parent.parent):
-        assert find_weights("fastdepth", "model.json", given) == explicit
-    monkeypatch.delenv(ENV_VAR)
-    assert find_weights("fastdepth", "model.json") == WEIGHTS / "model.json"
-
-
-def test_missing_weights_lists_places(tmp_path):
-    with pytest.raises(ReconInputError) as info:
-        FastDepthPrior(weights=tmp_path / "nowhere", progress=False)
-    message = str(info.value)
-    assert "\n" not in message and "nowhere" in message
-
-
-def test_missing_everywhere_lists_all_places(tmp_path, monkeypatch):
-    import recon.priors.weights as weights
-
-    monkeypatch.setenv(ENV_VAR, str(tmp_path / "env"))
-    monkeypatch.setattr(weights, "SHARED_WEIGHTS", tmp_path / "shared")
-    monkeypatch.setattr(weights, "CACHE_WEIGHTS", tmp_path / "cache")
-    with pytest.raises(ReconInputError) as info:
-        find_weights("fastdepth", "model.json")
-    message = str(info.value)
-    assert "\n" not in message
-    for place in ("env", "shared", "cache"):
-        assert str(tmp_path / place / "fastdepth" / "model.json") in message
-
-
-@pytest.mark.parametrize("damage", ["truncated", "bad_json", "wrong_shape", "extra_bytes"])
-def test_corrupt_weights_one_line_error(weights_dir, tmp_path, damage):
-    model = _copy_weights(weights_dir, tmp_path / "fastdepth")
-    shard = model.parent / "group1-shard1of1.bin"
-    if damage == "truncated":
-        shard.write_bytes(shard.read_bytes()[:-1000])
-        culprit = shard
-    elif damage == "extra_bytes":
-        shard.write_bytes(shard.read_bytes() + b"\0" * 8)
-        culprit = shard
-    elif damage == "bad_json":
-        model.write_text(model.read_text()[:-10])
-        culprit = model
-    else:
-        spec = json.loads(model.read_text())
-        entry = next(w for w in spec["weightsManifest"][0]["weights"] if w["name"].endswith("conv2d_1/Conv2D/ReadVariableOp"))
-        entry["shape"] = [1, 1, 56, 16]  # same size, transposed: only a shape check can tell
-        model.write_text(json.dumps(spec))
-        culprit = model
-    with pytest.raises(ReconInputError) as info:
-        FastDepthPrior(weights=tmp_path, progress=False)
-    message = str(info.value)
-    assert "\n" not in message and str(culprit) in message
-
-
-def test_graph_walk_is_structural(weights_dir):
-    """The module is built from the graph: 38 fused convs, 5 upsamplings, 3 skip additions."""
-    net = compile_graph(load_tfjs_graph(weights_dir / "model.json"))
-    kinds = [s.kind for s in net.steps]
-    assert kinds.count("conv") == 38 and kinds.count("resize") == 5 and kinds.count("add") == 3
-    assert all(layer.bias is not None for layer in net.layers)
-    assert net.multiple == 32
 
 
 def test_disparity_folder_aligned_to_fastdepth(reference, tmp_path):

@@ -2,21 +2,19 @@
 
 from __future__ import annotations
 
-from collections import defaultdict
-
 import numpy as np
 import pytest
-import rerun as rr
 import torch
 
-from viewer import RerunLogger, default_mode
-from viewer import rerun_log
+from viewer import RerunLogger, default_mode, rerun_log
+
+from helpers import read_recording
 
 N_FRAMES = 5
 H, W = 24, 40
 INTRINSICS = (30.0, 30.0, 19.5, 11.5)  # fx fy cx cy, pixel centres at integers
 
-rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
+pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
 
 
 def _poses() -> list[np.ndarray]:
@@ -30,7 +28,8 @@ def _poses() -> list[np.ndarray]:
 
 def _history() -> dict:
     return {
-        "stage1": {"total": [3.0, 2.0, 1.5], "photometric": [1.0, 0.9, 0.8], "depth": [1.0, 0.6, 0.4], "feature": [1.0, 0.5, 0.3]},
+        "stage1": {"total": [3.0, 2.0, 1.5], "photometric": [1.0, 0.9, 0.8], "depth": [1.0, 0.6, 0.4],
+                   "feature": [1.0, 0.5, 0.3]},
         "stage2": {"total": [1.2, 1.1], "photometric": [0.5, 0.4], "depth": [0.4, 0.4], "feature": [0.3, 0.3]},
     }
 
@@ -52,28 +51,6 @@ def _log_run(logger: RerunLogger) -> None:
     logger.log_losses(_history())
 
 
-def _read_back(path) -> tuple[list[str], dict[str, set[str]], dict[str, list[int]], dict[str, dict[str, list]]]:
-    """Entity paths; component columns per entity; "frame" values per entity;
-    first-row values of a few columns per entity."""
-    reader = rr_chunk.RrdReader(path)
-    assert len(reader.recordings()) == 1
-    entities = reader.store().schema().entity_paths()
-    components: dict[str, set[str]] = defaultdict(set)
-    frames: dict[str, list[int]] = defaultdict(list)
-    values: dict[str, dict[str, list]] = defaultdict(dict)
-    for chunk in reader.stream():
-        batch = chunk.to_record_batch()
-        names = [n for n in batch.schema.names if ":" in n and not n.startswith("rerun.")]
-        components[chunk.entity_path].update(names)
-        if "frame" in chunk.timeline_names:
-            frames[chunk.entity_path].extend(batch.column("frame").to_pylist())
-        for name in names:
-            values[chunk.entity_path].setdefault(name, batch.column(name).to_pylist())
-        if "epoch" in chunk.timeline_names:
-            frames[chunk.entity_path + "#epoch"].extend(batch.column("epoch").to_pylist())
-    return entities, components, frames, values
-
-
 def test_save_roundtrip(tmp_path):
     path = tmp_path / "sub" / "run.rrd"
     with RerunLogger("save", path, max_width=None) as logger:
@@ -82,7 +59,7 @@ def test_save_roundtrip(tmp_path):
     assert not logger.enabled
     assert path.is_file() and path.stat().st_size > 0
 
-    entities, components, frames, values = _read_back(path)
+    entities, components, frames, values = read_recording(path)
     expected = [
         "/world",
         "/world/camera",
@@ -94,12 +71,15 @@ def test_save_roundtrip(tmp_path):
         "/world/trajectory",
         "/world/mesh",
         "/world/points",
-    ] + [f"/medea/{stage}/{term}" for stage in ("stage1", "stage2") for term in ("total", "photometric", "depth", "feature")]
+    ] + [f"/medea/{stage}/{term}" for stage in ("stage1", "stage2")
+         for term in ("total", "photometric", "depth", "feature")]
     for entity in expected:
         assert entity in entities, entity
 
     assert "ViewCoordinates:xyz" in components["/world"]
-    assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:translation", "Transform3D:mat3x3"} <= components["/world/camera"]
+    camera_columns = {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:translation",
+                      "Transform3D:mat3x3"}
+    assert camera_columns <= components["/world/camera"]
     assert "Image:buffer" in components["/world/camera/rgb"]
     assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/prior_depth"]
     assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/adjusted_depth"]
@@ -134,7 +114,7 @@ def test_save_downscaled(tmp_path):
     path = tmp_path / "small.rrd"
     with RerunLogger("save", path, max_width=W // 2) as logger:
         _log_run(logger)
-    _, _, frames, values = _read_back(path)
+    _, _, frames, values = read_recording(path)
     assert sorted(frames["/world/camera/rgb"]) == list(range(N_FRAMES))
     assert np.ravel(values["/world/camera"]["Pinhole:resolution"][0]).tolist() == [W // 2, H // 2]
     k = np.asarray(values["/world/camera"]["Pinhole:image_from_camera"][0], dtype=np.float64).reshape(3, 3).T

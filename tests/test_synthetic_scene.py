@@ -1,5 +1,5 @@
-"""The synthetic testbed: determinism, depth/pose/intrinsics/mesh consistency, camera path,
-texture, the simulated prior and video writing."""
+"""The synthetic room (recon.synthetic.scene): determinism, depth/pose/intrinsics/mesh
+consistency, the camera path, textures, motion blur and argument checks."""
 
 from __future__ import annotations
 
@@ -9,12 +9,7 @@ import open3d as o3d
 import pytest
 
 from recon.errors import ReconInputError
-from recon.synthetic import render_sequence, simulate_prior, simulate_prior_with_truth, write_video
-
-
-@pytest.fixture(scope="module")
-def seq():
-    return render_sequence(num_frames=12, width=160, height=120, seed=0)
+from recon.synthetic import render_sequence
 
 
 @pytest.fixture(scope="module")
@@ -49,22 +44,23 @@ def bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     )
 
 
-def test_shapes_and_types(seq):
+def test_shapes_and_types(small_room):
     n, h, w = 12, 120, 160
-    assert seq.rgb.shape == (n, h, w, 3) and seq.rgb.dtype == np.uint8
-    assert seq.depth.shape == (n, h, w) and seq.depth.dtype == np.float32
-    assert seq.poses.shape == (n, 4, 4) and seq.poses.dtype == np.float64
-    fx, fy, cx, cy = seq.intrinsics
+    assert small_room.rgb.shape == (n, h, w, 3) and small_room.rgb.dtype == np.uint8
+    assert small_room.depth.shape == (n, h, w) and small_room.depth.dtype == np.float32
+    assert small_room.poses.shape == (n, 4, 4) and small_room.poses.dtype == np.float64
+    fx, fy, cx, cy = small_room.intrinsics
     assert fx == fy == pytest.approx(525.0 * w / 640)
     assert (cx, cy) == ((w - 1) / 2, (h - 1) / 2)
-    np.testing.assert_allclose(seq.K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    rotations = seq.poses[:, :3, :3]
-    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (n, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(small_room.K, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    rotations = small_room.poses[:, :3, :3]
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (n, 3, 3)),
+                               atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-12)
-    mesh = seq.o3d_mesh()
+    mesh = small_room.o3d_mesh()
     assert isinstance(mesh, o3d.geometry.TriangleMesh)
-    assert len(mesh.triangles) == len(seq.mesh_triangles) > 100
-    assert seq.mesh_colors.shape == seq.mesh_vertices.shape
+    assert len(mesh.triangles) == len(small_room.mesh_triangles) > 100
+    assert small_room.mesh_colors.shape == small_room.mesh_vertices.shape
 
 
 def test_deterministic():
@@ -74,38 +70,41 @@ def test_deterministic():
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     c = render_sequence(num_frames=3, width=64, height=48, seed=4)
     assert not np.array_equal(a.rgb, c.rgb)
-    assert not np.array_equal(a.mesh_vertices.shape, c.mesh_vertices.shape) or not np.array_equal(a.mesh_vertices, c.mesh_vertices)
+    assert (not np.array_equal(a.mesh_vertices.shape, c.mesh_vertices.shape)
+            or not np.array_equal(a.mesh_vertices, c.mesh_vertices))
 
 
-def test_depth_positive_and_finite(seq):
-    assert np.isfinite(seq.depth).all()
-    assert (seq.depth > 0.1).all()
+def test_depth_positive_and_finite(small_room):
+    assert np.isfinite(small_room.depth).all()
+    assert (small_room.depth > 0.1).all()
     # The room is 6 x 5 x 2.7 m: nothing is farther than its diagonal.
-    assert seq.depth.max() < np.sqrt(6**2 + 5**2 + 2.7**2)
+    assert small_room.depth.max() < np.sqrt(6**2 + 5**2 + 2.7**2)
 
 
-def test_depth_lies_on_the_mesh(seq):
-    scene = seq.raycasting_scene()
+def test_depth_lies_on_the_mesh(small_room):
+    scene = small_room.raycasting_scene()
     rng = np.random.default_rng(0)
     for i in (0, 5, 11):
-        u = rng.integers(0, seq.width, 400).astype(np.float64)
-        v = rng.integers(0, seq.height, 400).astype(np.float64)
-        points = backproject(seq.depth[i, v.astype(int), u.astype(int)].astype(np.float64), seq.poses[i], seq.intrinsics, u, v)
+        u = rng.integers(0, small_room.width, 400).astype(np.float64)
+        v = rng.integers(0, small_room.height, 400).astype(np.float64)
+        depth = small_room.depth[i, v.astype(int), u.astype(int)].astype(np.float64)
+        points = backproject(depth, small_room.poses[i], small_room.intrinsics, u, v)
         distance = scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
         assert distance.max() < 1e-3
 
 
-def test_reprojection_between_frames_agrees(seq):
+def test_reprojection_between_frames_agrees(small_room):
     """Pixels of frame i moved into frame j with GT depth and poses land where frame j's
     own depth sees the same point (inverse depth is exactly bilinear on planes)."""
-    h, w = seq.height, seq.width
+    h, w = small_room.height, small_room.width
     for i, j in ((0, 4), (3, 11)):
         v, u = np.mgrid[0:h, 0:w].reshape(2, -1).astype(np.float64)
-        points = backproject(seq.depth[i].reshape(-1).astype(np.float64), seq.poses[i], seq.intrinsics, u, v)
-        uj, vj, zj = project(points, seq.poses[j], seq.intrinsics)
+        depth = small_room.depth[i].reshape(-1).astype(np.float64)
+        points = backproject(depth, small_room.poses[i], small_room.intrinsics, u, v)
+        uj, vj, zj = project(points, small_room.poses[j], small_room.intrinsics)
         inside = (uj >= 0) & (uj <= w - 1.001) & (vj >= 0) & (vj <= h - 1.001) & (zj > 0)
         assert inside.mean() > 0.5
-        seen = 1.0 / bilinear(1.0 / seq.depth[j].astype(np.float64), uj[inside], vj[inside])
+        seen = 1.0 / bilinear(1.0 / small_room.depth[j].astype(np.float64), uj[inside], vj[inside])
         rel = np.abs(seen - zj[inside]) / zj[inside]
         # Occlusion boundaries and box edges break bilinear interpolation; the rest is exact.
         assert np.median(rel) < 1e-5
@@ -136,7 +135,8 @@ def test_distant_frames_overlap(long_seq, gap):
     v, u = np.mgrid[0:h, 0:w].reshape(2, -1).astype(np.float64)
     shares = []
     for i in range(0, len(long_seq.poses) - gap, 3):
-        points = backproject(long_seq.depth[i].reshape(-1).astype(np.float64), long_seq.poses[i], long_seq.intrinsics, u, v)
+        depth = long_seq.depth[i].reshape(-1).astype(np.float64)
+        points = backproject(depth, long_seq.poses[i], long_seq.intrinsics, u, v)
         uj, vj, zj = project(points, long_seq.poses[i + gap], long_seq.intrinsics)
         inside = (uj >= 0) & (uj <= w - 1) & (vj >= 0) & (vj <= h - 1) & (zj > 0)
         seen = long_seq.depth[i + gap][np.round(vj[inside]).astype(int), np.round(uj[inside]).astype(int)]
@@ -145,47 +145,25 @@ def test_distant_frames_overlap(long_seq, gap):
     assert min(shares) > 0.3
 
 
-def test_textures_are_not_flat(seq):
-    gray = seq.rgb.mean(axis=-1).astype(np.float32)
+def test_textures_are_not_flat(small_room):
+    gray = small_room.rgb.mean(axis=-1).astype(np.float32)
     for frame in gray[::4]:
         gx = cv2.Sobel(frame, cv2.CV_32F, 1, 0, ksize=3) / 8
         gy = cv2.Sobel(frame, cv2.CV_32F, 0, 1, ksize=3) / 8
         magnitude = cv2.blur(np.hypot(gx, gy), (5, 5))
         # Mean intensity change of over 2 grey levels per pixel in nearly every 5x5 window.
         assert (magnitude > 2.0).mean() > 0.95
-    assert seq.rgb.std() > 20
+    assert small_room.rgb.std() > 20
 
 
-def test_prior_error_and_inconsistency(seq):
-    out = simulate_prior_with_truth(seq.depth, seed=0)
-    prior, gt = out.depth, seq.depth
-    assert prior.shape == gt.shape and prior.dtype == np.float32
-    abs_rel = np.mean(np.abs(prior - gt) / gt)
-    assert 0.15 <= abs_rel <= 0.25
-    ratio = np.median((prior / gt).reshape(len(gt), -1), axis=1)
-    assert ratio.std() > 0.08
-    # The reported scales explain the per-frame distortion up to noise and edge blur.
-    for i in range(len(gt)):
-        explained = np.median(prior[i] / (gt[i] * out.scale_field(i)))
-        assert explained == pytest.approx(1.0, abs=0.01)
-    np.testing.assert_allclose(np.median(np.log(prior / gt), axis=(1, 2)),
-                               np.log(out.global_scale) + np.median(out.log_grids, axis=(1, 2)), atol=0.12)
-    np.testing.assert_array_equal(prior, simulate_prior(seq.depth, seed=0))
-    assert not np.array_equal(prior, simulate_prior(seq.depth, seed=1))
-
-
-def test_prior_keeps_invalid_pixels(seq):
-    depth = seq.depth[:3].copy()
-    depth[:, :20, :30] = 0.0
-    prior = simulate_prior(depth, seed=2)
-    assert (prior[:, :20, :30] == 0).all()
-    assert (prior[depth > 0] > 0).all() and np.isfinite(prior).all()
-    # Zeros do not leak through the blur: the border pixels keep a sensible scale.
-    assert np.abs(np.log(prior[:, 20, :30] / depth[:, 20, :30])).max() < 1.5
-    with pytest.raises(ReconInputError):
-        simulate_prior(np.full((2, 4, 4), np.nan, dtype=np.float32))
-    with pytest.raises(ReconInputError):
-        simulate_prior(np.ones((4, 4), dtype=np.float32))
+def test_blur_is_rendered_and_ground_truth_is_the_frame_time():
+    sharp = render_sequence(4, 160, 120, seed=2, speed=6)
+    blurred = render_sequence(4, 160, 120, seed=2, speed=6, blur=4)
+    assert np.array_equal(sharp.poses, blurred.poses) and np.array_equal(sharp.depth, blurred.depth)
+    difference = np.abs(sharp.rgb.astype(float) - blurred.rgb).mean()
+    assert difference > 1.0  # grey levels: a blurred image, not the sharp one
+    # Sharp frames at 6x speed are every 6th frame of the default path.
+    assert np.allclose(render_sequence(19, 160, 120, seed=2).poses[::6], sharp.poses)
 
 
 def test_bad_render_arguments():
@@ -193,21 +171,3 @@ def test_bad_render_arguments():
         render_sequence(num_frames=0)
     with pytest.raises(ReconInputError):
         render_sequence(num_frames=2, width=4, height=4)
-
-
-def test_write_video(tmp_path, seq):
-    path = write_video(seq.rgb, tmp_path / "clip.mp4", fps=10)
-    assert path.is_file() and [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
-    capture = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            break
-        frames.append(frame)
-    capture.release()
-    assert len(frames) == len(seq.rgb)
-    assert frames[0].shape == seq.rgb[0].shape
-    assert np.abs(frames[0][..., ::-1].astype(float) - seq.rgb[0]).mean() < 15
-    with pytest.raises(ReconInputError):
-        write_video(seq.rgb[0], tmp_path / "bad.mp4")

@@ -1,0 +1,28 @@
+"""The named choices of the configs and the command line, each defined once.
+
+The configs check against these (``PipelineConfig.validate``, ``DemoOptions``,
+``recon.poses.estimate_poses``) and the CLI offers them (argparse ``choices=``), so a
+choice added here reaches both. No imports: building the CLI's parser stays cheap.
+"""
+
+from __future__ import annotations
+
+# Where poses come from (PipelineConfig.poses, besides a pose file or folder; DemoOptions.poses):
+# "auto" is the dataset's ground truth when it has one (the demo: estimate when the estimator
+# is installed), else an estimate.
+POSE_CHOICES = ("auto", "gt", "estimate")
+# The pose estimator (PipelineConfig.pose_method, recon.poses.estimate_poses): "auto" runs the
+# front end and falls back to SfM when tracking is lost.
+POSE_METHODS = ("auto", "frontend", "sfm")
+# The depth prior of `recon run` (PipelineConfig.prior): a network, a dataset's sensor depth,
+# a folder of depth maps.
+PRIOR_CHOICES = ("fastdepth", "sensor", "folder")
+# The prior of `recon demo` (DemoOptions.prior): ground truth distorted like a network, or the network.
+DEMO_PRIORS = ("simulated", "fastdepth")
+# The refinement after MEDeA (PipelineConfig.refine, recon.refine).
+REFINE_CHOICES = ("mvs", "none")
+# Rerun logging (PipelineConfig.rerun, --rerun). The same as viewer.rerun_log.MODES, restated
+# so that the parser does not import the rerun SDK (a second, at every `recon --help`).
+RERUN_MODES = ("spawn", "save", "serve", "off")
+
+__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES"]

@@ -1,0 +1,133 @@
+"""The typed configuration of `recon run`: one dataclass the CLI mirrors flag for flag.
+
+Each stage reads only its own part of it (see :mod:`recon.pipeline`); the whole is checked
+once by ``validate`` before any work and recorded in ``report.json`` by ``to_dict``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from medea_core import MedeaConfig
+from mvs_core import MvsConfig
+
+from .choices import POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES
+from .errors import ReconInputError
+from .fusion import FusionOptions
+from .poses.polish import PolishConfig
+
+
+@dataclass
+class PipelineConfig:
+    """Everything `recon run` can be told; defaults suit a phone video on a CPU.
+
+    input, output: paths. overwrite: write into a non-empty output folder.
+    stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
+    frame_budget: when no stride is given and the input has more frames than this, the
+        stride is raised so that at most this many are used (memory and time grow with
+        the frame count; every stage needs all frames at once).
+    width: working width in pixels (None: the input's own); fps: frame rate of an image folder.
+    intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal field
+        of view in degrees (used when intrinsics are not given).
+    poses: "auto", "gt" (dataset ground truth), "estimate", or a pose file / folder
+        (TUM, COLMAP, nerfstudio, 7-Scenes/ScanNet matrices, Open3D .log).
+    pose_method: estimator, "auto" | "frontend" | "sfm".
+    pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
+        ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
+    prior: "fastdepth", "sensor" (a dataset's depth) or "folder" (prior_path holds one
+        depth map per frame, matched by name). weights: FastDepth weights location.
+    features: give MEDeA FastDepth's encoder features (the feature-metric loss).
+    adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
+    refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
+        mvs: its configuration (mvs_core.MvsConfig).
+    polish: polish given poses against the frames before MEDeA when refining
+        (recon.poses.polish); polish_config: its settings.
+    fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
+    rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
+        OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.
+    device: "cpu", "cuda", "cuda:N" for prior, MEDeA and fusion.
+    depth_npy: also write float32 .npy depth maps; glb: also write mesh.glb.
+    """
+
+    input: Path
+    output: Path
+    overwrite: bool = False
+    stride: int | None = None
+    max_frames: int | None = None
+    start_time: float | None = None
+    end_time: float | None = None
+    frame_budget: int = 600
+    width: int | None = 640
+    fps: float | None = None
+    intrinsics: tuple[float, float, float, float] | None = None
+    fov: float | None = None
+    poses: str = "auto"
+    pose_method: str = "auto"
+    pose_options: dict[str, Any] = field(default_factory=dict)
+    prior: str = "fastdepth"
+    prior_path: Path | None = None
+    weights: Path | None = None
+    features: bool = True
+    adjust: bool = True
+    medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
+    refine: str = "mvs"
+    mvs: MvsConfig = field(default_factory=MvsConfig)
+    polish: bool = True
+    polish_config: PolishConfig = field(default_factory=PolishConfig)
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+    rerun: str = "off"
+    rerun_path: Path | None = None
+    rerun_max_width: int | None = 320
+    device: str = "cpu"
+    progress: bool = True
+    depth_npy: bool = True
+    glb: bool = True
+
+    def validate(self) -> None:
+        """One-line ReconInputError for options that cannot work (they come from the CLI)."""
+        if self.prior not in PRIOR_CHOICES:
+            raise ReconInputError(f"prior must be one of {', '.join(PRIOR_CHOICES)}, got {self.prior!r}")
+        if self.prior == "folder" and self.prior_path is None:
+            raise ReconInputError("prior 'folder' needs a folder of depth maps (--prior-path)")
+        if self.refine not in REFINE_CHOICES:
+            raise ReconInputError(f"refine must be one of {', '.join(REFINE_CHOICES)}, got {self.refine!r}")
+        try:
+            self.mvs.validate()
+        except ValueError as error:
+            raise ReconInputError(str(error)) from None
+        if self.rerun not in RERUN_MODES:
+            raise ReconInputError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, got {self.rerun!r}")
+        if self.fov is not None and not (0 < self.fov < 180):
+            raise ReconInputError(f"field of view must be between 0 and 180 degrees, got {self.fov}")
+        if self.intrinsics is not None:
+            k = np.asarray(self.intrinsics, dtype=np.float64)
+            if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
+                raise ReconInputError(
+                    f"intrinsics must be four numbers fx,fy,cx,cy with fx, fy > 0, got {self.intrinsics}")
+        if self.pose_method not in POSE_METHODS:
+            raise ReconInputError(f"pose method must be one of {', '.join(POSE_METHODS)}, got {self.pose_method!r}")
+        if self.pose_options:
+            from .poses.options import check_pose_options
+
+            check_pose_options(self.pose_options)
+        if int(self.frame_budget) < 2:
+            raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
+        self.fusion.validate()
+
+    def to_dict(self) -> dict:
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+
+
+def _plain(value):
+    if is_dataclass(value):
+        return asdict(value)
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+__all__ = ["PipelineConfig"]

@@ -1,0 +1,155 @@
+"""The pose estimators' settings as the command line sees them (``--pose-option KEY=VALUE``).
+
+This module owns which fields of ``FrontendConfig`` and ``SfMConfig`` can be set that way,
+the range each numeric setting must lie in, and the checks that name a setting outside it
+(for the command line and for Python callers of ``estimate_poses`` alike). The typing of
+``KEY=VALUE`` text is the shared rule of :mod:`recon.options`.
+
+The configs are imported inside the functions: they pull in the estimators (torch, OpenCV),
+which ``import recon.poses`` should not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+from functools import cache
+
+from recon.errors import ReconInputError
+from recon.options import scalar_fields, split_option, type_name, typed_value
+
+
+def _option_fields() -> dict[str, tuple[str, object, object]]:
+    """{name: (owner, type, default)} of the scalar fields of FrontendConfig and SfMConfig
+    (a name both have, such as calibrate_lens, sets both)."""
+    from recon.poses.frontend_config import FrontendConfig
+    from recon.poses.sfm import SfMConfig
+
+    table: dict[str, tuple[str, object, object]] = {}
+    for cls in (FrontendConfig, SfMConfig):
+        for name, (kind, default) in scalar_fields(cls).items():
+            owner = table[name][0] + ", " + cls.__name__ if name in table else cls.__name__
+            table[name] = (owner, kind, default)
+    return table
+
+
+def _one_of(values: tuple[str, ...]) -> tuple[str, object]:
+    quoted = [repr(v) for v in values]
+    return (", ".join(quoted[:-1]) + " or " + quoted[-1], lambda v: v in values)
+
+
+_AT_LEAST_ONE = (">= 1", lambda v: v >= 1)
+_AT_LEAST_ZERO = (">= 0", lambda v: v >= 0)
+_POSITIVE = ("> 0", lambda v: v > 0)
+_FRACTION = ("in [0, 1]", lambda v: 0 <= v <= 1)
+
+
+@cache
+def _ranges() -> dict[str, tuple[str, object]]:
+    """{setting: (what it must be, test)} for the estimators' settings (FrontendConfig, then
+    SfMConfig; see their docstrings): outside them a setting makes no sense or breaks the
+    estimator. Settings not listed take any finite value. None is not checked here: the
+    command line gives None only to fields that may be None (``parse_pose_option``), Python
+    callers are trusted with it."""
+    from recon.poses.sfm import LOOP_MATCHING, MAPPERS
+
+    return {
+        **dict.fromkeys(("ba_stride", "temporal_radius", "window", "calib_stride", "calib_flow_stride", "calib_iters",
+                         "align_chunk", "torch_threads"), _AT_LEAST_ONE),
+        **dict.fromkeys(("proximity_edges", "proximity_nms", "final_proximity_edges", "window_iters", "global_iters",
+                         "prior_weight", "calibrate_after", "calibrate_iters", "max_lost", "reloc_candidates"),
+                        _AT_LEAST_ZERO),
+        **dict.fromkeys(("keyframe_flow", "keyframe_max_flow", "proximity_max_flow", "calib_tol"), _POSITIVE),
+        **dict.fromkeys(("proximity_min_overlap", "min_edge_weight", "lost_inlier", "min_registered"), _FRACTION),
+        **dict.fromkeys(("min_match_correlation", "min_local_correlation"), ("in [-1, 1]", lambda v: -1 <= v <= 1)),
+        "seed_min_flow": _AT_LEAST_ZERO,
+        "calib_keyframes": (">= 2", lambda v: v >= 2),
+        **dict.fromkeys(("max_keyframes", "keyframe_stride", "max_num_features", "overlap", "num_threads"),
+                        _AT_LEAST_ONE),
+        "correction_grid": ("two numbers >= 1", lambda v: len(v) == 2 and min(v) >= 1),
+        "mapper": _one_of(MAPPERS),
+        "keyframe_motion": _POSITIVE,
+        "loop_candidates": _AT_LEAST_ONE,
+        "loop_words": (">= 2", lambda v: v >= 2),
+        "loop_matching": _one_of(LOOP_MATCHING),
+    }
+
+
+def _check_value(name: str, value) -> None:
+    """ReconInputError when a scalar setting is outside its range; None, booleans and nested
+    configs pass (see _ranges)."""
+    if value is None or isinstance(value, bool) or not isinstance(value, (int, float, tuple, str)):
+        return
+    numbers = value if isinstance(value, tuple) else (value,)
+    finite = all(isinstance(v, str) or math.isfinite(v) for v in numbers)
+    rule = _ranges().get(name)
+    if not finite or (rule is not None and not rule[1](value)):
+        raise ReconInputError(f"pose option {name} must be {rule[0] if rule else 'finite'}, got {value!r}")
+
+
+def check_pose_config(config) -> None:
+    """ReconInputError naming the first setting of a FrontendConfig or SfMConfig (and the
+    FrontendConfig inside an SfMConfig) outside its range."""
+    from recon.poses.frontend_config import FrontendConfig
+
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, FrontendConfig):
+            check_pose_config(value)
+        else:  # flow and BA settings (nested configs) are set in Python and not checked here
+            _check_value(f.name, value)
+
+
+def check_pose_options(options: dict) -> None:
+    """ReconInputError naming the keys of `options` that are no field of FrontendConfig or
+    SfMConfig (nested configs such as ``flow`` included; the command line sets scalars only)."""
+    from recon.poses.frontend_config import FrontendConfig
+    from recon.poses.sfm import SfMConfig
+
+    unknown = set(options) - set(FrontendConfig.__dataclass_fields__) - set(SfMConfig.__dataclass_fields__)
+    if unknown:
+        raise ReconInputError(
+            f"unknown pose option(s): {', '.join(sorted(unknown))} (`--pose-option list` shows the options)"
+        )
+    for name, value in options.items():
+        _check_value(name, value)
+
+
+def parse_pose_option(text: str) -> tuple[str, object]:
+    """KEY=VALUE from the command line as (key, value typed like the field), for a scalar
+    field of FrontendConfig or SfMConfig: numbers, true/false, none where the field may be
+    None, comma-separated numbers for tuples. Raises ReconInputError."""
+    key, raw = split_option(text, "pose option")
+    settable = _option_fields()
+    if key not in settable:
+        check_pose_options({key: None})
+        raise ReconInputError(
+            f"pose option {key} is a nested config; set its fields in Python (recon.poses.estimate_poses)"
+        )
+    kind = settable[key][1]
+    try:
+        value = typed_value(raw, kind)
+    except ValueError:
+        raise ReconInputError(f"pose option {key}: {raw!r} is not a valid {type_name(kind)}") from None
+    check_pose_options({key: value})
+    return key, value
+
+
+def format_pose_option(key: str, value) -> str:
+    """KEY=VALUE as parse_pose_option reads it back (for commands echoed to the user)."""
+    if isinstance(value, tuple):
+        text = ",".join(str(v) for v in value)
+    else:
+        text = str(value).lower() if value is None or isinstance(value, bool) else str(value)
+    return f"{key}={text}"
+
+
+def pose_option_table() -> str:
+    """The pose options (`--pose-option KEY=VALUE`) with type, default and owner, a line each."""
+    rows = [(name, type_name(kind), repr(default), owner)
+            for name, (owner, kind, default) in sorted(_option_fields().items())]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}" for n, t, d, o in rows)
+
+
+__all__ = ["check_pose_config", "check_pose_options", "format_pose_option", "parse_pose_option", "pose_option_table"]

@@ -1,0 +1,152 @@
+"""Rigid camera poses as arrays: building them, checking and converting rotations, switching
+camera axes, and resampling a trajectory in time.
+
+Poses are (N, 4, 4) float64 rigid transforms (camera-to-world unless a function says
+otherwise); quaternions are ``qx qy qz qw``; timestamps are seconds. Pose *files* live in
+:mod:`recon.io.trajectories`; :func:`recon.poses.result.invert_poses` inverts poses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from recon.errors import ReconInputError
+
+# Quaternions shorter than this are noise, not a rotation, and cannot be normalised.
+MIN_QUAT_NORM = 1e-6
+# OpenGL <-> OpenCV camera axes: flip y and z (its own inverse).
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def rotation_errors(rotations: np.ndarray) -> np.ndarray:
+    """Orthonormality error max |R^T R - I| of rotations (N, 3, 3) -> (N,); inf if det <= 0."""
+    rotations = np.asarray(rotations, dtype=np.float64)
+    gram = np.einsum("nji,njk->nik", rotations, rotations)
+    err = np.abs(gram - np.eye(3)).max(axis=(1, 2))
+    # A reflection is orthonormal but is not a camera rotation.
+    return np.where(np.linalg.det(rotations) > 0, err, np.inf)
+
+
+def quat_to_matrix(quats_xyzw: np.ndarray, path=None, linenos: Sequence[int] | None = None) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) from quaternions (N, 4) ``qx qy qz qw``, normalising them.
+
+    Quaternions of near-zero norm raise, naming `path` and the line when given.
+    """
+    q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(norm < MIN_QUAT_NORM)
+    if bad.size:
+        where = "<quaternions>" if path is None else path
+        line = "" if linenos is None else f":{int(linenos[bad[0]])}"
+        raise ReconInputError(f"{where}{line}: quaternion has near-zero norm ({norm[bad[0]]:.2g})")
+    return Rotation.from_quat(q / norm[:, None]).as_matrix()
+
+
+def matrix_to_quat(rotations: np.ndarray) -> np.ndarray:
+    """Quaternions (N, 4) ``qx qy qz qw`` with qw >= 0 from rotation matrices (N, 3, 3)."""
+    q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64)).as_quat()
+    # q and -q are the same rotation; a fixed sign makes written files reproducible.
+    return np.where(q[:, 3:4] < 0, -q, q)
+
+
+def make_poses(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """4x4 poses (N, 4, 4) from rotations (N, 3, 3) and translations (N, 3)."""
+    n = len(rotations)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = rotations
+    poses[:, :3, 3] = translations
+    return poses
+
+
+def opengl_to_opencv(poses: np.ndarray) -> np.ndarray:
+    """Camera-to-world (N, 4, 4) with OpenGL camera axes -> OpenCV axes (and back: same op)."""
+    return np.asarray(poses, dtype=np.float64) @ GL_TO_CV
+
+
+opencv_to_opengl = opengl_to_opencv
+
+
+# --------------------------------------------------------------------------------------
+# Timestamps
+# --------------------------------------------------------------------------------------
+
+
+def associate_timestamps(
+    query, reference, max_diff: float = 0.02, offset: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one matches between two timestamp lists, closest pairs first (TUM's associate.py).
+
+    query: (N,), reference: (M,) seconds; a pair (i, j) is allowed when
+    ``|query[i] - (reference[j] + offset)| < max_diff``. Returns index arrays (K,), (K,)
+    ordered by query index.
+    """
+    q = np.asarray(query, dtype=np.float64).ravel()
+    r = np.asarray(reference, dtype=np.float64).ravel() + offset
+    order = np.argsort(r, kind="stable")
+    rs = r[order]
+    lo = np.searchsorted(rs, q - max_diff, side="left")
+    hi = np.searchsorted(rs, q + max_diff, side="right")
+    counts = hi - lo
+    qi = np.repeat(np.arange(len(q)), counts)
+    # Index of each candidate inside its query's window [lo, hi).
+    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    rj = np.repeat(lo, counts) + within
+    diff = np.abs(q[qi] - rs[rj])
+    keep = diff < max_diff
+    qi, rj, diff = qi[keep], rj[keep], diff[keep]
+    # Greedy one-to-one matching is inherently sequential; the loop runs over the few
+    # candidate pairs inside the window, not over all N x M combinations.
+    used_q = np.zeros(len(q), bool)
+    used_r = np.zeros(len(r), bool)
+    pick = []
+    for k in np.argsort(diff, kind="stable"):
+        if not used_q[qi[k]] and not used_r[rj[k]]:
+            used_q[qi[k]] = used_r[rj[k]] = True
+            pick.append(k)
+    pick = np.asarray(pick, dtype=np.int64)
+    out_q, out_r = qi[pick], order[rj[pick]]
+    s = np.argsort(out_q, kind="stable")
+    return out_q[s], out_r[s]
+
+
+def interpolate_poses(
+    query_ts, ref_ts, ref_poses: np.ndarray, max_gap: float = 0.1, max_diff: float = 0.02, snap: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at `query_ts` (M,) from a trajectory sampled at `ref_ts` (N,) with `ref_poses` (N, 4, 4).
+
+    A sample within `snap` s is taken as is (for timestamps that differ only by rounding).
+    Else, between two samples at most `max_gap` s apart: SLERP of rotation, linear
+    translation. Otherwise (outside the trajectory or across a gap): the nearest sample when
+    within `max_diff` s. Returns poses (M, 4, 4) (NaN where none applies) and valid (M,) bool.
+    """
+    q = np.asarray(query_ts, dtype=np.float64).ravel()
+    order = np.argsort(np.asarray(ref_ts, dtype=np.float64), kind="stable")
+    t = np.asarray(ref_ts, dtype=np.float64)[order]
+    ref = np.asarray(ref_poses, dtype=np.float64)[order]
+    n = len(t)
+    out = np.full((len(q), 4, 4), np.nan)
+    if n == 0 or len(q) == 0:
+        return out, np.zeros(len(q), bool)
+    idx = np.searchsorted(t, q, side="right")  # t[idx-1] <= q < t[idx]
+    i0 = np.clip(idx - 1, 0, n - 1)
+    i1 = np.clip(idx, 0, n - 1)
+    gap = t[i1] - t[i0]
+    inside = (idx > 0) & (idx < n) & (gap <= max_gap)
+    nearest = np.where(np.abs(q - t[i0]) <= np.abs(t[i1] - q), i0, i1)
+    near_dist = np.abs(q - t[nearest])
+    inside &= ~(near_dist <= snap)
+    near_ok = ~inside & (near_dist <= max(max_diff, snap))
+
+    alpha = np.where(gap > 0, (q - t[i0]) / np.where(gap > 0, gap, 1.0), 0.0)[inside]
+    a, b = i0[inside], i1[inside]
+    if a.size:
+        rot_a = Rotation.from_matrix(ref[a, :3, :3])
+        delta = (rot_a.inv() * Rotation.from_matrix(ref[b, :3, :3])).as_rotvec()
+        rot = (rot_a * Rotation.from_rotvec(alpha[:, None] * delta)).as_matrix()
+        trans = (1 - alpha)[:, None] * ref[a, :3, 3] + alpha[:, None] * ref[b, :3, 3]
+        out[inside] = make_poses(rot, trans)
+    out[near_ok] = ref[nearest[near_ok]]
+    return out, inside | near_ok

@@ -1,0 +1,256 @@
+"""The pipeline's stages, each a function of the sequence and its own options.
+
+Every stage takes the :class:`~recon.sequence.Sequence` built so far and the few settings
+it needs (never the whole ``PipelineConfig``), and returns what it made; the driver
+(:mod:`recon.pipeline`) wires them in order and times them. The methods live elsewhere
+(readers in :mod:`recon.io`, priors in :mod:`recon.priors`, poses in :mod:`recon.poses`,
+MEDeA in :mod:`recon.medea`, refinement in :mod:`recon.refine`); a stage here only says
+which method runs, on what, and what goes to the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .camera import intrinsics_from_fov, resize_intrinsics
+from .errors import ReconInputError
+from .io.frames import DatasetSource, open_source
+from .io.pose_matching import frame_names, match_pose_file
+from .io.source import FrameSource
+from .sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- decode
+
+
+def select_frames(path: Path, *, stride: int | None = None, max_frames: int | None = None,
+                  start_time: float | None = None, end_time: float | None = None, width: int | None = None,
+                  fps: float | None = None, frame_budget: int = 600) -> FrameSource:
+    """Open the input with the selection (recon.io.source.Selection; width: working width,
+    fps: frame rate of an image folder), raising the stride when no stride is given and the
+    input has more than ``frame_budget`` frames."""
+    def open_with(step):
+        return open_source(path, stride=step, max_frames=max_frames, start_time=start_time, end_time=end_time,
+                           width=width, min_frames=2, fps=fps)
+
+    source = open_with(1 if stride is None else stride)
+    if stride is None and max_frames is None and source.count > frame_budget:
+        step = math.ceil(source.count / frame_budget)
+        log.warning("%d frames exceed the frame budget of %d; using every %dth frame (set --stride or --max-frames "
+                    "to choose)", source.count, frame_budget, step)
+        source = open_with(step)
+    return source
+
+
+def decode(source: FrameSource, progress: bool = True) -> Sequence:
+    """All selected frames at working size (decoded one at a time, stored small), named."""
+    from tqdm.auto import tqdm
+
+    indices, times, images = [], [], []
+    total = source.count if source.count > 0 else None
+    for frame in tqdm(source, total=total, desc="decode", unit="frame", disable=not progress, leave=False):
+        indices.append(frame.index)
+        times.append(frame.timestamp)
+        images.append(frame.rgb)
+    if len(images) < 2:
+        raise ReconInputError(
+            f"{source.path}: needs at least 2 frames, got {len(images)} ({source.selection.describe()})")
+    indices = np.asarray(indices, np.int64)
+    return Sequence(indices, np.asarray(times, np.float64), np.stack(images), frame_names(source, indices))
+
+
+# --------------------------------------------------------------------------- intrinsics
+
+
+def given_intrinsics(source: FrameSource, intrinsics=None, fov: float | None = None) -> tuple[tuple | None, str]:
+    """Intrinsics at working size known before poses: (values or None, where they came from).
+    intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal degrees."""
+    if intrinsics is not None:
+        return resize_intrinsics(intrinsics, source.native_shape, source.shape), "given"
+    if fov is not None:
+        return intrinsics_from_fov(fov, *source.shape), f"fov {fov:g} deg"
+    if source.intrinsics is not None:
+        return tuple(source.intrinsics), "dataset calibration"
+    return None, "unknown"
+
+
+def default_intrinsics(height: int, width: int) -> tuple[float, float, float, float]:
+    """The fallback camera: NYU Depth v2's field of view (what FastDepth was trained on)."""
+    from .priors.fastdepth import assumed_intrinsics
+
+    fx, fy, _, _ = assumed_intrinsics(height, width)
+    return (float(fx), float(fy), (width - 1) / 2.0, (height - 1) / 2.0)
+
+
+# --------------------------------------------------------------------------- prior
+
+
+def depth_prior(seq: Sequence, source: FrameSource, name: str, *, path: Path | None = None,
+                weights: Path | None = None, features: bool = True, device: str = "cpu", progress: bool = True):
+    """PriorOutput for the frames: depth (N, H, W) metres at working size, optional features.
+    name: "fastdepth", "sensor" (the dataset's depth) or "folder" (maps in ``path``)."""
+    from .priors import make_prior
+
+    common = dict(device=device, progress=progress)
+    if name == "fastdepth":
+        prior = make_prior("fastdepth", weights=weights, features=features, **common)
+    elif name == "sensor":
+        depth = source.load_depth() if isinstance(source, DatasetSource) else None
+        if depth is None:
+            raise ReconInputError(f"{source.path}: --prior sensor needs an RGB-D dataset folder with depth")
+        prior = make_prior("sensor", depth=depth, source=str(source.path), **common)
+    else:
+        prior = make_prior("folder", path=path, frame_names=seq.names, **common)
+    output = prior(seq.rgb, seq.intrinsics)
+    if output.kind != "metric":
+        raise ReconInputError(f"depth prior {name} gave {output.kind} depth; the pipeline needs metric depth")
+    return output
+
+
+# --------------------------------------------------------------------------- poses
+
+
+@dataclass(frozen=True)
+class PosePlan:
+    """Where the poses will come from, settled before any heavy work.
+
+    kind: "gt" (the dataset's ground truth), "estimate" or "file"; data: the read pose
+    file (recon.io.trajectories.PoseData) when kind is "file".
+    """
+
+    kind: str
+    data: object = None
+
+    @property
+    def estimated(self) -> bool:
+        return self.kind == "estimate"
+
+
+@dataclass
+class PoseStage:
+    """Poses of the sequence's frames and what the report says of them."""
+
+    poses: np.ndarray
+    intrinsics: tuple | None
+    source: str
+    info: dict = field(default_factory=dict)
+    keep: np.ndarray | None = None  # frames kept (ground truth may lack poses for some)
+    lens_k1: float = 0.0  # radial term the poses were estimated with (recon.lens)
+    dropped_note: str = ""  # why frames were left out, said once when keep is set
+
+
+def plan_poses(choice: str, source: FrameSource) -> PosePlan:
+    """The pose source for ``choice`` ("auto", "gt", "estimate" or a pose file / folder),
+    checked: raises ReconInputError when it cannot work."""
+    from .io.trajectories import read_poses
+
+    has_gt = isinstance(source, DatasetSource) and source.poses is not None
+    if choice == "auto":
+        choice = "gt" if has_gt else "estimate"
+    if choice == "gt" and not has_gt:
+        raise ReconInputError(f"{source.path}: --poses gt needs a dataset folder with ground-truth poses")
+    if choice == "estimate":
+        _pose_estimator()
+        return PosePlan("estimate")
+    if choice == "gt":
+        return PosePlan("gt")
+    return PosePlan("file", read_poses(Path(choice)))
+
+
+def _pose_estimator():
+    try:
+        from .poses import estimate_poses
+    except ImportError:
+        raise ReconInputError(
+            "pose estimation not available; pass --poses FILE or a dataset with ground-truth poses"
+        ) from None
+    return estimate_poses
+
+
+def camera_poses(plan: PosePlan, source: FrameSource, seq: Sequence, *, method: str = "auto",
+                 options: dict | None = None, device: str = "cpu", progress: bool = True) -> PoseStage:
+    """Poses of the sequence's frames from the planned source; method and options: the
+    estimator's (recon.poses.estimate_poses) when the plan is to estimate."""
+    if plan.kind == "gt":
+        valid = np.isfinite(source.poses).all(axis=(1, 2))
+        if valid.sum() < 2:
+            raise ReconInputError(f"{source.path}: fewer than 2 selected frames have a ground-truth pose")
+        keep = None if valid.all() else np.flatnonzero(valid)
+        return PoseStage(source.poses, None, "dataset ground truth", keep=keep,
+                         dropped_note=f"{len(valid) - valid.sum()} frames have no ground-truth pose and are left out")
+    if plan.kind == "estimate":
+        return estimated_poses(seq, method=method, options=options or {}, device=device, progress=progress)
+    poses, file_intrinsics = match_pose_file(plan.data, source, seq.indices, seq.timestamps)
+    return PoseStage(poses, file_intrinsics, f"file {plan.data.path}")
+
+
+def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, progress: bool) -> PoseStage:
+    """Poses estimated from the frames, through the quality gate (recon.poses.quality):
+    frames whose pose the images do not back are left out, named in report.json."""
+    from .poses.quality import gate_trajectory
+
+    result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
+                               progress=progress, **options)
+    gate = gate_trajectory(result)
+    info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
+            "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
+            "frame_status": list(result.diagnostics.get("frame_status", [])),
+            "quality": gate.summary([int(i) for i in seq.indices])}
+    keep, note = None, ""
+    if gate.dropped:
+        keep = np.flatnonzero(gate.keep)
+        spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
+        note = (f"{len(gate.dropped)} of {len(seq)} frames have no pose the images back "
+                f"(video frames {spans}) and are left out of depth and fusion (report.json: poses.quality)")
+    return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info, keep=keep,
+                     lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
+
+
+def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.ndarray]] | None:
+    """[(video frame, tracking state, camera-to-world pose)] of every frame of an estimate,
+    "dropped: <why>" for those the quality gate left out; None for given poses."""
+    status = stage.info.get("frame_status")
+    if not status:
+        return None
+    why = {d["frame"]: d["reason"] for d in stage.info.get("quality", {}).get("dropped_frames", [])}
+    return [(int(i), f"dropped: {why[int(i)]}" if int(i) in why else state, stage.poses[k])
+            for k, (i, state) in enumerate(zip(seq.indices, status))]
+
+
+def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True) -> PoseStage:
+    """The given poses polished against the frames (recon.poses.polish, ``config`` its
+    PolishConfig), the lens with them."""
+    from .poses.polish import polish_poses
+
+    result = polish_poses(seq.rgb, seq.prior_depth, stage.poses, seq.intrinsics, config, progress)
+    info = {**stage.info, "polish": result.info}
+    source = f"{stage.source}, polished against the frames" if result.info.get("polished") else stage.source
+    return replace(stage, poses=result.poses, source=source, info=info, lens_k1=result.lens_k1)
+
+
+# --------------------------------------------------------------------------- depth
+
+
+def adjust_with_medea(seq: Sequence, config, use_features: bool = True, progress: bool = True):
+    """MEDeA (``config`` its MedeaConfig) on the sequence: (adjusted depth (N, H, W) float32,
+    MedeaResult). use_features: give MEDeA the prior's encoder features when it has them."""
+    from .medea import adjust_sequence
+
+    features = seq.features if use_features else None
+    result = adjust_sequence(seq.rgb, seq.prior_depth, seq.poses, seq.intrinsics, features, config, progress)
+    return result.depth.numpy().astype(np.float32, copy=False), result
+
+
+def refine_depth(seq: Sequence, depth: np.ndarray, config, device: str = "cpu", progress: bool = True):
+    """Multi-view stereo refinement (``config`` its mvs_core.MvsConfig) of ``depth`` (N, H, W),
+    the adjusted depth of the sequence's frames: mvs_core.RefineResult."""
+    from .refine import refine_sequence
+
+    return refine_sequence(seq.rgb, depth, seq.poses, seq.intrinsics, replace(config, device=device), progress)

@@ -1,0 +1,76 @@
+"""`recon view`'s work: which recording to open, and logging a finished output folder to
+Rerun when the run saved no recording (the mesh, the camera trajectory with intrinsics,
+and the depth maps).
+
+The folder is read through :mod:`recon.io.output_folder`; logging goes through a
+:class:`viewer.RerunLogger` the caller opens.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recon.errors import ReconInputError
+from recon.io.output_folder import (
+    MESH_PLY,
+    RECORDING,
+    TRAJECTORY,
+    depth_files,
+    read_depth,
+    read_intrinsics,
+    read_mesh,
+    read_report,
+    read_trajectory,
+)
+
+
+def recording_of(target: Path) -> Path | None:
+    """The .rrd to open for `target` (an .rrd file, or a folder holding recording.rrd), or None."""
+    target = Path(target)
+    if target.is_file():
+        if target.suffix != ".rrd":
+            raise ReconInputError(f"{target}: not an .rrd recording or an output folder")
+        return target
+    candidate = target / RECORDING
+    return candidate if candidate.is_file() else None
+
+
+def _frame_numbers(report: dict | None, count: int) -> list[int]:
+    # The source frame numbers when the report has one per camera, else 0..count-1.
+    indices = report.get("frames", {}).get("indices") if report is not None else None
+    return list(range(count)) if indices is None or len(indices) != count else indices
+
+
+def log_output_folder(folder, logger, progress: bool = True) -> str:
+    """Log mesh, cameras and depth of an output folder to `logger`; returns a one-line summary."""
+    from tqdm.auto import tqdm
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ReconInputError(f"{folder}: not an output folder")
+    if not (folder / MESH_PLY).is_file() and not (folder / TRAJECTORY).is_file():
+        raise ReconInputError(f"{folder}: no {MESH_PLY} or {TRAJECTORY} (not an output folder of `recon run`)")
+    poses = read_trajectory(folder)
+    intrinsics = read_intrinsics(folder)
+    depth_paths = depth_files(folder)
+    count = len(poses) if poses is not None else len(depth_paths)
+    if depth_paths and poses is not None and len(depth_paths) != len(poses):
+        raise ReconInputError(f"{folder}: {len(depth_paths)} depth maps for {len(poses)} poses in {TRAJECTORY}")
+    indices = _frame_numbers(read_report(folder), count)
+    for k in tqdm(range(count), desc="rerun logging", unit="frame", disable=not progress, leave=False):
+        depth = read_depth(depth_paths[k], mmap=True) if depth_paths else None
+        pose = poses[k] if poses is not None else None
+        logger.log_frame(int(indices[k]), None, adjusted_depth=depth, pose=pose,
+                         intrinsics=intrinsics if depth is not None else None)
+    mesh = read_mesh(folder)
+    triangles = 0
+    if mesh is not None:
+        triangles = len(mesh.triangles)
+        colors = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+        logger.log_mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), colors)
+    return f"{count} cameras, {len(depth_paths)} depth maps, mesh of {triangles} triangles from {folder}"
+
+
+__all__ = ["log_output_folder", "recording_of"]

@@ -1,0 +1,223 @@
+"""Plain functions and constants that several test files share; fixtures are in conftest.py.
+
+Test files import them with ``from helpers import ...`` (pytest puts tests/ on sys.path).
+A test file never imports another test file.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+SHARED_DATA = SHARED / "data"
+FASTDEPTH_WEIGHTS = SHARED / "weights" / "fastdepth"
+
+
+# --------------------------------------------------------------------------- analytic scenes (medea_core, mvs_core)
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, y, z], axis=1)
+    pose[:3, 3] = eye
+    return pose
+
+
+def plane_depth(pose: np.ndarray, intrinsics, height: int, width: int, normal, offset) -> np.ndarray:
+    """z-depth (H, W) of the world plane normal . X = offset seen from a camera-to-world pose."""
+    fx, fy, cx, cy = intrinsics
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+    rays_world = rays_cam @ pose[:3, :3].T
+    normal = np.asarray(normal, dtype=np.float64)
+    t = (offset - pose[:3, 3] @ normal) / (rays_world @ normal)
+    return t.astype(np.float32)
+
+
+def wall_texture(seed: int = 0, size: int = 512, extent: float = 6.0):
+    """A band-limited random texture of a wall: (image (size, size) float32 in [0, 1], metres
+    per texel). The wall spans [-extent / 2, extent / 2]^2 in its own x, y; its finest
+    detail (~4 cm) is coarser than a pixel's footprint at a few metres, so views of it do
+    not alias."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal((size, size)).astype(np.float32)
+    image = cv2.GaussianBlur(noise, (0, 0), 3.0) + 0.5 * cv2.GaussianBlur(noise, (0, 0), 8.0)
+    image = (image - image.min()) / (image.max() - image.min())
+    return image, extent / size
+
+
+def render_wall(poses, intrinsics, height: int, width: int, distance: float = 3.0, flat_right: bool = False,
+                seed: int = 0):
+    """Grey images (N, H, W) float32 in [0, 1] and depth (N, H, W) of a textured wall z = distance
+    (world frame) seen from camera-to-world poses. flat_right: the wall's half x > 0 is a
+    uniform grey (no texture at all), for textureless-surface tests."""
+    import cv2
+
+    texture, texel = wall_texture(seed)
+    size = texture.shape[0]
+    images, depths = [], []
+    for pose in poses:
+        depth = plane_depth(pose, intrinsics, height, width, normal=[0.0, 0.0, 1.0], offset=distance)
+        fx, fy, cx, cy = intrinsics
+        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+        rays = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1) * depth[..., None]
+        world = rays @ pose[:3, :3].T + pose[:3, 3]
+        tx = (world[..., 0] / texel + size / 2).astype(np.float32)
+        ty = (world[..., 1] / texel + size / 2).astype(np.float32)
+        grey = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if flat_right:
+            grey = np.where(world[..., 0] > 0, np.float32(0.5), grey)
+        images.append(grey)
+        depths.append(depth)
+    return np.stack(images).astype(np.float32), np.stack(depths).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- Rerun recordings (viewer, cli)
+
+
+def read_recording(path) -> tuple[list[str], dict[str, set[str]], dict[str, list[int]], dict[str, dict[str, list]]]:
+    """An .rrd read back with rerun's chunk API: entity paths; component columns per entity;
+    "frame" values per entity (and "epoch" values under "<entity>#epoch"); first-row values
+    of every component column per entity. Skips the calling test without rerun.chunk."""
+    rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
+    reader = rr_chunk.RrdReader(path)
+    assert len(reader.recordings()) == 1
+    entities = reader.store().schema().entity_paths()
+    components: dict[str, set[str]] = defaultdict(set)
+    frames: dict[str, list[int]] = defaultdict(list)
+    values: dict[str, dict[str, list]] = defaultdict(dict)
+    for chunk in reader.stream():
+        batch = chunk.to_record_batch()
+        names = [n for n in batch.schema.names if ":" in n and not n.startswith("rerun.")]
+        components[chunk.entity_path].update(names)
+        if "frame" in chunk.timeline_names:
+            frames[chunk.entity_path].extend(batch.column("frame").to_pylist())
+        for name in names:
+            values[chunk.entity_path].setdefault(name, batch.column(name).to_pylist())
+        if "epoch" in chunk.timeline_names:
+            frames[chunk.entity_path + "#epoch"].extend(batch.column("epoch").to_pylist())
+    return entities, components, frames, values
+
+
+# --------------------------------------------------------------------------- frame sources (io video, io frames)
+
+SOURCE_W, SOURCE_H, SOURCE_FPS = 64, 48, 10.0
+
+
+def source_frame(i: int, w: int = SOURCE_W, h: int = SOURCE_H) -> np.ndarray:
+    """RGB frame i: flat grey level 20 + 20 i (survives lossy codecs) and a white square moving right."""
+    img = np.full((h, w, 3), 20 + 20 * i, np.uint8)
+    x = 4 + 4 * i
+    img[8:24, x : x + 16] = 255
+    return img
+
+
+def write_clip(path: Path, n: int, fourcc: str = "mp4v", w: int = SOURCE_W, h: int = SOURCE_H,
+               fps: float = SOURCE_FPS) -> Path:
+    """A video of source_frame(0 .. n - 1) written with OpenCV."""
+    import cv2
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (w, h))
+    assert writer.isOpened(), f"cannot write {path} with {fourcc}"
+    for i in range(n):
+        writer.write(cv2.cvtColor(source_frame(i, w, h), cv2.COLOR_RGB2BGR))
+    writer.release()
+    return path
+
+
+def write_images(folder: Path, names, size=(SOURCE_W, SOURCE_H)) -> None:
+    """source_frame(i) saved as folder / names[i] (size is W, H)."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(names):
+        assert cv2.imwrite(str(folder / name), cv2.cvtColor(source_frame(i, *size), cv2.COLOR_RGB2BGR))
+
+
+def grey_level(rgb: np.ndarray) -> float:
+    """Grey level of the frame's bottom rows (away from the moving square)."""
+    return float(rgb[-10:].mean())
+
+
+def one_line(exc: pytest.ExceptionInfo) -> str:
+    """The message of a raised error, checked to be one non-empty line."""
+    message = str(exc.value)
+    assert "\n" not in message and message
+    return message
+
+
+# --------------------------------------------------------------------------- depth priors (priors_*)
+
+PRIOR_H, PRIOR_W = 24, 32
+
+
+def prior_frames(count: int, height: int = PRIOR_H, width: int = PRIOR_W) -> np.ndarray:
+    """Random RGB frames (count, H, W, 3) uint8, the same for the same arguments."""
+    return np.random.default_rng(0).integers(0, 255, (count, height, width, 3), dtype=np.uint8)
+
+
+def prior_depth(count: int, height: int = PRIOR_H, width: int = PRIOR_W) -> np.ndarray:
+    """Metric depth (count, H, W) in [0.5, 4.5] m with a hole in each map, millimetre-exact."""
+    rng = np.random.default_rng(1)
+    depth = np.round(rng.uniform(0.5, 4.5, (count, height, width)), 3).astype(np.float32)
+    depth[:, :3, :4] = 0.0
+    return depth
+
+
+def prior_error(prior, frames, *words) -> str:
+    """The one-line ReconInputError of prior(frames), checked to name every one of words."""
+    from recon.errors import ReconInputError
+
+    with pytest.raises(ReconInputError) as info:
+        prior(frames)
+    message = str(info.value)
+    assert "\n" not in message
+    for word in words:
+        assert str(word) in message
+    return message
+
+
+def copy_fastdepth_weights(src: Path, dst: Path) -> Path:
+    """A copy of the FastDepth TF.js files of src in the new folder dst; its model.json."""
+    dst.mkdir(parents=True)
+    for name in ("model.json", "group1-shard1of1.bin"):
+        shutil.copy(src / name, dst / name)
+    return dst / "model.json"
+
+
+# --------------------------------------------------------------------------- pose files (io trajectories, io colmap)
+
+POSE_FILE_INTRINSICS = {"fx": 500.0, "fy": 510.0, "cx": 320.5, "cy": 239.5, "width": 640, "height": 480}
+
+
+def random_poses(n=6, seed=0):
+    """n random camera-to-world poses (random rotations, unit-normal positions)."""
+    from scipy.spatial.transform import Rotation
+
+    from recon.poses.rigid import make_poses
+
+    rng = np.random.default_rng(seed)
+    return make_poses(Rotation.random(n, random_state=seed).as_matrix(), rng.normal(size=(n, 3)))
+
+
+# --------------------------------------------------------------------------- output folders (export, io output_folder)
+
+
+def no_temp_files(folder: Path) -> bool:
+    """Whether nothing under folder is a hidden (temporary) file, as atomic writes leave none."""
+    return not any(p.name.startswith(".") for p in folder.rglob("*"))

@@ -1,0 +1,155 @@
+"""TSDF fusion (recon.fusion.tsdf) on the synthetic room: accuracy against the ground-truth
+mesh, automatic parameters, memory budget, fragment removal, inputs, and real sensor depth.
+The room and its fusion (conftest: fusion_room, fused_room) are shared with the export tests."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from recon.errors import ReconInputError
+from recon.eval.mesh import mesh_metrics, visible_mask
+from recon.fusion import FusionOptions, auto_voxel_size, estimate_block_count, fuse, remove_fragments
+from recon.synthetic import render_sequence
+
+from helpers import SHARED_DATA
+
+QUIET = dict(progress=False)
+
+
+def test_fusion_matches_ground_truth(fusion_room, fused_room):
+    mesh = fused_room.mesh
+    assert len(mesh.triangles) > 10_000 and mesh.has_vertex_colors() and mesh.has_vertex_normals()
+    assert fused_room.frames_fused == 20 and fused_room.seconds > 0
+    # Evaluate only what the cameras saw (the rest of the room cannot be reconstructed).
+    seen = lambda p: visible_mask(p, fusion_room.depth, fusion_room.poses, fusion_room.intrinsics)  # noqa: E731
+    m = mesh_metrics(mesh, fusion_room.o3d_mesh(), threshold=0.05, num_points=20_000, point_filter=seen)
+    assert m.precision >= 0.95 and m.recall >= 0.95 and m.fscore >= 0.95, m
+    assert m.completeness < 0.03
+    # Colours are the frames' colours (0..1), not 0..255 and not black.
+    colors = np.asarray(mesh.vertex_colors)
+    assert colors.max() <= 1.0 + 1e-5
+    assert colors.mean(0) == pytest.approx(fusion_room.rgb.reshape(-1, 3).mean(0) / 255, abs=0.06)
+    assert fused_room.point_cloud is not None and len(fused_room.point_cloud.points) > 1000
+
+
+def test_automatic_parameters_follow_the_rule(fusion_room, fused_room):
+    valid = fusion_room.depth[fusion_room.depth > 0]
+    # The rule, on the sampled depths fuse() uses (every 4th pixel): 1.1 x p99, median / 200.
+    sample = fusion_room.depth[:, ::4, ::4].ravel()
+    assert fused_room.max_depth == pytest.approx(1.1 * np.percentile(sample, 99), rel=1e-6)
+    sampled_median = np.median(sample[sample <= fused_room.max_depth])
+    assert fused_room.voxel_size == pytest.approx(sampled_median / 200, rel=1e-6)
+    assert fused_room.voxel_size == pytest.approx(np.median(valid) / 200, rel=0.02)
+    assert fused_room.trunc == pytest.approx(FusionOptions.trunc_voxels * fused_room.voxel_size)
+    assert auto_voxel_size(2.0) == pytest.approx(0.01)
+    assert auto_voxel_size(0.3) == 0.005 and auto_voxel_size(40.0) == 0.05
+    # A constant 2 m depth: voxel 1 cm, max depth 2.2 m.
+    flat = np.full((2, 24, 32), 2.0, np.float32)
+    poses = np.stack([np.eye(4)] * 2)
+    r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5), FusionOptions(**QUIET))
+    assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.01, 0.08, 2.2))
+    # Overrides win.
+    r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5),
+             FusionOptions(voxel_size=0.02, trunc=0.05, max_depth=3.0, **QUIET))
+    assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.02, 0.05, 3.0))
+
+
+def test_block_estimate_and_budget(fusion_room, fused_room, caplog):
+    # The estimate predicts what integration allocates.
+    assert fused_room.blocks_used == pytest.approx(fused_room.block_estimate, rel=0.2)
+    est = estimate_block_count(fusion_room.depth, fusion_room.poses, fusion_room.intrinsics, fused_room.voxel_size,
+                               fused_room.trunc, fused_room.max_depth)
+    assert est == fused_room.block_estimate
+    # A budget 4x too small: the voxel grows (about 2x) with a warning instead of failing.
+    budget = fused_room.block_estimate // 4
+    frames = slice(0, 20, 4)
+    with caplog.at_level(logging.WARNING, logger="recon.fusion.tsdf"):
+        r = fuse(fusion_room.depth[frames], fusion_room.rgb[frames], fusion_room.poses[frames], fusion_room.intrinsics,
+                 FusionOptions(block_count=budget, **QUIET))
+    assert any("budget" in rec.message for rec in caplog.records)
+    assert r.block_estimate <= budget and r.blocks_used <= 1.2 * budget
+    assert r.voxel_size > 1.5 * fused_room.voxel_size
+    assert r.trunc == pytest.approx(FusionOptions.trunc_voxels * r.voxel_size)
+    assert len(r.mesh.triangles) > 1000
+
+
+def test_fragment_removal_drops_floating_blob():
+    seq = render_sequence(6, 160, 120, seed=1)
+    depth = seq.depth.copy()
+    # A 5x5 pixel speck floating 1 m in front of every camera: a tiny disconnected blob.
+    depth[:, 60:65, 80:85] = 1.0
+    blob = np.stack([(p[:3, :3] @ np.array([0.0, 0.0, 1.0]) + p[:3, 3]) for p in seq.poses])
+    opts = dict(weight_threshold=1.0, **QUIET)
+
+    def near_blob(mesh):
+        v = np.asarray(mesh.vertices)
+        return int((np.linalg.norm(v[:, None] - blob[None], axis=2).min(1) < 0.05).sum())
+
+    kept = fuse(depth, seq.rgb, seq.poses, seq.intrinsics,
+                FusionOptions(min_fragment_triangles=0, min_fragment_fraction=0, **opts))
+    assert near_blob(kept.mesh) > 0 and kept.fragments_removed == 0
+    cleaned = fuse(depth, seq.rgb, seq.poses, seq.intrinsics, FusionOptions(**opts))
+    assert near_blob(cleaned.mesh) == 0 and cleaned.fragments_removed > 0
+    # Only the blob went: the room surface is essentially unchanged.
+    assert len(cleaned.mesh.triangles) > 0.98 * len(kept.mesh.triangles)
+
+
+def test_remove_fragments_unit():
+    big = o3d.geometry.TriangleMesh.create_box(1, 1, 1).subdivide_midpoint(3)  # 768 triangles
+    small = o3d.geometry.TriangleMesh.create_tetrahedron(0.05).translate((3, 0, 0))  # 4 triangles
+    mesh, removed = remove_fragments(big + small, min_triangles=10, min_fraction=0.0)
+    assert removed == 4 and len(mesh.triangles) == len(big.triangles)
+    assert np.asarray(mesh.vertices)[:, 0].max() <= 1.0 + 1e-9
+    # The fraction rule alone: 4 < 1 % of 768 -> dropped; 0 triangles and 0 fraction keep all.
+    assert remove_fragments(big + small, min_triangles=0, min_fraction=0.01)[1] == 4
+    assert remove_fragments(big + small, min_triangles=0, min_fraction=0.0)[1] == 0
+
+
+def test_fusion_inputs(fusion_room):
+    poses = fusion_room.poses[:4].copy()
+    poses[1] = np.nan  # an untracked frame is skipped, not fused
+    r = fuse(fusion_room.depth[:4], fusion_room.rgb[:4], poses, fusion_room.intrinsics, FusionOptions(**QUIET))
+    assert r.frames_fused == 3
+    # Per-frame intrinsics and an uncoloured fusion.
+    k = np.tile(fusion_room.intrinsics, (4, 1))
+    r = fuse(fusion_room.depth[:4], None, fusion_room.poses[:4], k, FusionOptions(**QUIET))
+    assert len(r.mesh.triangles) > 0 and not r.mesh.has_vertex_colors()
+    with pytest.raises(ReconInputError):
+        fuse(np.zeros((2, 8, 8), np.float32), None, fusion_room.poses[:2], fusion_room.intrinsics,
+             FusionOptions(**QUIET))
+    with pytest.raises(ReconInputError):
+        fuse(fusion_room.depth[:2], None, fusion_room.poses[:2], fusion_room.intrinsics,
+             FusionOptions(voxel_size=-1.0, **QUIET))
+    with pytest.raises(ReconInputError):
+        fuse(fusion_room.depth[:2], None, fusion_room.poses[:2], fusion_room.intrinsics,
+             FusionOptions(device="tpu", **QUIET))
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "7scenes-redkitchen").is_dir(), reason="../shared is not present")
+def test_fuse_real_sensor_depth(tmp_path):
+    """7-Scenes sensor depth with its ground-truth poses gives a clean kitchen surface."""
+    from recon.io.frames import open_source
+
+    src = open_source(SHARED_DATA / "7scenes-redkitchen", width=160, stride=20, max_frames=10)
+    depth, rgb = src.load_depth(), src.read_all().rgb
+    r = fuse(depth, rgb, src.poses, src.intrinsics, FusionOptions(**QUIET))
+    assert len(r.mesh.triangles) > 5000 and 0.005 <= r.voxel_size <= 0.03
+    # Self-consistency: the mesh lies where the sensor saw surfaces.
+    seen = lambda p: visible_mask(p, depth, src.poses, src.intrinsics)  # noqa: E731
+    from recon.eval.mesh import sample_surface
+
+    pts = sample_surface(r.mesh, 20_000)
+    pts = pts[seen(pts)]
+    fx, fy, cx, cy = src.intrinsics
+    k = 0
+    cam = (pts - src.poses[k][:3, 3]) @ src.poses[k][:3, :3]
+    u = np.round(fx * cam[:, 0] / cam[:, 2] + cx).astype(int)
+    v = np.round(fy * cam[:, 1] / cam[:, 2] + cy).astype(int)
+    inside = (cam[:, 2] > 0) & (u >= 0) & (u < depth.shape[2]) & (v >= 0) & (v < depth.shape[1])
+    d = depth[k][v[inside], u[inside]]
+    ok = d > 0
+    assert ok.sum() > 1000 and np.median(np.abs(cam[inside, 2][ok] - d[ok])) < 0.02

@@ -1,0 +1,81 @@
+"""The output folder (recon.io.output_folder): depth PNGs in millimetres, refusing to write
+into a folder that holds other files, and atomic writes that never leave half a file."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from recon.errors import ReconInputError
+from recon.export import glb_bytes, write_mesh_ply
+from recon.io.output_folder import OutputFolder, atomic_write_bytes, depth_to_mm, read_depth_png_mm
+
+from helpers import no_temp_files
+
+
+def test_depth_png_round_trip(tmp_path):
+    depth = np.array([[0.0, 1.2344, 0.0004], [np.nan, 70.0, -1.0], [np.inf, 65.535, 2.5]], np.float32)
+    mm = depth_to_mm(depth)
+    assert mm.tolist() == [[0, 1234, 1], [0, 65535, 0], [0, 65535, 2500]]
+    out = OutputFolder(tmp_path / "o")
+    from recon.export import write_depth_frame
+
+    png, npy = write_depth_frame(out, "f", depth)
+    back = read_depth_png_mm(png)
+    assert back.dtype == np.float32 and back[0, 1] == pytest.approx(1.234) and back[1, 1] == pytest.approx(65.535)
+    assert np.array_equal(back > 0, np.isfinite(depth) & (depth > 0))
+    stored = np.load(npy)
+    assert stored.dtype == np.float32 and stored[1, 0] == 0 and stored[1, 1] == 70.0 and stored[2, 0] == 0
+
+
+def test_output_folder_refuses_non_empty(tmp_path):
+    target = tmp_path / "busy"
+    target.mkdir()
+    (target / "keep.txt").write_text("precious")
+    with pytest.raises(ReconInputError) as exc:
+        OutputFolder(target)
+    assert str(target) in str(exc.value) and "\n" not in str(exc.value)
+    assert (target / "keep.txt").read_text() == "precious"
+    # With overwrite: same names replaced, other files left alone.
+    out = OutputFolder(target, overwrite=True)
+    out.write_text("keep2.txt", "new")
+    assert (target / "keep.txt").read_text() == "precious"
+    # An empty existing folder and a new nested one are fine; a file is not.
+    (tmp_path / "empty").mkdir()
+    OutputFolder(tmp_path / "empty")
+    assert OutputFolder(tmp_path / "a" / "b").path.is_dir()
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ReconInputError):
+        OutputFolder(tmp_path / "file")
+
+
+def test_atomic_writes(tmp_path):
+    out = OutputFolder(tmp_path / "o")
+    out.write_json("r.json", {"a": 1})
+    out.write_json("r.json", {"a": 2})  # this run's own file may be rewritten
+    assert json.loads((out.path / "r.json").read_text()) == {"a": 2}
+    # A writer that fails leaves neither a temp file nor a partial result.
+    with pytest.raises(RuntimeError):
+        with out.atomic("broken.bin") as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError("writer crashed")
+    assert not (out.path / "broken.bin").exists()
+    # Standalone writers never replace an existing file without overwrite.
+    target = tmp_path / "o" / "existing.ply"
+    target.write_text("old")
+    mesh = o3d.geometry.TriangleMesh.create_tetrahedron()
+    with pytest.raises(ReconInputError):
+        write_mesh_ply(target, mesh)
+    assert target.read_text() == "old"
+    with pytest.raises(ReconInputError):
+        atomic_write_bytes(target, b"new")
+    assert target.read_text() == "old"
+    write_mesh_ply(target, mesh, overwrite=True)
+    assert len(o3d.io.read_triangle_mesh(str(target)).triangles) == 4
+    assert glb_bytes(mesh)[:4] == b"glTF"
+    assert no_temp_files(out.path)
+    with pytest.raises(ValueError):
+        out.path_for("../escape.txt")

@@ -1,0 +1,70 @@
+"""The pose entry point recon.poses.estimate_poses: the automatic fallback from the front end to
+SfM (said once, as a warning), and one-line errors for bad inputs and settings."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from recon.camera import intrinsics_from_fov
+from recon.errors import ReconInputError
+from recon.poses import TrackingLostError, estimate_poses
+from recon.poses.frontend import FrontendConfig
+from recon.poses.sfm import SfMConfig
+
+
+def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, capsys, caplog):
+    seq, prior = pose_room
+    import recon.poses.frontend as fe
+    import recon.poses.sfm as sfm
+
+    def lost(*args, **kwargs):
+        raise TrackingLostError("tracking lost at frame 7: test", frame=7)
+
+    sentinel = fe.PoseResult(np.tile(np.eye(4), (36, 1, 1)), seq.intrinsics, np.arange(36), 0.0, {"method": "sfm"})
+    monkeypatch.setattr(fe, "estimate_poses_frontend", lost)
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: sentinel)
+    with caplog.at_level(logging.WARNING, logger="recon"):  # logged before SfM runs, not printed
+        res = estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=True)
+    assert res.diagnostics["fallback"]["frame"] == 7
+    assert capsys.readouterr().out == ""
+    assert [r.getMessage() for r in caplog.records] == [  # said once
+        "front end failed (tracking lost at frame 7: test); falling back to SfM (pycolmap)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
+    assert capsys.readouterr().out == ""
+    assert [r.getMessage() for r in caplog.records] == [
+        "front end failed (tracking lost at frame 7: test); the poses are from the SfM fallback (pycolmap)"]
+
+    def sfm_fails(*args, **kwargs):
+        raise TrackingLostError("SfM registered only 0 of 4 keyframes")
+
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", sfm_fails)
+    with pytest.raises(TrackingLostError, match=r"front end failed \(tracking lost at frame 7: test\), and so did the "
+                                                r"SfM fallback \(SfM registered only 0") as info:
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
+    assert info.value.frame == 7
+    with pytest.raises(TrackingLostError):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
+
+
+def test_bad_inputs_raise_one_line_errors(pose_room):
+    seq, prior = pose_room
+    with pytest.raises(ReconInputError, match="pose method"):
+        estimate_poses(seq.rgb, prior, method="slam")
+    with pytest.raises(ReconInputError, match="prior depth has 5 frames"):
+        estimate_poses(seq.rgb[:8], prior[:5], seq.intrinsics, method="frontend", progress=False)
+    with pytest.raises(ReconInputError, match="unknown pose option"):
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, bogus=1)
+    with pytest.raises(ReconInputError, match="ba_stride must be >= 1, got 0"):  # was a ZeroDivisionError
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, config=FrontendConfig(ba_stride=0))
+    with pytest.raises(ReconInputError, match="window must be >= 1"):  # the SfM's own front-end settings too
+        estimate_poses(seq.rgb[:8], prior[:8], seq.intrinsics, method="sfm",
+                       sfm_config=SfMConfig(frontend=FrontendConfig(window=0)))
+    with pytest.raises(ReconInputError, match="positive focal"):
+        estimate_poses(seq.rgb[:8], prior[:8], (0, 0, 1, 1))
+    f = intrinsics_from_fov(90.0, 480, 640)  # (H, W)
+    assert f[0] == pytest.approx(320.0) and f[2] == 319.5
