@@ -2,8 +2,9 @@
 end to end), `recon view` (Rerun inspection of a result) and `recon eval` (scores against a
 dataset's ground truth).
 
-Options mirror the typed configs (recon.pipeline.PipelineConfig, MedeaConfig,
-FusionOptions); this module only parses them. Named choices come from recon.choices.
+This module runs the commands; their options, which mirror the typed configs
+(recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed and turned into
+those configs by recon.cli_args.
 
 What the user reads: results and stage names on stdout; on stderr, progress bars (unless
 --quiet) and one line per message. The library never prints: its warnings go through the
@@ -21,113 +22,15 @@ import logging
 import sys
 from pathlib import Path
 
-import torch
-
-from medea_core import MedeaConfig
-
-from .choices import DEMO_PRIORS, POSE_CHOICES, POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES
+from .cli_args import (
+    build_parser,
+    default_rerun_mode,
+    medea_config_from_args,
+    pipeline_config_from_args,
+    pose_options_from_args,
+    rerun_mode,
+)
 from .errors import ReconInputError
-
-
-def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -> None:
-    """Options mirroring MedeaConfig. Unset options keep the preset's value."""
-    d = MedeaConfig()
-    g = parser.add_argument_group("MEDeA depth adjustment")
-    g.add_argument("--preset", choices=["paper", "fast"], default=preset,
-                   help="paper: the paper's settings; fast: pixel stride 2 and Stage II lr 0.01, "
-                        "about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
-    g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
-    g.add_argument("--image-scale", type=float,
-                   help=f"working resolution relative to the input (paper {d.image_scale})")
-    g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
-    g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
-    g.add_argument("--feature-stride", type=int, help="the same on the feature grid (paper 1)")
-    g.add_argument("--feature-channels", type=int,
-                   help="keep only the N most varying feature channels (paper: all); warping cost grows with N")
-    g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs})")
-    g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
-    g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
-    g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")
-    g.add_argument("--no-stage2", action="store_true", help="skip Stage II")
-    g.add_argument("--no-propagation", action="store_true",
-                   help="start Stage II from scale 1 instead of the keyframes' scale")
-    g.add_argument("--no-photometric", action="store_true", help="drop the photometric loss")
-    g.add_argument("--no-depth-loss", action="store_true", help="drop the depth consistency loss")
-    g.add_argument("--no-feature-loss", action="store_true", help="drop the feature-metric loss")
-    g.add_argument("--feature-loss", choices=["S", "M"],
-                   help="S: normalised L1 (MEDeA-S, paper default), M: dot product (MEDeA-M)")
-    g.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
-
-
-def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
-    config = MedeaConfig.fast() if args.preset == "fast" else MedeaConfig()
-    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_stride", "feature_channels", "feature_loss"):
-        if getattr(args, name) is not None:
-            setattr(config, name, getattr(args, name))
-    if args.stage1_epochs is not None:
-        config.stage1.epochs = args.stage1_epochs
-    if args.stage2_epochs is not None:
-        config.stage2.epochs = args.stage2_epochs
-    if args.lr is not None:
-        config.stage1.lr = config.stage2.lr = args.lr
-    config.run_stage1 = not args.no_stage1
-    config.run_stage2 = not args.no_stage2
-    config.propagate_scale = not args.no_propagation
-    config.use_photometric = not args.no_photometric
-    config.use_depth = not args.no_depth_loss
-    config.use_features = not args.no_feature_loss
-    config.seed = args.seed
-    config.device = resolve_device(args.device)
-    return config
-
-
-def resolve_device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ReconInputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
-    return name
-
-
-# --------------------------------------------------------------------------- shared options
-
-
-def _numbers(text: str, count: int, what: str) -> tuple[float, ...]:
-    parts = [p for p in text.replace(",", " ").split() if p]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != count:
-        raise ReconInputError(f"{what}: expected {count} numbers separated by commas, got {text!r}")
-    return values
-
-
-def add_device_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
-
-
-def add_rerun_argument(parser: argparse.ArgumentParser, default: str | None, what: str) -> None:
-    default_text = default or "spawn when a display is available, else off"
-    parser.add_argument(
-        "--rerun", nargs="+", metavar="MODE", default=None,
-        help=f"Rerun inspection of {what}: spawn (desktop viewer), save [PATH.rrd] (default OUT/recording.rrd), "
-             f"serve (web viewer on localhost; waits until Ctrl-C), off (default: {default_text})",
-    )
-
-
-def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None]:
-    """(mode, path or None) from --rerun MODE [PATH]."""
-    values = args.rerun or [default]
-    mode, rest = values[0], values[1:]
-    if mode not in RERUN_MODES:
-        raise ReconInputError(f"--rerun: mode must be one of {', '.join(RERUN_MODES)}, got {mode!r}")
-    if rest and mode != "save":
-        raise ReconInputError(f"--rerun {mode} takes no path (only 'save' does)")
-    if len(rest) > 1:
-        raise ReconInputError(f"--rerun save takes one path, got {len(rest)}")
-    return mode, Path(rest[0]) if rest else None
 
 
 def _wait_for_ctrl_c(url: str | None) -> None:
@@ -142,175 +45,6 @@ def _wait_for_ctrl_c(url: str | None) -> None:
 
 
 # --------------------------------------------------------------------------- recon run
-
-
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    from .fusion import FusionOptions
-    from .pipeline import PipelineConfig
-
-    d, fd = PipelineConfig(Path(), Path()), FusionOptions()
-    g = parser.add_argument_group("frames")
-    g.add_argument("--stride", type=int, help="use every k-th frame (default: 1, raised to stay within --frame-budget)")
-    g.add_argument("--max-frames", type=int, help="use at most this many frames")
-    g.add_argument("--start", type=float, dest="start_time", help="first second of the video to use")
-    g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
-    g.add_argument("--frame-budget", type=int, default=d.frame_budget,
-                   help="without --stride/--max-frames, raise the stride so that at most this many frames are used "
-                        "(default %(default)s)")
-    g.add_argument("--width", type=int, default=d.width,
-                   help="working width in pixels, aspect kept; 0 keeps the input's size (default %(default)s)")
-    g.add_argument("--fps", type=float, help="frame rate of an image folder (default 30), for --start/--end")
-
-    g = parser.add_argument_group("camera")
-    g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
-                   help="pinhole intrinsics in pixels of the input as decoded (pixel centres at integers)")
-    g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
-
-    g = parser.add_argument_group("poses")
-    g.add_argument("--poses", default="auto", metavar="{%s}|PATH" % ",".join(POSE_CHOICES),
-                   help="auto (dataset ground truth if any, else estimate), gt, estimate, or a pose file/folder "
-                        "(TUM, COLMAP, nerfstudio transforms.json, per-frame 4x4 matrices, Open3D .log); "
-                        "default %(default)s")
-    g.add_argument("--pose-method", choices=POSE_METHODS, default=d.pose_method,
-                   help="pose estimator (default %(default)s)")
-    add_pose_option_argument(g)
-
-    g = parser.add_argument_group("depth prior")
-    g.add_argument("--prior", choices=PRIOR_CHOICES, default=d.prior,
-                   help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (--prior-path)")
-    g.add_argument("--prior-path", type=Path, help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; "
-                                                   "16-bit PNG in millimetres), matched by frame name")
-    g.add_argument("--weights", type=Path, help="FastDepth weights (file or folder); default: $RECON_WEIGHTS, "
-                                                "../shared/weights, ~/.cache/recon/weights")
-    g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
-
-    g = parser.add_argument_group("multi-view stereo refinement (after MEDeA)")
-    g.add_argument("--refine", choices=REFINE_CHOICES, default=d.refine,
-                   help="mvs: per-pixel depth from the frames around MEDeA's depth, with a confidence; only the "
-                        "pixels it reconstructs are fused. none: MEDeA's depth, the paper's pipeline "
-                        "(default %(default)s)")
-    g.add_argument("--refine-option", action=_RefineOptionAction, default=[], metavar="KEY=VALUE",
-                   help="change a refinement setting (mvs_core.MvsConfig), e.g. num_sources=4, hypotheses=16 "
-                        "(repeatable); `--refine-option list` prints every setting with its default")
-    g.add_argument("--no-polish", action="store_true",
-                   help="use given poses (dataset, pose file) as they are; by default they are polished against the "
-                        "frames before MEDeA when refining (recon.poses.polish)")
-
-    g = parser.add_argument_group("TSDF fusion")
-    g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
-    g.add_argument("--trunc", type=float, help=f"truncation in metres (default {fd.trunc_voxels:g} voxels)")
-    g.add_argument("--max-depth", type=float, help="ignore depth beyond this many metres (default: 1.1 x the 99th "
-                                                   "percentile)")
-    g.add_argument("--weight-threshold", type=float, default=fd.weight_threshold,
-                   help="frames that must see a voxel for it to be meshed (default %(default)s)")
-    g.add_argument("--min-fragment", type=int, default=fd.min_fragment_triangles,
-                   help="drop mesh pieces with fewer triangles (default %(default)s; 0 keeps all)")
-    g.add_argument("--block-count", type=int, default=fd.block_count,
-                   help="memory budget in voxel blocks (10 KiB each); the voxel grows to fit (default %(default)s)")
-    g.add_argument("--min-confidence", type=float, default=fd.min_confidence,
-                   help="with the refinement, fuse only pixels of at least this confidence (reconstructed pixels: "
-                        "the share of source views that agree, >= 1/3; filled pixels: 0.1 x the share of "
-                        "reconstructed pixels around them; 0 fuses all). Default: 0.1 (reconstructed pixels only) "
-                        "with given poses, 0.01 (also filled pixels near evidence) with estimated poses")
-    g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
-
-    g = parser.add_argument_group("output")
-    g.add_argument("--no-npy", action="store_true", help="write depth maps as 16-bit PNG only (no float .npy)")
-    g.add_argument("--no-glb", action="store_true", help="do not write mesh.glb")
-
-
-def fusion_options_from_args(args: argparse.Namespace):
-    from .fusion import FusionOptions
-
-    return FusionOptions(
-        voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
-        min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
-        min_confidence=args.min_confidence,
-    )
-
-
-class _PoseOptionAction(argparse.Action):
-    """Collects --pose-option values; `list` prints the settings and exits while parsing,
-    as --help does, so that it needs no input or output folder."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == "list":
-            from .poses.options import pose_option_table
-
-            print("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
-                  "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
-            print(pose_option_table())
-            parser.exit()
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-
-
-class _RefineOptionAction(argparse.Action):
-    """Collects --refine-option values; `list` prints the settings and exits while parsing."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == "list":
-            from mvs_core import MvsConfig
-
-            from .options import option_table
-
-            print("refinement options (--refine-option KEY=VALUE): name, type, default; their meaning is in the "
-                  "docstring of mvs_core.MvsConfig")
-            print(option_table(MvsConfig))
-            parser.exit()
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-
-
-def mvs_config_from_args(args: argparse.Namespace):
-    from dataclasses import replace
-
-    from mvs_core import MvsConfig
-
-    from .options import parse_field_option
-
-    values = dict(parse_field_option(text, MvsConfig, "refine option") for text in args.refine_option)
-    config = replace(MvsConfig(), **values)
-    try:
-        config.validate()
-    except ValueError as error:
-        raise ReconInputError(f"--refine-option: {error}") from None
-    return config
-
-
-def add_pose_option_argument(parser) -> None:
-    parser.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
-                        help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
-                             "(repeatable); `--pose-option list` prints every setting with its default")
-
-
-def pose_options_from_args(args: argparse.Namespace) -> dict:
-    from .poses.options import parse_pose_option
-
-    return dict(parse_pose_option(text) for text in args.pose_option)
-
-
-def pipeline_config_from_args(args: argparse.Namespace):
-    from .pipeline import PipelineConfig
-
-    medea = medea_config_from_args(args)
-    mode, path = rerun_mode(args, default_rerun_mode())
-    return PipelineConfig(
-        input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
-        max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
-        width=args.width or None, fps=args.fps,
-        intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
-        poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
-        prior=args.prior, prior_path=args.prior_path,
-        weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
-        refine=args.refine, mvs=mvs_config_from_args(args), polish=not args.no_polish,
-        fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
-        progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
-    )
-
-
-def default_rerun_mode() -> str:
-    from viewer import default_mode
-
-    return default_mode()
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -411,102 +145,9 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
-# --------------------------------------------------------------------------- parser
+# --------------------------------------------------------------------------- main
 
-RUN_EXAMPLES = """examples:
-  recon run my_video.mp4 -o out/                       phone video, FastDepth prior, estimated poses
-  recon run my_video.mp4 -o out/ --fov 70 --stride 2   known field of view, every 2nd frame
-  recon run frames/ -o out/ --poses poses.txt          image folder with a TUM trajectory
-  recon run rgbd_dataset_freiburg1_desk/ -o out/ --prior sensor --poses gt
-  recon run my_video.mp4 -o out/ --rerun save          also write out/recording.rrd
-  recon view out/                                      inspect the result in Rerun
-"""
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="recon",
-        description="Video to multi-view-consistent metric depth (MEDeA) and a mesh. "
-                    "Start with `recon demo`, then `recon run YOUR_VIDEO -o OUT`.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)  # the metavar lists every sub-command
-
-    run = sub.add_parser(
-        "run", help="video / image folder / RGB-D dataset -> depth maps, camera trajectory and mesh",
-        description="Run the whole pipeline: decode frames, depth prior, camera poses, MEDeA depth adjustment, "
-                    "TSDF fusion, export (mesh.ply, mesh.glb, trajectory.txt, intrinsics.json, depth/, report.json) "
-                    "and optional Rerun logging.",
-        epilog=RUN_EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    run.add_argument("input", help="video file (mp4, mov, avi, mkv, ...), image folder, or RGB-D dataset folder "
-                                   "(TUM, 7-Scenes, ScanNet export, ARKitScenes, Open3D/Redwood)")
-    run.add_argument("-o", "--output", required=True, help="output folder (must be empty unless --overwrite)")
-    run.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
-    add_rerun_argument(run, None, "the run")
-    add_device_arguments(run)
-    add_run_arguments(run)
-    add_medea_arguments(run)
-    run.set_defaults(func=_cmd_run)
-
-    demo = sub.add_parser(
-        "demo", help="render a synthetic room as a video, run `recon run` on it, score it against ground truth",
-        description="The built-in sample: renders a textured synthetic room to OUT/input/synthetic.mp4 with a "
-                    "simulated monocular prior and the true trajectory, runs the pipeline on it, and prints the "
-                    "depth error before/after MEDeA and the mesh F-score against the ground-truth mesh.",
-    )
-    demo.add_argument("-o", "--output", type=Path, help="output folder (default demo_out/<date-time>)")
-    demo.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
-    demo.add_argument("--frames", type=int, default=90, help="number of rendered frames (default %(default)s)")
-    demo.add_argument("--width", type=int, default=640, help="rendered width (default %(default)s)")
-    demo.add_argument("--height", type=int, default=480, help="rendered height (default %(default)s)")
-    demo.add_argument("--scene-seed", type=int, default=0, help="seed of the synthetic scene and prior")
-    demo.add_argument("--poses", choices=POSE_CHOICES, default="auto",
-                      help="estimate (pose front end), gt (rendered trajectory), auto: estimate when the estimator "
-                           "is installed, else gt with a note (default %(default)s)")
-    add_pose_option_argument(demo)
-    demo.add_argument("--prior", choices=DEMO_PRIORS, default="simulated",
-                      help="simulated: ground truth distorted like a monocular network (default); fastdepth: the "
-                           "real network")
-    demo.add_argument("--no-compare", action="store_true", help="skip fusing the raw prior for the F-score comparison")
-    add_rerun_argument(demo, "save", "the demo")
-    add_device_arguments(demo)
-    add_medea_arguments(demo)
-    demo.set_defaults(func=_cmd_demo)
-
-    view = sub.add_parser(
-        "view", help="open a result in Rerun",
-        description="Open OUT/recording.rrd (or an .rrd file) in the Rerun viewer; for an output folder without a "
-                    "recording, log its mesh, cameras and depth maps.",
-    )
-    view.add_argument("path", help="output folder of `recon run` or an .rrd file")
-    view.add_argument("--overwrite", action="store_true", help="replace an existing file given to --rerun save")
-    add_rerun_argument(view, "spawn with a display, else serve", "the result")
-    view.add_argument("--quiet", action="store_true", help="no progress bars")
-    view.set_defaults(func=_cmd_view)
-
-    ev = sub.add_parser(
-        "eval", help="score an output folder against a dataset's ground truth",
-        description="Depth (metric and median-scaled, DeepVideoMVS protocol), trajectory (ATE SE(3)/Sim(3), RPE, "
-                    "scale error) and mesh (accuracy, completeness, chamfer, precision, recall, F-score) of an "
-                    "output folder of `recon run`, against the dataset it was made from. Prints tables and writes "
-                    "OUT/eval.json.",
-    )
-    ev.add_argument("output", help="output folder of `recon run`")
-    ev.add_argument("--gt", required=True,
-                    help="dataset folder with ground truth (TUM, 7-Scenes, ScanNet, ARKitScenes, Redwood)")
-    ev.add_argument("--min-depth", type=float, default=1e-3,
-                    help="evaluated ground-truth depth range, metres (default %(default)s)")
-    ev.add_argument("--max-depth", type=float, default=10.0, help="(default %(default)s)")
-    ev.add_argument("--threshold", type=float, default=0.05,
-                    help="mesh precision/recall distance, metres (default %(default)s)")
-    ev.add_argument("--reference-mesh", type=Path, help="compare with this mesh instead of a TSDF of the sensor depth")
-    ev.add_argument("--mesh-align", choices=["auto", "none", "se3", "sim3"], default="auto",
-                    help="bring the mesh into the ground truth's frame first; auto: Sim(3) from the trajectory "
-                         "when the poses were estimated, none for ground-truth poses")
-    ev.add_argument("--overwrite", action="store_true", help="replace an existing OUT/eval.json")
-    ev.add_argument("--quiet", action="store_true", help="no progress bars")
-    ev.set_defaults(func=_cmd_eval)
-    return parser
+_COMMANDS = {"run": _cmd_run, "demo": _cmd_demo, "view": _cmd_view, "eval": _cmd_eval}
 
 
 class _StderrHandler(logging.StreamHandler):
@@ -538,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _log_warnings_to_stderr()
     try:
-        return args.func(args)
+        return _COMMANDS[args.command](args)
     except ReconInputError as error:
         print(f"recon: error: {error}", file=sys.stderr)
         return ReconInputError.exit_code

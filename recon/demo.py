@@ -40,8 +40,7 @@ from .eval.mesh import mesh_metrics, visible_mask
 from .fusion import FusionOptions, fuse
 from .io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from .pipeline import PipelineConfig, PipelineResult, run_pipeline
-from .synthetic import render_sequence, simulate_prior
-from .synthetic.scene import SyntheticSequence
+from .synthetic import SyntheticSequence, render_sequence, simulate_prior
 
 log = logging.getLogger(__name__)
 

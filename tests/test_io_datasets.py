@@ -143,7 +143,7 @@ def make_redwood(root: Path, n=3, json_intrinsics=True):
 def test_7scenes(tmp_path):
     poses = make_7scenes(tmp_path)
     ds = open_dataset(tmp_path)
-    assert ds.kind == "7scenes" and len(ds) == 3 and (ds.width, ds.height) == (W, H)
+    assert ds.kind == "7scenes" and len(ds) == 3 and ds.shape == (H, W)
     assert ds.frame_ids == ["frame-000000", "frame-000001", "frame-000002"]
     assert ds.depth_intrinsics == (100.0, 101.0, 4.0, 3.0)  # the file holds the depth camera's
     np.testing.assert_allclose(ds.intrinsics, (100.0 * 525 / 585, 101.0 * 525 / 585, 4.0, 3.0))
@@ -234,7 +234,7 @@ def test_tum_errors(tmp_path):
 def test_scannet_resizes_colour_and_marks_invalid_poses(tmp_path):
     poses = make_scannet(tmp_path)
     ds = open_dataset(tmp_path)
-    assert ds.kind == "scannet" and (ds.width, ds.height) == (W, H)
+    assert ds.kind == "scannet" and ds.shape == (H, W)
     assert ds.intrinsics == (99.0, 100.0, 3.4, 2.6)
     assert ds.rgb(0).shape == (H, W, 3)
     assert np.abs(ds.rgb(0).astype(int) - _rgb(0)).max() <= 3  # JPEG
@@ -345,7 +345,7 @@ def _real(name: str) -> Path:
 
 def test_real_7scenes():
     ds = open_dataset(_real("7scenes-redkitchen"))
-    assert ds.kind == "7scenes" and len(ds) == 400 and (ds.width, ds.height) == (640, 480)
+    assert ds.kind == "7scenes" and len(ds) == 400 and ds.shape == (480, 640)
     np.testing.assert_allclose(ds.intrinsics, (525.0, 525.0, 320.0, 240.0))  # colour camera
     assert ds.pose_valid.all() and np.isfinite(ds.poses).all()
     assert 2.5 < path_length(ds.poses) < 3.5  # about 7 mm per frame
@@ -358,7 +358,7 @@ def test_real_7scenes():
 def test_real_tum():
     root = _real("tum-fr1-rpy")
     ds = open_dataset(root)
-    assert ds.kind == "tum" and 95 <= len(ds) <= 100 and (ds.width, ds.height) == (640, 480)
+    assert ds.kind == "tum" and 95 <= len(ds) <= 100 and ds.shape == (480, 640)
     assert ds.intrinsics == (517.3, 516.5, 318.6, 255.3)
     assert ds.pose_valid.all()
     assert 0.1 < path_length(ds.poses) < 0.5  # mostly rotation

@@ -16,7 +16,7 @@ def test_orb_pnp_recovers_a_large_relative_pose():
     cfg = ft.FeatureConfig()
     gray = [np.ascontiguousarray(g.mean(-1).astype(np.uint8)) for g in seq.rgb]
     rel, inliers = ft.relative_pose(ft.detect(gray[0], cfg), seq.depth[0], ft.detect(gray[2], cfg),
-                                    seq.intrinsics, (320, 240), cfg)
+                                    seq.intrinsics, (240, 320), cfg)
     assert rel is not None and inliers >= cfg.min_inliers
     truth = np.linalg.inv(seq.poses[2]) @ seq.poses[0]  # camera 0 -> camera 2
     assert np.linalg.norm(rel[:3, 3] - truth[:3, 3]) < 0.05 * max(np.linalg.norm(truth[:3, 3]), 0.1)
@@ -29,5 +29,5 @@ def test_orb_pnp_refuses_unrelated_images():
     noise = np.random.default_rng(0).integers(0, 256, (240, 320), dtype=np.uint8)
     cfg = ft.FeatureConfig()
     rel, _ = ft.relative_pose(ft.detect(np.ascontiguousarray(a.rgb[0].mean(-1).astype(np.uint8)), cfg), a.depth[0],
-                              ft.detect(noise, cfg), a.intrinsics, (320, 240), cfg)
+                              ft.detect(noise, cfg), a.intrinsics, (240, 320), cfg)
     assert rel is None

@@ -56,8 +56,8 @@ def test_sfm_estimates_the_lens_radial_term(sfm_room):
 
 
 def _grays(rgb: np.ndarray) -> tuple[list[np.ndarray], float]:
-    geo = make_geometry(rgb.shape[2], rgb.shape[1], sfm.SfMConfig().frontend.ba_stride)
-    return [fl.prepare_gray(f, geo.flow_size) for f in rgb], geo.px_scale
+    geo = make_geometry(rgb.shape[1:3], sfm.SfMConfig().frontend.ba_stride)
+    return [fl.prepare_gray(f, geo.flow_shape) for f in rgb], geo.px_scale
 
 
 def test_keyframes_follow_the_motion(sfm_room):

@@ -54,9 +54,8 @@ def test_previous_frame_becomes_a_keyframe_when_the_reference_fails(pose_room):
     from recon.poses.tracker import Tracker
 
     seq, prior = pose_room
-    height, width = seq.rgb.shape[1:3]
     cfg = FrontendConfig()
-    state = TrackState(seq.intrinsics, make_geometry(width, height, cfg.ba_stride), PriorSource(prior), cfg)
+    state = TrackState(seq.intrinsics, make_geometry(seq.rgb.shape[1:3], cfg.ba_stride), PriorSource(prior), cfg)
     tracker = Tracker(state)
     tracker.start(0, seq.rgb[0])
     for i in (1, 2, 3):

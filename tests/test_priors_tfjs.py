@@ -10,7 +10,8 @@ import pytest
 
 from recon.errors import ReconInputError
 from recon.priors import FastDepthPrior
-from recon.priors.tfjs import compile_graph, load_tfjs_graph
+from recon.priors.tfjs import compile_graph
+from recon.priors.tfjs_format import load_tfjs_graph
 
 from helpers import copy_fastdepth_weights
 

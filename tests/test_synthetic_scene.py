@@ -1,4 +1,4 @@
-"""The synthetic room (recon.synthetic.scene): determinism, depth/pose/intrinsics/mesh
+"""The synthetic room (recon.synthetic): determinism, depth/pose/intrinsics/mesh
 consistency, the camera path, textures, motion blur and argument checks."""
 
 from __future__ import annotations

@@ -42,8 +42,8 @@ def list_image_files(folder: Path) -> list[Path]:
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
-def _jpeg_size(f) -> tuple[int, int] | None:
-    """(w, h) from a JPEG's start-of-frame marker, reading only the headers before it."""
+def _jpeg_shape(f) -> tuple[int, int] | None:
+    """(H, W) from a JPEG's start-of-frame marker, reading only the headers before it."""
     if f.read(2) != b"\xff\xd8":
         return None
     while True:
@@ -64,12 +64,12 @@ def _jpeg_size(f) -> tuple[int, int] | None:
             if len(data) < 5:
                 return None
             h, w = struct.unpack(">HH", data[1:5])
-            return w, h
+            return h, w
         f.seek(length - 2, 1)
 
 
-def image_header_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) stored in a PNG/JPEG header without decoding; None for other formats.
+def image_header_shape(path: Path) -> tuple[int, int] | None:
+    """(H, W) stored in a PNG/JPEG header without decoding; None for other formats.
 
     Raises ReconInputError when a .png/.jpg file does not carry a valid header. The size is
     the stored one, before any EXIF rotation (decoding checks the oriented size again).
@@ -82,14 +82,14 @@ def image_header_size(path: Path) -> tuple[int, int] | None:
             if suffix == ".png":
                 head = f.read(24)
                 is_png = head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR"
-                size = struct.unpack(">II", head[16:24]) if is_png else None
+                shape = struct.unpack(">II", head[16:24])[::-1] if is_png else None  # IHDR: width, height
             else:
-                size = _jpeg_size(f)
+                shape = _jpeg_shape(f)
     except OSError as exc:
         raise ReconInputError(f"{path}: cannot read image file ({exc.strerror})") from None
-    if size is None:
+    if shape is None:
         raise ReconInputError(f"{path}: cannot read image (not a valid {suffix[1:].upper()} file)")
-    return int(size[0]), int(size[1])
+    return int(shape[0]), int(shape[1])
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -100,9 +100,10 @@ def read_image(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def _mixed_sizes(path: Path, size, first: Path, first_size) -> ReconInputError:
+def _mixed_sizes(path: Path, shape, first: Path, first_shape) -> ReconInputError:
+    """The error for an image of `shape` (H, W) in a folder whose first image has `first_shape`."""
     return ReconInputError(
-        f"{path}: image is {size[0]}x{size[1]} but {first.name} is {first_size[0]}x{first_size[1]} "
+        f"{path}: image is {wxh(shape)} but {first.name} is {wxh(first_shape)} "
         "(all images of a folder must have the same size)"
     )
 
@@ -132,15 +133,15 @@ class ImageFolderSource(FrameSource):
 
     def _check_header_sizes(self) -> None:
         """Mixed sizes and non-images fail now, from headers alone, not hours into a run."""
-        first_size = None
+        first_shape = None
         for path in self.files:
-            size = image_header_size(path)
-            if size is None:
+            shape = image_header_shape(path)
+            if shape is None:
                 continue
-            if first_size is None:
-                first, first_size = path, size
-            elif size != first_size:
-                raise _mixed_sizes(path, size, first, first_size)
+            if first_shape is None:
+                first, first_shape = path, shape
+            elif shape != first_shape:
+                raise _mixed_sizes(path, shape, first, first_shape)
 
     @property
     def description(self) -> str:
@@ -154,7 +155,7 @@ class ImageFolderSource(FrameSource):
             path = self.files[i]
             rgb = read_image(path)
             if rgb.shape[:2] != self.native_shape:
-                raise _mixed_sizes(path, rgb.shape[1::-1], self.files[0], self.native_shape[::-1])
+                raise _mixed_sizes(path, rgb.shape[:2], self.files[0], self.native_shape)
             yield Frame(int(i), float(i / self._fps), resize_rgb(rgb, self._shape))
 
 
@@ -201,7 +202,7 @@ class DatasetSource(FrameSource):
     def description(self) -> str:
         ds = self.full
         return (
-            f"{ds.kind} dataset {self.path} ({len(ds)} frames, {ds.width}x{ds.height}, "
+            f"{ds.kind} dataset {self.path} ({len(ds)} frames, {wxh(ds.shape)}, "
             f"depth {'yes' if ds.has_depth else 'no'}, poses {'yes' if ds.has_poses else 'no'}) "
             f"-> {self.count} frames at {wxh(self.shape)}, {self.selection.describe()}"
         )
@@ -304,7 +305,7 @@ __all__ = [
     "DatasetSource",
     "IMAGE_SUFFIXES",
     "ImageFolderSource",
-    "image_header_size",
+    "image_header_shape",
     "list_image_files",
     "open_source",
     "read_image",

@@ -99,6 +99,17 @@ def _is_float(token: str) -> bool:
         return False
 
 
+def parse_row(path, lineno: int, tokens: list[str], ncols: int, what: str) -> np.ndarray:
+    """The numbers of one data line, checked: exactly `ncols` of them (`what` names them in
+    the message), all finite."""
+    if len(tokens) != ncols:
+        raise input_error(path, f"expected {ncols} {what}, got {len(tokens)}", lineno)
+    values = parse_floats(path, lineno, tokens)
+    if not np.isfinite(values).all():
+        raise input_error(path, "non-finite value (nan/inf)", lineno)
+    return values
+
+
 def parse_table(path: Path, ncols: int, columns: str, text: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Numeric table (N, ncols) float64 and its 1-based line numbers (N,) from a text file.
 
@@ -106,12 +117,7 @@ def parse_table(path: Path, ncols: int, columns: str, text: str | None = None) -
     """
     rows, linenos = [], []
     for lineno, tokens in data_lines(path, text):
-        if len(tokens) != ncols:
-            raise input_error(path, f"expected {ncols} columns ({columns}), got {len(tokens)}", lineno)
-        values = parse_floats(path, lineno, tokens)
-        if not np.isfinite(values).all():
-            raise input_error(path, "non-finite value (nan/inf)", lineno)
-        rows.append(values)
+        rows.append(parse_row(path, lineno, tokens, ncols, f"columns ({columns})"))
         linenos.append(lineno)
     if not rows:
         raise input_error(path, f"no data lines ({columns})")

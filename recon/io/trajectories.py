@@ -45,6 +45,7 @@ from recon.io.pose_files import (
     input_error,
     normalise_intrinsics,
     parse_floats,
+    parse_row,
     parse_table,
     read_text,
 )
@@ -170,12 +171,7 @@ def read_log(path) -> PoseData:
             raise input_error(path, f"truncated pose: expected 4 matrix rows after metadata, got {len(block)}", lineno)
         rows = []
         for row_lineno, tokens in block:
-            if len(tokens) != 4:
-                raise input_error(path, f"expected 4 numbers per matrix row, got {len(tokens)}", row_lineno)
-            values = parse_floats(path, row_lineno, tokens)
-            if not np.isfinite(values).all():
-                raise input_error(path, "non-finite value (nan/inf)", row_lineno)
-            rows.append(values)
+            rows.append(parse_row(path, row_lineno, tokens, 4, "numbers per matrix row"))
         poses.append(rows)
         names.append(str(int(meta_vals[0])))
         locations.append(f"line {block[0][0]}")

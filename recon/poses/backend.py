@@ -42,8 +42,8 @@ def link(state: TrackState, i: int, j: int, kind: str) -> bool:
     """Flow edges i <-> j, DIS seeded with the flow the current geometry predicts."""
     g = state.graph
     T, D = g.poses(), g.disps()
-    init_ij = gr.predicted_flow(T, D, state.intr, i, j, state.geo.flow_size, state.k1)
-    init_ji = gr.predicted_flow(T, D, state.intr, j, i, state.geo.flow_size, state.k1)
+    init_ij = gr.predicted_flow(T, D, state.intr, i, j, state.geo.flow_shape, state.k1)
+    init_ji = gr.predicted_flow(T, D, state.intr, j, i, state.geo.flow_shape, state.k1)
     flows = fl.flow_pair(g.gray[i], g.gray[j], state.cfg.flow, init_ij, init_ji)
     return add_pair(state, i, j, *flows, kind)
 

@@ -75,11 +75,11 @@ def match(a: Keypoints, b: Keypoints, cfg: FeatureConfig) -> tuple[np.ndarray, n
     return ia[keep], ib[keep]
 
 
-def sample_depth(depth: np.ndarray, uv: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
-    """Depth (P,) at pixel coordinates uv (P, 2) of an image of image_size (w, h), read from
+def sample_depth(depth: np.ndarray, uv: np.ndarray, image_shape: tuple[int, int]) -> np.ndarray:
+    """Depth (P,) at pixel coordinates uv (P, 2) of an image of image_shape (h, w), read from
     a depth map (h', w') of any resolution (nearest cell; 0 where invalid)."""
     h, w = depth.shape
-    sx, sy = w / image_size[0], h / image_size[1]
+    sx, sy = w / image_shape[1], h / image_shape[0]
     col = np.clip(((uv[:, 0] + 0.5) * sx).astype(np.int64), 0, w - 1)
     row = np.clip(((uv[:, 1] + 0.5) * sy).astype(np.int64), 0, h - 1)
     return depth[row, col]
@@ -108,15 +108,15 @@ def pnp_pose(points: np.ndarray, uv: np.ndarray, intrinsics, cfg: FeatureConfig)
     return T, count
 
 
-def relative_pose(kf: Keypoints, kf_depth: np.ndarray, frame: Keypoints, intrinsics, image_size: tuple[int, int],
+def relative_pose(kf: Keypoints, kf_depth: np.ndarray, frame: Keypoints, intrinsics, image_shape: tuple[int, int],
                   cfg: FeatureConfig) -> tuple[np.ndarray | None, int]:
     """Pose (4, 4) of a frame relative to a keyframe (keyframe camera -> frame camera) from
     ORB matches, the keyframe's depth (h', w') metres (0 invalid) and intrinsics of the
-    keypoints' image (image_size (w, h)); with the PnP inlier count (None when it fails)."""
+    keypoints' image (image_shape (h, w)); with the PnP inlier count (None when it fails)."""
     ia, ib = match(kf, frame, cfg)
     if len(ia) < cfg.min_matches:
         return None, len(ia)
-    z = sample_depth(kf_depth, kf.uv[ia], image_size)
+    z = sample_depth(kf_depth, kf.uv[ia], image_shape)
     ok = z > 0
     fx, fy, cx, cy = intrinsics
     u, v = kf.uv[ia, 0][ok], kf.uv[ia, 1][ok]

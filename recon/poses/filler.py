@@ -34,7 +34,7 @@ def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progr
         return interpolated_pose(i, prev, nxt, kf_frames, T_kf)
 
     prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
-    out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_size),
+    out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
                              kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, known,
                              prior_of, progress, state.k1)
     for i, (T, ok, ratio, inlier) in out.items():

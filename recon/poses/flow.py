@@ -80,11 +80,11 @@ def _dis(cfg: FlowConfig, shape: tuple[int, int], seeded: bool) -> cv2.DISOptica
     return _DIS_CACHE[key]
 
 
-def prepare_gray(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Grey uint8 image (h, w) of an RGB frame (H, W, 3) uint8 area-resized to size = (w, h)."""
+def prepare_gray(frame: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Grey uint8 image of `shape` (h, w) of an RGB frame (H, W, 3) uint8, area-resized."""
     gray = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY) if frame.ndim == 3 else frame
-    if (gray.shape[1], gray.shape[0]) != tuple(size):
-        gray = cv2.resize(gray, tuple(size), interpolation=cv2.INTER_AREA)
+    if gray.shape[:2] != tuple(shape):
+        gray = cv2.resize(gray, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(gray)
 
 

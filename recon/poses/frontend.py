@@ -9,7 +9,7 @@ calibration, metric scale; its ``droid_backend``) and ``filler`` (the non-keyfra
 edges, proximity), ``ba`` (Schur-complement LM, motion-only alignment), ``calib`` (focal
 search), ``lie``, ``projective``; the settings are ``frontend_config``'s.
 
-Resolutions: frames come at working resolution (W x H); flow runs at 1/4 and BA at 1/8
+Resolutions: frames come at working resolution (H, W); flow runs at 1/4 and BA at 1/8
 (the flow is pooled 2x2 with confidence weights). Internally poses are world-to-camera
 (``T_cw``) as in the BA; the result is camera-to-world. The metric scale comes from the
 depth prior: BA ties inverse depth to it (weakly, in logs), and a final robust rescale
@@ -56,16 +56,16 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
     """Focal length (pixels, fx = fy, principal point at the centre) minimising the BA cost
     of the first keyframes. frames: the first frames of the video (H, W, 3) uint8."""
     height, width = frames[0].shape[:2]
-    ba_geo = make_geometry(width, height, cfg.calib_stride)
+    ba_geo = make_geometry((height, width), cfg.calib_stride)
 
     factor = cfg.calib_stride // cfg.calib_flow_stride
-    flow_size = (ba_geo.ba_size[0] * factor, ba_geo.ba_size[1] * factor)
+    flow_shape = (ba_geo.ba_shape[0] * factor, ba_geo.ba_shape[1] * factor)
     # Keyframes by the motion filter (independent of the focal length).
-    grays = [fl.prepare_gray(f, flow_size) for f in frames]
+    grays = [fl.prepare_gray(f, flow_shape) for f in frames]
     kfs = [0]
     for i in range(1, len(frames)):
         fwd, _, cf, _ = fl.flow_pair(grays[kfs[-1]], grays[i], cfg.flow)
-        if fl.mean_magnitude(fwd, cf) * (width / flow_size[0]) * (640.0 / width) > cfg.keyframe_flow:
+        if fl.mean_magnitude(fwd, cf) * (width / flow_shape[1]) * (640.0 / width) > cfg.keyframe_flow:
             kfs.append(i)
         if len(kfs) >= cfg.calib_keyframes:
             break
@@ -82,7 +82,7 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
     ii = torch.tensor([e[0] for e in edge_data])
     jj = torch.tensor([e[1] for e in edge_data])
     edges = ba.Edges(ii, jj, torch.stack([e[2] for e in edge_data]), torch.stack([e[3] for e in edge_data]))
-    priors = [disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_size), cfg.prior_weight) for k in kfs]
+    priors = [disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_shape), cfg.prior_weight) for k in kfs]
     disp0 = torch.stack([p[0] for p in priors])
     pw = torch.stack([p[1] for p in priors])
     opts = replace(cfg.ba, iters=cfg.calib_iters, prior_weight=cfg.prior_weight)
@@ -149,7 +149,7 @@ def _estimate(frames, prior_depth, intrinsics, progress: bool, cfg: FrontendConf
                                        "evaluations": search.evaluations}
         log.info("estimated focal length %.1f px (horizontal FOV %.1f deg)", search.focal,
                  math.degrees(2 * math.atan(width / (2 * search.focal))))
-    state = TrackState(intr, make_geometry(width, height, cfg.ba_stride), prior, cfg)
+    state = TrackState(intr, make_geometry((height, width), cfg.ba_stride), prior, cfg)
     tracker = Tracker(state)
     tracker.start(0, frames_list[0])
     for i in tqdm(range(1, len(frames_list)), desc="tracking", unit="frame", disable=not progress, leave=False):
@@ -180,7 +180,7 @@ def _estimate(frames, prior_depth, intrinsics, progress: bool, cfg: FrontendConf
         relocalisations=state.reloc_events,
         ba_rmse_px=last.rmse,
         ba_inlier_fraction=last.inlier_fraction,
-        ba_grid=state.geo.ba_size,
+        ba_grid=state.geo.ba_shape[::-1],  # reported (w, h), as the run reports always had it
         lens_k1=state.k1,
     )
     depth = (1.0 / g.disps()).float().numpy()

@@ -125,28 +125,31 @@ class FrontendConfig:
 
 @dataclass
 class Geometry:
-    """Image sizes and intrinsics at the three resolutions."""
+    """Image shapes (H, W) and intrinsics at the three resolutions."""
 
-    width: int
-    height: int
-    flow_size: tuple[int, int]  # (w, h)
-    ba_size: tuple[int, int]  # (w, h)
+    shape: tuple[int, int]  # working frames
+    flow_shape: tuple[int, int]
+    ba_shape: tuple[int, int]
     flow_factor: int  # flow pixels per BA pixel
 
     @property
     def px_scale(self) -> float:
         """Working-resolution pixels per flow pixel, normalised to a 640 px wide frame."""
-        return (self.width / self.flow_size[0]) * (640.0 / self.width)
+        width = self.shape[1]
+        return (width / self.flow_shape[1]) * (640.0 / width)
 
     def ba_intrinsics(self, intrinsics) -> torch.Tensor:
-        sx = self.ba_size[0] / self.width
-        sy = self.ba_size[1] / self.height
+        sx = self.ba_shape[1] / self.shape[1]
+        sy = self.ba_shape[0] / self.shape[0]
         return torch.tensor(pj.scale_intrinsics(intrinsics, sx, sy), dtype=torch.float64)
 
 
-def make_geometry(width: int, height: int, ba_stride: int) -> Geometry:
-    wb, hb = max(width // ba_stride, 4), max(height // ba_stride, 4)
-    return Geometry(width, height, (2 * wb, 2 * hb), (wb, hb), 2)
+def make_geometry(shape: tuple[int, int], ba_stride: int) -> Geometry:
+    """The geometry of working frames of `shape` (H, W): BA grid 1/ba_stride (at least 4
+    pixels a side), flow at twice that."""
+    height, width = shape
+    hb, wb = max(height // ba_stride, 4), max(width // ba_stride, 4)
+    return Geometry((height, width), (2 * hb, 2 * wb), (hb, wb), 2)
 
 
 def disp_from_depth(depth: np.ndarray, prior_weight: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -169,7 +169,7 @@ def select_proximity(
 
 
 def predicted_flow(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, i: int, j: int, flow_size: tuple[int, int],
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, i: int, j: int, flow_shape: tuple[int, int],
     k1: float = 0.0,
 ) -> np.ndarray:
     """Flow (hf, wf, 2) float32 from keyframe i to j at the flow resolution predicted by the
@@ -180,7 +180,7 @@ def predicted_flow(
     source, _ = pj.undistort(grid, intr, k1)
     uv, valid = pj.reproject(T_cw, disps, intr, torch.tensor([i]), torch.tensor([j]), source)
     flow = (pj.distort(uv[0], intr, k1) - grid) * valid[0, ..., None]
-    wf, hf = flow_size
+    hf, wf = flow_shape
     scale = np.array([wf / width, hf / height], dtype=np.float32)
     up = cv2.resize(flow.numpy().astype(np.float32), (wf, hf), interpolation=cv2.INTER_LINEAR)
     return np.ascontiguousarray(up * scale)

@@ -19,9 +19,10 @@ def rotation_flow(rel: torch.Tensor, intrinsics, geo: Geometry, shape: tuple[int
     """(h, w, 2) flow from a keyframe to a frame at relative pose `rel` (keyframe camera ->
     frame camera, (4, 4)) that the rotation alone would cause: the reprojection of points
     at infinity (inverse depth 0), i.e. the infinite homography K R K^-1. intrinsics are
-    those of the working frames (geo.width x geo.height); shape (h, w) is the flow's."""
+    those of the working frames (geo.shape); shape (h, w) is the flow's."""
     h, w = shape
-    intr = torch.tensor(pj.scale_intrinsics(intrinsics, w / geo.width, h / geo.height), dtype=torch.float64)
+    height, width = geo.shape
+    intr = torch.tensor(pj.scale_intrinsics(intrinsics, w / width, h / height), dtype=torch.float64)
     uv = pj.pixel_grid(h, w)
     at_infinity = pj.backproject(uv, torch.zeros(h, w, dtype=torch.float64), intr)
     moved, _ = pj.project(pj.transform(rel[None], at_infinity[None])[0], intr)

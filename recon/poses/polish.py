@@ -117,16 +117,15 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     cfg = config or PolishConfig()
     t0 = time.perf_counter()
     poses = np.asarray(poses, np.float64)
-    num, height, width = frames.shape[:3]
     good = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
     if len(good) < 2:
         return PolishResult(poses.copy(), 0.0, {"polished": False, "reason": "fewer than 2 valid poses"})
-    geo = make_geometry(width, height, cfg.ba_stride)
+    geo = make_geometry(frames.shape[1:3], cfg.ba_stride)
     intr = geo.ba_intrinsics(intrinsics)
-    pooled = np.stack([pool_depth(np.asarray(prior_depth[i], np.float32), geo.ba_size) for i in good])
+    pooled = np.stack([pool_depth(np.asarray(prior_depth[i], np.float32), geo.ba_shape) for i in good])
     c2w = torch.from_numpy(poses[good])
     pairs = polish_pairs(torch.from_numpy(pooled), c2w, intr.float(), cfg)
-    grays = [fl.prepare_gray(frames[i], geo.flow_size) for i in good]
+    grays = [fl.prepare_gray(frames[i], geo.flow_shape) for i in good]
     ii, jj, targets, weights = [], [], [], []
     for a, b in tqdm(pairs, desc="pose polish: flow", unit="pair", disable=not progress, leave=False):
         fwd, bwd, cf, cb = fl.flow_pair(grays[a], grays[b], cfg.flow)

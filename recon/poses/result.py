@@ -169,13 +169,14 @@ class PriorSource:
         return depth
 
 
-def pool_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Depth (H, W) metres area-resized to size = (w, h) ignoring invalid zeros; 0 where no valid pixel."""
+def pool_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Depth (H, W) metres area-resized to `shape` (h, w) ignoring invalid zeros; 0 where no valid pixel."""
     valid = (depth > 0).astype(np.float32)
-    if (depth.shape[1], depth.shape[0]) == tuple(size):
+    if depth.shape[:2] == tuple(shape):
         return depth.astype(np.float32)
-    num = cv2.resize(depth * valid, tuple(size), interpolation=cv2.INTER_AREA)
-    den = cv2.resize(valid, tuple(size), interpolation=cv2.INTER_AREA)
+    dsize = (shape[1], shape[0])
+    num = cv2.resize(depth * valid, dsize, interpolation=cv2.INTER_AREA)
+    den = cv2.resize(valid, dsize, interpolation=cv2.INTER_AREA)
     return np.where(den > 0.25, num / np.maximum(den, 1e-6), 0.0).astype(np.float32)
 
 

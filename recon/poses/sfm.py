@@ -156,6 +156,9 @@ def _reader_options(pycolmap, intrinsics, lens: bool):
 
 
 def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workdir: Path):
+    # The files below (keyframe PNGs, COLMAP's database, the loop pair list) are COLMAP's own
+    # scratch workspace in a temporary folder, written and read only through pycolmap's
+    # interface, not user files: they stay here rather than in recon/io.
     seconds = {}
     t = time.perf_counter()
     image_dir = workdir / "images"
@@ -299,9 +302,8 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {n}")
     intr_in = parse_intrinsics(intrinsics)
     fcfg = cfg.frontend
-    height, width = frames_list[0].shape[:2]
-    geo = make_geometry(width, height, fcfg.ba_stride)
-    grays = [fl.prepare_gray(f, geo.flow_size) for f in frames_list]
+    geo = make_geometry(frames_list[0].shape[:2], fcfg.ba_stride)
+    grays = [fl.prepare_gray(f, geo.flow_shape) for f in frames_list]
     kf_ids, spacing = choose_keyframes(grays, geo.px_scale, cfg)
     t_select = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="recon-sfm-") as tmp:
@@ -327,7 +329,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     kf_frames = np.array(kf_reg)
     T_kf = torch.from_numpy(np.stack([T_model[i] for i in kf_reg]))
     disp_kf = torch.from_numpy(np.stack([
-        sm.corrected_disp(pool_depth(prior.get(i, frames_list[i]), geo.ba_size).astype(np.float64), ratios[i][1])
+        sm.corrected_disp(pool_depth(prior.get(i, frames_list[i]), geo.ba_shape).astype(np.float64), ratios[i][1])
         for i in kf_reg]))
     aligned = align_to_keyframes(jobs, lambda i: grays[i], kf_frames, [grays[i] for i in kf_reg],
                                  T_kf, disp_kf, geo.ba_intrinsics(intr), fcfg, progress=progress, k1=k1)

@@ -49,6 +49,7 @@ def model_evidence(pycolmap, db_path: Path, rec, min_inliers: int, max_error: fl
     keypoints = {i: (np.array([p.xy for p in im.points2D], dtype=np.float64).reshape(-1, 2),
                      np.array([p.point3D_id if p.has_point3D() else -1 for p in im.points2D], dtype=np.int64))
                  for i, im in images.items()}
+    # COLMAP's scratch database (see sfm._colmap_pipeline), read through pycolmap.
     db = pycolmap.Database.open(db_path)
     try:
         pair_ids, geometries = db.read_two_view_geometries()

@@ -55,7 +55,7 @@ class TrackState:
         self.prior = prior
         self.intrinsics = intrinsics
         self.intr = geo.ba_intrinsics(intrinsics)
-        self.graph = gr.FrameGraph((geo.ba_size[1], geo.ba_size[0]))
+        self.graph = gr.FrameGraph(geo.ba_shape)
         self.refs: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = {}
         self.frame_T: dict[int, torch.Tensor] = {}
         self.rel: dict[int, torch.Tensor] = {}
@@ -73,9 +73,10 @@ class TrackState:
         self.lens_calibrated = False
         # Keyframes' grey images at half the working size and their ORB keypoints, for the
         # feature start (``features``) of frames the flow cannot start on.
-        self.detail_size = (max(geo.width // 2, 16), max(geo.height // 2, 16))
-        self.detail_intrinsics = pj.scale_intrinsics(intrinsics, self.detail_size[0] / geo.width,
-                                                     self.detail_size[1] / geo.height)
+        height, width = geo.shape
+        self.detail_shape = (max(height // 2, 16), max(width // 2, 16))
+        self.detail_intrinsics = pj.scale_intrinsics(intrinsics, self.detail_shape[1] / width,
+                                                     self.detail_shape[0] / height)
         self.kf_detail: dict[int, np.ndarray] = {}
         self.kf_keypoints: dict = {}
         self.feature_starts = 0
@@ -85,7 +86,7 @@ class TrackState:
 
     def prior_disp(self, index: int, frame: np.ndarray | None) -> tuple[torch.Tensor, torch.Tensor]:
         """Prior inverse depth (h, w) of a frame on the BA grid and its tie weight."""
-        depth = pool_depth(self.prior.get(index, frame), self.geo.ba_size)
+        depth = pool_depth(self.prior.get(index, frame), self.geo.ba_shape)
         return disp_from_depth(depth, self.cfg.prior_weight)
 
     def edge_targets(self, flow: np.ndarray, conf: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:

@@ -34,7 +34,7 @@ class Tracker:
         """The first frame: the first keyframe, at the origin."""
         s = self.state
         disp, pw = s.prior_disp(index, frame)
-        gray = fl.prepare_gray(frame, s.geo.flow_size)
+        gray = fl.prepare_gray(frame, s.geo.flow_shape)
         s.graph.add_keyframe(index, gray, torch.eye(4, dtype=torch.float64), disp, disp.clone(), pw)
         if s.cfg.feature_init:
             s.kf_detail[0] = self._detail(frame)
@@ -44,7 +44,7 @@ class Tracker:
     def track(self, index: int, frame: np.ndarray) -> None:
         """Align one frame and, when it moved far enough, make it a keyframe."""
         s = self.state
-        gray = fl.prepare_gray(frame, s.geo.flow_size)
+        gray = fl.prepare_gray(frame, s.geo.flow_shape)
         predicted = self._predict(index)
         found = self._start_on(s.ref_kf, gray, predicted)
         if found is None and self._promote_previous(index):
@@ -107,8 +107,8 @@ class Tracker:
         T_pair = torch.stack([s.graph.poses([kf])[0], T])
         disp = s.graph.disps([kf])[0]
         D_pair = torch.stack([disp, disp])
-        forward = gr.predicted_flow(T_pair, D_pair, s.intr, 0, 1, s.geo.flow_size, s.k1)
-        backward = gr.predicted_flow(T_pair, D_pair, s.intr, 1, 0, s.geo.flow_size, s.k1)
+        forward = gr.predicted_flow(T_pair, D_pair, s.intr, 0, 1, s.geo.flow_shape, s.k1)
+        backward = gr.predicted_flow(T_pair, D_pair, s.intr, 1, 0, s.geo.flow_shape, s.k1)
         return forward, backward
 
     def _from_features(self, kf: int, gray: np.ndarray, frame: np.ndarray):
@@ -117,7 +117,7 @@ class Tracker:
         s = self.state
         rel, inliers = features.relative_pose(self._keyframe_keypoints(kf), (1.0 / s.graph.disps([kf])[0]).numpy(),
                                               features.detect(self._detail(frame), s.cfg.features),
-                                              s.detail_intrinsics, s.detail_size, s.cfg.features)
+                                              s.detail_intrinsics, s.detail_shape, s.cfg.features)
         if rel is None:
             s.last_failure += f"; {inliers} ORB inliers against keyframe {s.graph.frames[kf]}"
             return None
@@ -128,7 +128,7 @@ class Tracker:
         return found
 
     def _detail(self, frame: np.ndarray) -> np.ndarray:
-        return fl.prepare_gray(frame, self.state.detail_size)
+        return fl.prepare_gray(frame, self.state.detail_shape)
 
     def _keyframe_keypoints(self, kf: int) -> features.Keypoints:
         s = self.state

@@ -26,7 +26,8 @@ import torch.nn.functional as F
 
 from ..errors import ReconInputError
 from .base import DepthPrior, PriorOutput
-from .tfjs import GraphError, GraphNet, activation_bounds, compile_graph, load_tfjs_graph
+from .tfjs import GraphNet, activation_bounds, compile_graph
+from .tfjs_format import GraphError, load_tfjs_graph
 from .weights import find_weights
 
 MODEL_NAME = "fastdepth"

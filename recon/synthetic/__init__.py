@@ -1,9 +1,14 @@
 """Synthetic ground truth for tests, the demo and benchmarks: a rendered textured room with
-exact depth, poses and mesh (`scene`), and a simulated monocular depth prior (`prior`).
+exact depth, poses and mesh, and a simulated monocular depth prior.
+
+Modules: `room` (layout, materials, mesh), `textures` (procedural texture stack),
+`camera` (intrinsics, hand-held path), `render` (ray casting, render_sequence and the
+SyntheticSequence it returns), `prior` (the simulated prior).
 """
 
+from .camera import camera_path, intrinsics_for
 from .prior import SimulatedPrior, add_shape_errors, simulate_prior, simulate_prior_with_truth
-from .scene import SyntheticSequence, camera_path, intrinsics_for, render_sequence
+from .render import SyntheticSequence, render_sequence
 
 __all__ = [
     "SimulatedPrior",

@@ -26,7 +26,7 @@ from recon.errors import ReconInputError
 from recon.poses.result import invert_poses
 from recon.poses.rigid import interpolate_poses, make_poses
 
-from .base import RGBDDataset, check_exist, image_size, list_images
+from .base import RGBDDataset, check_exist, image_shape, list_images
 
 
 def frames_dir(root: Path) -> Path | None:
@@ -126,9 +126,9 @@ def open_arkitscenes(root, max_diff: float = 0.005, max_gap: float = 0.2) -> RGB
         if not valid.any():
             raise ReconInputError(f"{traj}: no trajectory timestamp within {max_diff} s of the frames")
 
-    width, height = image_size(rgb_paths[0])
+    height, width = image_shape(rgb_paths[0])
     pw, ph = int(pincams[0, 0]), int(pincams[0, 1])
-    if (pw, ph) != (width, height):
+    if (ph, pw) != (height, width):
         pincam = _pincam_for(intr_dir, rgb_paths[0].stem, stamps[0])
         raise ReconInputError(f"{pincam}: size {pw}x{ph} but image is {width}x{height}")
     return RGBDDataset(

@@ -46,7 +46,7 @@ class RGBDDataset:
     frame_intrinsics: (N, 4) per-frame (fx, fy, cx, cy) when they vary (ARKit), else None.
     distortion: lens distortion (k1, k2, p1, p2, k3) of the colour images when known; the
         images are returned as stored (not undistorted).
-    resize_rgb: resize colour images to (width, height) on load (ScanNet colour -> depth size).
+    resize_rgb: resize colour images to ``shape`` on load (ScanNet colour -> depth size).
     depth_intrinsics: (fx, fy, cx, cy) of the depth camera when its images are not registered
         to the colour camera (7-Scenes); ``depth(i)`` then re-registers them into the colour
         camera (:func:`register_depth`). None: depth is already pixel-aligned with colour.
@@ -279,12 +279,12 @@ def read_depth_png(path: Path, scale: float, invalid: Sequence[int] = ()) -> np.
     return depth
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file (reads it; used once per dataset)."""
+def image_shape(path: Path) -> tuple[int, int]:
+    """(H, W) of an image file (reads it; used once per dataset)."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ReconInputError(f"{path}: cannot read image (missing or corrupt)")
-    return image.shape[1], image.shape[0]
+    return image.shape[0], image.shape[1]
 
 
 def check_exist(paths: Sequence[Path], listing: Path | None = None) -> None:

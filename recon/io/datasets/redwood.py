@@ -17,7 +17,7 @@ import numpy as np
 from recon.errors import ReconInputError
 from recon.io.trajectories import read_log
 
-from .base import RGBDDataset, image_size, list_images
+from .base import RGBDDataset, image_shape, list_images
 
 PRIMESENSE = (525.0, 525.0, 319.5, 239.5)
 COLOR_DIRS = ("color", "image", "rgb")
@@ -90,12 +90,12 @@ def open_redwood(root, log=None, intrinsic=None) -> RGBDDataset:
             raise ReconInputError(f"{log_path}: {len(data)} poses for {len(rgb_paths)} frames")
         poses = data.poses
 
-    width, height = image_size(rgb_paths[0])
+    height, width = image_shape(rgb_paths[0])
     json_path = Path(intrinsic) if intrinsic is not None else _find_intrinsic_json(root)
     intrinsics = PRIMESENSE
     if json_path is not None:
         intrinsics, jw, jh = read_intrinsic_json(json_path)
-        if jw is not None and jh is not None and (int(jw), int(jh)) != (width, height):
+        if jw is not None and jh is not None and (int(jh), int(jw)) != (height, width):
             raise ReconInputError(f"{json_path}: intrinsics for {jw}x{jh} but images are {width}x{height}")
     return RGBDDataset(
         kind="redwood",

@@ -16,7 +16,7 @@ from pathlib import Path
 from recon.errors import ReconInputError
 from recon.io.trajectories import read_matrix_folder
 
-from .base import RGBDDataset, image_size, intrinsics_from_K, list_images, read_matrix_txt
+from .base import RGBDDataset, image_shape, intrinsics_from_K, list_images, read_matrix_txt
 
 
 def is_scannet(root: Path) -> bool:
@@ -51,8 +51,8 @@ def open_scannet(root, intrinsics_from: str = "depth") -> RGBDDataset:
         order = [by_name[i] for i in ids]
         poses, valid = data.poses[order], data.valid[order]
 
-    width, height = image_size(depth[ids[0]])
-    cw, ch = image_size(color[ids[0]])
+    height, width = image_shape(depth[ids[0]])
+    ch, cw = image_shape(color[ids[0]])
     intr_dir = root / "intrinsic"
     if intrinsics_from == "depth" and (intr_dir / "intrinsic_depth.txt").is_file():
         intrinsics = intrinsics_from_K(read_matrix_txt(intr_dir / "intrinsic_depth.txt", (4, 4)))
@@ -76,5 +76,5 @@ def open_scannet(root, intrinsics_from: str = "depth") -> RGBDDataset:
         poses=poses,
         pose_valid=valid,
         depth_scale=1000.0,
-        resize_rgb=(cw, ch) != (width, height),
+        resize_rgb=(ch, cw) != (height, width),
     )

@@ -21,7 +21,7 @@ from recon.errors import ReconInputError
 from recon.io.naming import natural_key
 from recon.io.trajectories import read_matrix_folder
 
-from .base import RGBDDataset, image_size, intrinsics_from_K, read_matrix_txt
+from .base import RGBDDataset, image_shape, intrinsics_from_K, read_matrix_txt
 
 DEPTH_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 # Kinect v1: colour focal / depth focal (525 px / 585 px at 640x480).
@@ -83,7 +83,7 @@ def open_7scenes(root, colour_intrinsics=None) -> RGBDDataset:
         fx, fy, cx, cy = depth_intrinsics
         colour_intrinsics = (fx * COLOUR_FOCAL_RATIO, fy * COLOUR_FOCAL_RATIO, cx, cy)
     intrinsics = tuple(float(v) for v in colour_intrinsics)
-    width, height = image_size(color[ids[0]])
+    height, width = image_shape(color[ids[0]])
     return RGBDDataset(
         kind="7scenes",
         name=root.resolve().name,

@@ -21,7 +21,7 @@ from recon.errors import ReconInputError
 from recon.io.trajectories import read_tum
 from recon.poses.rigid import associate_timestamps, interpolate_poses
 
-from .base import RGBDDataset, check_exist, image_size, require_file
+from .base import RGBDDataset, check_exist, image_shape, require_file
 
 DEPTH_SCALE = 5000.0
 # Published calibrated colour intrinsics (fx, fy, cx, cy) and distortion (k1, k2, p1, p2, k3).
@@ -166,7 +166,7 @@ def open_tum(root, max_diff: float = 0.02, max_gap: float = 0.1) -> RGBDDataset:
             raise ReconInputError(f"{gt_path}: no ground-truth timestamp within {max_diff} s of the colour frames")
 
     intrinsics, distortion = sequence_intrinsics(root)
-    width, height = image_size(rgb_paths[0])
+    height, width = image_shape(rgb_paths[0])
     return RGBDDataset(
         kind="tum",
         name=root.resolve().name,
