@@ -259,6 +259,21 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     assert "torch_threads" in rows and "mapper" in rows and "flow" not in rows
 
 
+def test_output_cut_short_by_the_reader_is_not_an_error():
+    """`recon run --pose-option list | head -1`: the pipe closes early; no traceback."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "run", "--pose-option", "list"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
+    assert proc.stdout.read(20)  # the header, then stop reading
+    proc.stdout.close()
+    stderr = proc.stderr.read().decode()
+    proc.wait(timeout=60)
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr, stderr
+    assert proc.returncode in (0, -13), proc.returncode  # 0, or killed by SIGPIPE before Python saw it
+
+
 @pytest.mark.parametrize("key, value", [("correction_grid", (2, 5)), ("torch_threads", None), ("calibrate_lens", False),
                                         ("keyframe_flow", 12.5), ("mapper", "global")])
 def test_demo_replay_command_reads_back_its_pose_options(key, value):
