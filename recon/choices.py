@@ -25,4 +25,8 @@ REFINE_CHOICES = ("mvs", "none")
 # so that the parser does not import the rerun SDK (a second, at every `recon --help`).
 RERUN_MODES = ("spawn", "save", "serve", "off")
 
-__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES"]
+# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget.
+STREAM_CHOICES = ("auto", "on", "off")
+
+__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES",
+           "STREAM_CHOICES"]

@@ -14,7 +14,7 @@ import torch
 
 from medea_core import MedeaConfig
 
-from .choices import DEMO_PRIORS, POSE_CHOICES, POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES
+from .choices import DEMO_PRIORS, POSE_CHOICES, POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
 from .errors import ReconInputError
 
 
@@ -133,8 +133,23 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--start", type=float, dest="start_time", help="first second of the video to use")
     g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
     g.add_argument("--frame-budget", type=int, default=d.frame_budget,
-                   help="without --stride/--max-frames, raise the stride so that at most this many frames are used "
+                   help="the most frames a one-shot run holds in memory; longer inputs are streamed (see --stream) "
                         "(default %(default)s)")
+    g.add_argument("--stream", choices=STREAM_CHOICES, default=d.stream,
+                   help="stream the frames through the stages in bounded memory, MEDeA on overlapping windows, the "
+                        "mesh growing as it goes: auto = when the input has more frames than --frame-budget; off "
+                        "raises the stride to fit the budget instead (default %(default)s)")
+    g.add_argument("--depth-frames", default=d.depth_frames, metavar="{motion,all,K}",
+                   help="streamed runs: the tracked frames that get depth and are fused: motion = one each time the "
+                        f"camera moved {d.depth_motion:g} x the median depth or turned {d.depth_rotation:g} degrees, "
+                        "all, or every K-th (default %(default)s)")
+    g.add_argument("--window", type=int, default=d.window,
+                   help="streamed runs: frames per MEDeA window (default %(default)s)")
+    g.add_argument("--window-overlap", type=int, default=d.window_overlap,
+                   help="streamed runs: frames shared by consecutive windows (default %(default)s)")
+    g.add_argument("--mesh-every", type=int, default=d.mesh_every,
+                   help="streamed runs: re-extract the mesh for live Rerun every this many fused frames; 0 = only at "
+                        "the end (default %(default)s)")
     g.add_argument("--width", type=int, default=d.width,
                    help="working width in pixels, aspect kept; 0 keeps the input's size (default %(default)s)")
     g.add_argument("--fps", type=float, help="frame rate of an image folder (default 30), for --start/--end")
@@ -274,6 +289,8 @@ def pipeline_config_from_args(args: argparse.Namespace):
     return PipelineConfig(
         input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
         max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
+        stream=args.stream, depth_frames=args.depth_frames, window=args.window, window_overlap=args.window_overlap,
+        mesh_every=args.mesh_every,
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),

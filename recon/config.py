@@ -15,7 +15,7 @@ import numpy as np
 from medea_core import MedeaConfig
 from mvs_core import MvsConfig
 
-from .choices import POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES
+from .choices import POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
 from .errors import ReconInputError
 from .fusion import FusionOptions
 from .poses.polish import PolishConfig
@@ -27,9 +27,16 @@ class PipelineConfig:
 
     input, output: paths. overwrite: write into a non-empty output folder.
     stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
-    frame_budget: when no stride is given and the input has more frames than this, the
-        stride is raised so that at most this many are used (memory and time grow with
-        the frame count; every stage needs all frames at once).
+    frame_budget: the most frames a one-shot run holds in memory. stream: "auto" streams
+        inputs with more frames than frame_budget (recon.stream: frames flow through the
+        stages, memory flat in the video's length), "on" always, "off" never (then, with no
+        stride given, the stride is raised so that at most frame_budget frames are used).
+    depth_frames: which tracked frames get depth and are fused in a streamed run: "motion"
+        (a frame each time the camera moved depth_motion x the median depth or turned
+        depth_rotation degrees since the last one), "all", or "K" (every K-th frame).
+    window, window_overlap: frames per MEDeA window of a streamed run and frames shared by
+        consecutive windows. mesh_every: re-extract the mesh for live Rerun every this many
+        fused frames (0: only at the end).
     width: working width in pixels (None: the input's own); fps: frame rate of an image folder.
     intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal field
         of view in degrees (used when intrinsics are not given).
@@ -61,6 +68,13 @@ class PipelineConfig:
     start_time: float | None = None
     end_time: float | None = None
     frame_budget: int = 600
+    stream: str = "auto"
+    depth_frames: str = "motion"
+    depth_motion: float = 0.05
+    depth_rotation: float = 5.0
+    window: int = 48
+    window_overlap: int = 8
+    mesh_every: int = 200
     width: int | None = 640
     fps: float | None = None
     intrinsics: tuple[float, float, float, float] | None = None
@@ -114,6 +128,14 @@ class PipelineConfig:
             from .poses.options import check_pose_options
 
             check_pose_options(self.pose_options)
+        if self.stream not in STREAM_CHOICES:
+            raise ReconInputError(f"stream must be one of {', '.join(STREAM_CHOICES)}, got {self.stream!r}")
+        if not (self.depth_frames in ("motion", "all") or (self.depth_frames.isdigit() and int(self.depth_frames) > 0)):
+            raise ReconInputError(
+                f"depth frames must be motion, all or a positive whole number, got {self.depth_frames!r}")
+        if int(self.window_overlap) < 0 or int(self.window) < int(self.window_overlap) + 2:
+            raise ReconInputError(f"a window needs at least 2 frames beyond its overlap: window {self.window}, "
+                                  f"overlap {self.window_overlap}")
         if int(self.frame_budget) < 2:
             raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
         self.fusion.validate()
