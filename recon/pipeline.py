@@ -233,8 +233,6 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
             fusion_options.min_confidence = default_min_confidence(pose_plan.estimated)
         fused = fuse(depth, seq.rgb, seq.poses, seq.intrinsics, fusion_options, confidence=confidence)
 
-    if fused.mesh.has_vertex_colors():  # TSDF colour averages can overshoot 1 by rounding
-        fused.mesh.vertex_colors = type(fused.mesh.vertex_colors)(np.clip(np.asarray(fused.mesh.vertex_colors), 0, 1))
     say("export")
     with timer.stage("export"):
         files = export_reconstruction(

@@ -1,4 +1,5 @@
-"""TSDF fusion of metric depth maps into a mesh (`tsdf`)."""
+"""TSDF fusion of metric depth maps into a mesh (`tsdf`: sizing and the whole-sequence fuse; `volume`: one
+growing volume, extraction and clean-up)."""
 
 from .tsdf import (
     FusionOptions,
@@ -9,7 +10,9 @@ from .tsdf import (
     fuse,
     o3d_device,
     remove_fragments,
+    volume_size,
 )
+from .volume import TsdfVolume
 
 __all__ = [
     "FusionOptions",
@@ -20,4 +23,6 @@ __all__ = [
     "fuse",
     "o3d_device",
     "remove_fragments",
+    "TsdfVolume",
+    "volume_size",
 ]

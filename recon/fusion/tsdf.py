@@ -53,6 +53,8 @@ from tqdm import tqdm
 
 from recon.errors import ReconInputError
 
+from .volume import TsdfVolume, clean_depth, remove_fragments, triangle_components  # noqa: F401 (re-exported)
+
 log = logging.getLogger(__name__)
 
 MIN_VOXEL = 0.005
@@ -176,16 +178,6 @@ def _frame_intrinsics(intrinsics, n: int) -> np.ndarray:
     raise ValueError(f"intrinsics must be (4,) or ({n}, 4), got {k.shape}")
 
 
-def _clean_depth(d) -> np.ndarray:
-    """(H, W) float32 C-contiguous depth with NaN/inf/negative values set to 0 (invalid)."""
-    d = np.ascontiguousarray(d, dtype=np.float32)
-    bad = ~np.isfinite(d) | (d < 0)
-    if bad.any():
-        d = d.copy()
-        d[bad] = 0.0
-    return d
-
-
 def depth_sample(depth, frames: Sequence[int], step: int = _STAT_STEP, max_frames: int = _STAT_FRAMES) -> np.ndarray:
     """Valid depth values (M,) from a pixel lattice of up to `max_frames` evenly spaced `frames`."""
     frames = np.asarray(frames)
@@ -297,46 +289,6 @@ def fit_to_budget(
     return voxel_size, trunc, estimate
 
 
-# --------------------------------------------------------------------------- mesh cleanup
-
-
-def triangle_components(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
-    """(F,) component label of each triangle (F, 3), triangles sharing a vertex being connected."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    t = np.asarray(triangles, dtype=np.int64)
-    rows = np.concatenate([t[:, 0], t[:, 1]])
-    cols = np.concatenate([t[:, 1], t[:, 2]])
-    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(num_vertices, num_vertices))
-    _, vertex_label = connected_components(graph, directed=False)
-    return vertex_label[t[:, 0]]
-
-
-def remove_fragments(
-    mesh: o3d.geometry.TriangleMesh, min_triangles: int = 100, min_fraction: float = 0.005
-) -> tuple[o3d.geometry.TriangleMesh, int]:
-    """Drop connected components smaller than `min_triangles` or `min_fraction` of the largest.
-
-    Works in place on `mesh` (a legacy TriangleMesh) and returns it with the number of
-    triangles removed. Components are triangles linked through shared vertices (marching
-    cubes shares vertices between neighbours), found with scipy's sparse connected
-    components: ~20x faster than TriangleMesh.cluster_connected_triangles on big meshes.
-    """
-    if len(mesh.triangles) == 0 or (min_triangles <= 0 and min_fraction <= 0):
-        return mesh, 0
-    tri = np.asarray(mesh.triangles)
-    cluster_of = triangle_components(tri, len(mesh.vertices))
-    sizes = np.bincount(cluster_of)
-    keep_cluster = sizes >= max(min_triangles, min_fraction * sizes.max())
-    drop = ~keep_cluster[cluster_of]
-    removed = int(drop.sum())
-    if removed:
-        mesh.remove_triangles_by_mask(drop)
-        mesh.remove_unreferenced_vertices()
-    return mesh, removed
-
-
 # --------------------------------------------------------------------------- fusion
 
 
@@ -354,33 +306,6 @@ def _check_inputs(depth, rgb, poses) -> tuple[int, int, int]:
     return n, first.shape[0], first.shape[1]
 
 
-def _color_image(rgb_frame, h: int, w: int, device: o3c.Device) -> o3d.t.geometry.Image:
-    """(H, W, 3) uint8 -> float32 [0, 1] Open3D image (float depth needs float colour)."""
-    import cv2
-
-    c = np.asarray(rgb_frame)
-    scale = 1.0 / 255.0 if c.dtype == np.uint8 else 1.0
-    if c.shape[:2] != (h, w):
-        # Colour at another resolution than depth covers the same field of view: resample it.
-        c = cv2.resize(c, (w, h), interpolation=cv2.INTER_AREA)
-    c = np.ascontiguousarray(c, dtype=np.float32) * np.float32(scale)
-    return o3d.t.geometry.Image(o3c.Tensor(c).to(device))
-
-
-def _extract(extract, empty_type):
-    """Legacy geometry from an Open3D extraction; an empty one when nothing passes the weight test.
-
-    Open3D raises instead of returning an empty result when no voxel qualifies (it cannot
-    set a (0,) attribute), so that one error is turned into an empty geometry.
-    """
-    try:
-        return extract().cpu().to_legacy()
-    except RuntimeError as exc:
-        if "shape {0}" in str(exc):
-            return empty_type()
-        raise
-
-
 class ConfidentDepth:
     """Depth maps (N, H, W) with the pixels of confidence below a threshold set to 0, read
     one frame at a time (indexable and sized like the depth it wraps)."""
@@ -396,6 +321,15 @@ class ConfidentDepth:
     def __getitem__(self, i: int) -> np.ndarray:
         d = np.asarray(self.depth[i], dtype=np.float32)
         return np.where(np.asarray(self.confidence[i]) >= self.threshold, d, np.float32(0.0))
+
+
+def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, float, float]:
+    """(voxel, trunc, max_depth) in metres: the options' values, else chosen from valid depth
+    values (M,) of the frames (module docstring)."""
+    max_depth = options.max_depth or auto_max_depth(values)
+    in_range = values[values <= max_depth]
+    voxel = options.voxel_size or auto_voxel_size(float(np.median(in_range if in_range.size else values)))
+    return float(voxel), float(options.trunc or options.trunc_voxels * voxel), float(max_depth)
 
 
 def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, confidence=None) -> FusionResult:
@@ -431,10 +365,7 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     values = depth_sample(depth, frames)
     if values.size == 0:
         raise ReconInputError("TSDF fusion: no frame has valid depth and a valid pose")
-    max_depth = options.max_depth or auto_max_depth(values)
-    in_range = values[values <= max_depth]
-    voxel = options.voxel_size or auto_voxel_size(float(np.median(in_range if in_range.size else values)))
-    trunc = options.trunc or options.trunc_voxels * voxel
+    voxel, trunc, max_depth = volume_size(values, options)
     voxel, trunc, estimate = fit_to_budget(
         depth, poses, k_all, voxel, trunc, max_depth, options.block_resolution, int(options.block_count), frames
     )
@@ -446,42 +377,16 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         capacity * options.block_resolution**3 * _BYTES_PER_VOXEL / 1e6,
     )
 
-    colored = rgb is not None
-    names = ("tsdf", "weight", "color") if colored else ("tsdf", "weight")
-    channels = ((1,), (1,), (3,)) if colored else ((1,), (1,))
-    vbg = o3d.t.geometry.VoxelBlockGrid(
-        names, (o3c.float32,) * len(names), channels, voxel_size=voxel, block_resolution=options.block_resolution,
-        block_count=capacity, device=device,
-    )
-    trunc_mult = trunc / voxel
-    fused = 0
+    volume = TsdfVolume(voxel, trunc, max_depth, capacity, colored=rgb is not None,
+                        block_resolution=options.block_resolution, device=device)
     for i in tqdm(frames, desc="TSDF fusion", unit="frame", disable=not options.progress, leave=False):
-        d = _clean_depth(depth[i])
-        if not (d > 0).any():
-            continue
-        fx, fy, cx, cy = k_all[i]
-        K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
-        # Open3D wants the extrinsic world-to-camera matrix.
-        E = o3c.Tensor(np.linalg.inv(poses[i]), o3c.float64)
-        d_img = o3d.t.geometry.Image(o3c.Tensor(d).to(device))
-        blocks = vbg.compute_unique_block_coordinates(d_img, K, E, 1.0, max_depth, trunc_mult)
-        if colored:
-            vbg.integrate(blocks, d_img, _color_image(rgb[i], h, w, device), K, K, E, 1.0, max_depth, trunc_mult)
-        else:
-            vbg.integrate(blocks, d_img, K, E, 1.0, max_depth, trunc_mult)
-        fused += 1
-
-    blocks_used = int(vbg.hashmap().size())
-    # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
-    threshold = options.weight_threshold - 0.5
-    mesh = _extract(lambda: vbg.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
-    mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
+        volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i])
+    mesh, removed = volume.mesh(options)
     if len(mesh.triangles) == 0:
-        log.warning(
-            "TSDF fusion: the mesh is empty (%d frames fused, weight_threshold %g)", fused, options.weight_threshold
-        )
-    cloud = (_extract(lambda: vbg.extract_point_cloud(threshold), o3d.geometry.PointCloud)
-             if options.point_cloud else None)
+        log.warning("TSDF fusion: the mesh is empty (%d frames fused, weight_threshold %g)", volume.frames_fused,
+                    options.weight_threshold)
+    cloud = volume.point_cloud(options) if options.point_cloud else None
+    fused, blocks_used = volume.frames_fused, volume.blocks_used
     return FusionResult(
         mesh=mesh,
         point_cloud=cloud,

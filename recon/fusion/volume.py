@@ -1,0 +1,162 @@
+"""One TSDF volume that grows frame by frame: integration of a depth map (and colour) at a
+time, marching-cubes extraction at any moment, and the removal of small disconnected
+fragments from what is extracted.
+
+:func:`recon.fusion.tsdf.fuse` fills one volume from a whole sequence; the streamed pipeline
+(:mod:`recon.stream`) keeps one open for the whole video, integrates each frame as its depth
+is finalised and extracts the mesh every so often for the live viewer. The choice of voxel
+size, truncation and depth range is :mod:`recon.fusion.tsdf`'s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+
+def clean_depth(d) -> np.ndarray:
+    """(H, W) float32 C-contiguous depth with NaN/inf/negative values set to 0 (invalid)."""
+    d = np.ascontiguousarray(d, dtype=np.float32)
+    bad = ~np.isfinite(d) | (d < 0)
+    if bad.any():
+        d = d.copy()
+        d[bad] = 0.0
+    return d
+
+
+def _color_image(rgb_frame, h: int, w: int, device: o3c.Device) -> o3d.t.geometry.Image:
+    """(H, W, 3) uint8 -> float32 [0, 1] Open3D image (float depth needs float colour)."""
+    import cv2
+
+    c = np.asarray(rgb_frame)
+    scale = 1.0 / 255.0 if c.dtype == np.uint8 else 1.0
+    if c.shape[:2] != (h, w):
+        # Colour at another resolution than depth covers the same field of view: resample it.
+        c = cv2.resize(c, (w, h), interpolation=cv2.INTER_AREA)
+    c = np.ascontiguousarray(c, dtype=np.float32) * np.float32(scale)
+    return o3d.t.geometry.Image(o3c.Tensor(c).to(device))
+
+
+def _extract(extract, empty_type):
+    """Legacy geometry from an Open3D extraction; an empty one when nothing passes the weight test.
+
+    Open3D raises instead of returning an empty result when no voxel qualifies (it cannot
+    set a (0,) attribute), so that one error is turned into an empty geometry.
+    """
+    try:
+        return extract().cpu().to_legacy()
+    except RuntimeError as exc:
+        if "shape {0}" in str(exc):
+            return empty_type()
+        raise
+
+
+# --------------------------------------------------------------------------- mesh cleanup
+
+
+def triangle_components(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
+    """(F,) component label of each triangle (F, 3), triangles sharing a vertex being connected."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    t = np.asarray(triangles, dtype=np.int64)
+    rows = np.concatenate([t[:, 0], t[:, 1]])
+    cols = np.concatenate([t[:, 1], t[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(num_vertices, num_vertices))
+    _, vertex_label = connected_components(graph, directed=False)
+    return vertex_label[t[:, 0]]
+
+
+def remove_fragments(
+    mesh: o3d.geometry.TriangleMesh, min_triangles: int = 100, min_fraction: float = 0.005
+) -> tuple[o3d.geometry.TriangleMesh, int]:
+    """Drop connected components smaller than `min_triangles` or `min_fraction` of the largest.
+
+    Works in place on `mesh` (a legacy TriangleMesh) and returns it with the number of
+    triangles removed. Components are triangles linked through shared vertices (marching
+    cubes shares vertices between neighbours), found with scipy's sparse connected
+    components: ~20x faster than TriangleMesh.cluster_connected_triangles on big meshes.
+    """
+    if len(mesh.triangles) == 0 or (min_triangles <= 0 and min_fraction <= 0):
+        return mesh, 0
+    tri = np.asarray(mesh.triangles)
+    cluster_of = triangle_components(tri, len(mesh.vertices))
+    sizes = np.bincount(cluster_of)
+    keep_cluster = sizes >= max(min_triangles, min_fraction * sizes.max())
+    drop = ~keep_cluster[cluster_of]
+    removed = int(drop.sum())
+    if removed:
+        mesh.remove_triangles_by_mask(drop)
+        mesh.remove_unreferenced_vertices()
+    return mesh, removed
+
+
+# --------------------------------------------------------------------------- the volume
+
+
+class TsdfVolume:
+    """An Open3D VoxelBlockGrid of tsdf, weight (and colour) that frames are integrated into.
+
+    voxel, trunc, max_depth: metres; capacity: voxel blocks allocated up front (the hash map
+    grows past it when needed); colored: keep a colour per voxel; device: an Open3D device.
+    """
+
+    def __init__(self, voxel: float, trunc: float, max_depth: float, capacity: int, *, colored: bool = True,
+                 block_resolution: int = 8, device: o3c.Device | None = None):
+        self.voxel, self.trunc, self.max_depth = float(voxel), float(trunc), float(max_depth)
+        self.colored = colored
+        self.device = device or o3c.Device("CPU:0")
+        names = ("tsdf", "weight", "color") if colored else ("tsdf", "weight")
+        channels = ((1,), (1,), (3,)) if colored else ((1,), (1,))
+        self.grid = o3d.t.geometry.VoxelBlockGrid(
+            names, (o3c.float32,) * len(names), channels, voxel_size=self.voxel, block_resolution=block_resolution,
+            block_count=int(capacity), device=self.device,
+        )
+        self.frames_fused = 0
+
+    def integrate(self, depth, pose, intrinsics, rgb=None) -> bool:
+        """Fuse one frame: depth (H, W) metres (0 invalid), pose (4, 4) camera-to-world,
+        intrinsics (fx, fy, cx, cy) of the depth, rgb (H', W', 3) uint8 or None. False when
+        the frame has no valid depth (nothing fused)."""
+        d = clean_depth(depth)
+        if not (d > 0).any():
+            return False
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
+        # Open3D wants the extrinsic world-to-camera matrix.
+        E = o3c.Tensor(np.linalg.inv(np.asarray(pose, np.float64)), o3c.float64)
+        d_img = o3d.t.geometry.Image(o3c.Tensor(d).to(self.device))
+        trunc_mult = self.trunc / self.voxel
+        blocks = self.grid.compute_unique_block_coordinates(d_img, K, E, 1.0, self.max_depth, trunc_mult)
+        if self.colored and rgb is not None:
+            color = _color_image(rgb, *d.shape, self.device)
+            self.grid.integrate(blocks, d_img, color, K, K, E, 1.0, self.max_depth, trunc_mult)
+        else:
+            self.grid.integrate(blocks, d_img, K, E, 1.0, self.max_depth, trunc_mult)
+        self.frames_fused += 1
+        return True
+
+    @property
+    def blocks_used(self) -> int:
+        return int(self.grid.hashmap().size())
+
+    def mesh(self, options) -> tuple[o3d.geometry.TriangleMesh, int]:
+        """(legacy mesh, triangles removed as fragments) of what is fused so far; options:
+        FusionOptions (weight_threshold, min_fragment_triangles, min_fragment_fraction).
+        Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding)."""
+        # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
+        threshold = options.weight_threshold - 0.5
+        mesh = _extract(lambda: self.grid.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
+        mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
+        if mesh.has_vertex_colors():
+            mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0, 1))
+        return mesh, removed
+
+    def point_cloud(self, options) -> o3d.geometry.PointCloud:
+        """The zero crossings of what is fused so far (the mesh's weight threshold)."""
+        threshold = options.weight_threshold - 0.5
+        return _extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud)
+
+
+__all__ = ["TsdfVolume", "clean_depth", "remove_fragments", "triangle_components"]
