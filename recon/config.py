@@ -70,8 +70,8 @@ class PipelineConfig:
     frame_budget: int = 600
     stream: str = "auto"
     depth_frames: str = "motion"
-    depth_motion: float = 0.05
-    depth_rotation: float = 5.0
+    depth_motion: float = 0.02
+    depth_rotation: float = 2.0
     window: int = 48
     window_overlap: int = 8
     mesh_every: int = 200

@@ -38,11 +38,9 @@ says so). Poses ``"auto"``: a dataset's ground truth when it has one, else estim
 from __future__ import annotations
 
 import logging
-import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 
@@ -67,6 +65,7 @@ from .stages import (
     select_frames,
     tracking_states,
 )
+from .stream import StageClock
 
 log = logging.getLogger(__name__)
 
@@ -107,25 +106,6 @@ class PipelineResult:
         return {stage: s / n for stage, s in self.seconds.items()}
 
 
-class _Timer:
-    """Wall seconds per stage name; a stage is timed in one block."""
-
-    def __init__(self):
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        assert name in STAGES and name not in self.seconds, name
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[name] = time.perf_counter() - start
-
-    def skipped(self, name: str) -> None:
-        self.seconds[name] = 0.0
-
-
 def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None = None) -> PipelineResult:
     """Run every stage (module docstring) and write the output folder; returns what was made.
 
@@ -156,14 +136,22 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
     config.validate()
     say = on_stage or (lambda _: None)
-    timer = _Timer()
+    timer = StageClock()
     with timer.stage("decode"):
         source = select_frames(config.input, stride=config.stride, max_frames=config.max_frames,
                                start_time=config.start_time, end_time=config.end_time, width=config.width,
-                               fps=config.fps, frame_budget=config.frame_budget)
+                               fps=config.fps, frame_budget=config.frame_budget if config.stream == "off" else None)
         out = OutputFolder(config.output, config.overwrite)
         pose_plan = plan_poses(config.poses, source)
         say(f"input: {source.description}")
+    if config.stream == "on" or (config.stream == "auto" and source.count > config.frame_budget):
+        from .stream import run_streamed
+
+        say(f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
+            if config.stream == "auto" else "streaming")
+        return run_streamed(config, source, out, pose_plan, given_intrinsics(source, config.intrinsics, config.fov),
+                            say)
+    with timer.stage("decode"):
         seq = decode(source, config.progress)
     intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
     seq = seq.with_(intrinsics=intrinsics)
@@ -203,7 +191,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         with timer.stage("undistort"):
             seq = seq.undistort(pose_stage.lens_k1)
     else:
-        timer.skipped("undistort")
+        timer.seconds["undistort"] = 0.0
 
     medea_result = None
     if config.adjust:
@@ -212,7 +200,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
             depth, medea_result = adjust_with_medea(seq, config.medea, config.features, config.progress)
     else:
         depth = seq.prior_depth
-        timer.skipped("medea")
+        timer.seconds["medea"] = 0.0
     adjusted = depth
 
     refined = None
@@ -223,7 +211,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         depth = refined.depth.numpy()
         _warn_unsupported(refined, seq, config.mvs.min_frame_share)
     else:
-        timer.skipped("refine")
+        timer.seconds["refine"] = 0.0
 
     say("TSDF fusion")
     fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress})
@@ -321,9 +309,11 @@ def _log_recording(config, out: OutputFolder, seq: Sequence, depth, mesh, medea_
     return logger.url, None
 
 
-def format_summary(result: PipelineResult) -> str:
-    """The closing summary `recon run` prints: frames, time per stage, mesh, files."""
-    n = len(result.frames)
+def format_summary(result) -> str:
+    """The closing summary `recon run` prints: frames, time per stage, mesh, files (of a
+    PipelineResult or a streamed run's StreamResult)."""
+    frames = result.report["frames"]
+    n = max(1, frames["count"])
     total = sum(result.seconds.values())
     lines = [f"{'stage':<10}{'seconds':>10}{'s/frame':>10}"]
     for stage in STAGES:
@@ -332,9 +322,11 @@ def format_summary(result: PipelineResult) -> str:
             lines.append(f"{stage:<10}{s:>10.1f}{s / n:>10.3f}")
     lines.append(f"{'total':<10}{total:>10.1f}{total / n:>10.3f}")
     mesh = result.fusion.mesh
-    h, w = result.depth.shape[1:]
+    w, h = frames["working_size"]
+    counted = f"{frames['count']} frames" if "depth_frames" not in frames else \
+        f"{frames['count']} frames tracked, {frames['depth_frames']} with depth"
     lines.append(
-        f"{n} frames at {w}x{h}; mesh {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles "
+        f"{counted} at {w}x{h}; mesh {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles "
         f"(voxel {result.fusion.voxel_size * 1000:.1f} mm)"
     )
     lines.append(f"output: {result.output}")

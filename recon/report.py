@@ -74,9 +74,52 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
         "medea": medea_summary(medea_result),
         "refine": {"method": config.refine, **refine_summary(refined)},
         "fusion": fusion,
+        "memory": {"peak_rss_mb": peak_memory_mb()},
         "options": config.to_dict(),
         "versions": versions(),
         "seconds": dict(seconds),
         "seconds_per_frame": {k: v / len(seq) for k, v in seconds.items()},
         "files": dict(files),
+    }
+
+
+def peak_memory_mb() -> float | None:
+    """This process's peak resident memory (VmHWM) in MB, None where /proc is missing."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict) -> dict:
+    """report.json of a streamed run (recon.stream): the one-shot report's sections, with
+    the tracked frames, the depth frames, and per window MEDeA's epochs, the scale anchor
+    and the refinement's share."""
+    kept = np.isfinite(video.poses).all(axis=(1, 2))
+    depth_idx = video.indices[video.depth_frame]
+    anchors = [w["anchor"] for w in windows[1:]]
+    return {
+        "input": {"path": str(config.input), "kind": source.kind, "description": source.description,
+                  "native_size": _wh(source.native_shape), "fps": source.fps},
+        "streamed": True,
+        "frames": {"count": int(kept.sum()), "tracked": len(video.indices), "indices": video.indices[kept].tolist(),
+                   "depth_frames": len(depth_idx), "depth_indices": depth_idx.tolist(),
+                   "depth_names": [video.names[k] for k in np.flatnonzero(video.depth_frame)],
+                   "working_size": _wh(video.size), "depth_frames_rule": config.depth_frames},
+        "intrinsics": {"values": list(video.intrinsics), "source": video.intrinsics_from},
+        "poses": {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1},
+        "prior": {"name": config.prior, "kind": "metric", "info": video.prior_info, "features": video.feature_shape},
+        "windows": {"count": len(windows), "size": config.window, "overlap": config.window_overlap,
+                    "anchor_factors": {"min": min(anchors, default=1.0), "max": max(anchors, default=1.0)},
+                    "each": windows},
+        "refine": {"method": config.refine},
+        "fusion": fusion_summary(fusion, min_confidence),
+        "memory": {"peak_rss_mb": peak_memory_mb()},
+        "options": config.to_dict(),
+        "versions": versions(),
+        "seconds": dict(seconds),
+        "seconds_per_frame": {k: v / len(video.indices) for k, v in seconds.items()},
     }

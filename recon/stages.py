@@ -32,16 +32,17 @@ log = logging.getLogger(__name__)
 
 def select_frames(path: Path, *, stride: int | None = None, max_frames: int | None = None,
                   start_time: float | None = None, end_time: float | None = None, width: int | None = None,
-                  fps: float | None = None, frame_budget: int = 600) -> FrameSource:
+                  fps: float | None = None, frame_budget: int | None = 600) -> FrameSource:
     """Open the input with the selection (recon.io.source.Selection; width: working width,
     fps: frame rate of an image folder), raising the stride when no stride is given and the
-    input has more than ``frame_budget`` frames."""
+    input has more than ``frame_budget`` frames (None: never; the streamed pipeline takes
+    every frame)."""
     def open_with(step):
         return open_source(path, stride=step, max_frames=max_frames, start_time=start_time, end_time=end_time,
                            width=width, min_frames=2, fps=fps)
 
     source = open_with(1 if stride is None else stride)
-    if stride is None and max_frames is None and source.count > frame_budget:
+    if frame_budget is not None and stride is None and max_frames is None and source.count > frame_budget:
         step = math.ceil(source.count / frame_budget)
         log.warning("%d frames exceed the frame budget of %d; using every %dth frame (set --stride or --max-frames "
                     "to choose)", source.count, frame_budget, step)
@@ -96,22 +97,38 @@ def depth_prior(seq: Sequence, source: FrameSource, name: str, *, path: Path | N
                 weights: Path | None = None, features: bool = True, device: str = "cpu", progress: bool = True):
     """PriorOutput for the frames: depth (N, H, W) metres at working size, optional features.
     name: "fastdepth", "sensor" (the dataset's depth) or "folder" (maps in ``path``)."""
+    prior = prior_function(source, name, path=path, weights=weights, features=features, device=device,
+                           progress=progress)
+    return prior(seq, np.arange(len(seq)))
+
+
+def prior_function(source: FrameSource, name: str, *, path: Path | None = None, weights: Path | None = None,
+                   features: bool = True, device: str = "cpu", progress: bool = True):
+    """``prior(seq, positions) -> PriorOutput`` for frames of ``source`` (a Sequence of them
+    and their positions in the selection), the network loaded once: the streamed pipeline
+    calls it batch by batch."""
     from .priors import make_prior
 
     common = dict(device=device, progress=progress)
     if name == "fastdepth":
-        prior = make_prior("fastdepth", weights=weights, features=features, **common)
-    elif name == "sensor":
-        depth = source.load_depth() if isinstance(source, DatasetSource) else None
-        if depth is None:
-            raise ReconInputError(f"{source.path}: --prior sensor needs an RGB-D dataset folder with depth")
-        prior = make_prior("sensor", depth=depth, source=str(source.path), **common)
-    else:
-        prior = make_prior("folder", path=path, frame_names=seq.names, **common)
-    output = prior(seq.rgb, seq.intrinsics)
-    if output.kind != "metric":
-        raise ReconInputError(f"depth prior {name} gave {output.kind} depth; the pipeline needs metric depth")
-    return output
+        model = make_prior("fastdepth", weights=weights, features=features, **common)
+    elif name == "sensor" and not (isinstance(source, DatasetSource) and source.has_depth):
+        raise ReconInputError(f"{source.path}: --prior sensor needs an RGB-D dataset folder with depth")
+
+    def prior(seq: Sequence, positions):
+        if name == "fastdepth":
+            batch_model = model
+        elif name == "sensor":
+            depth = np.stack([source.depth(int(k)) for k in positions])
+            batch_model = make_prior("sensor", depth=depth, source=str(source.path), **common)
+        else:
+            batch_model = make_prior("folder", path=path, frame_names=seq.names, **common)
+        output = batch_model(seq.rgb, seq.intrinsics)
+        if output.kind != "metric":
+            raise ReconInputError(f"depth prior {name} gave {output.kind} depth; the pipeline needs metric depth")
+        return output
+
+    return prior
 
 
 # --------------------------------------------------------------------------- poses

@@ -361,7 +361,8 @@ class OutputFolderData:
 
 def load_output(path) -> OutputFolderData:
     """Read an output folder of `recon run` whole; report.json is required and every depth
-    map and pose must match one of its frames."""
+    map and pose must match one of its frames. Of a streamed run, the frames that got depth
+    (their poses taken from the trajectory of every tracked frame)."""
     path = Path(path)
     report_path = path / REPORT_JSON
     report = read_report(path)
@@ -369,19 +370,27 @@ def load_output(path) -> OutputFolderData:
         raise ReconInputError(f"{path}: not an output folder of 'recon run' (no {REPORT_JSON})")
     try:
         indices = np.asarray(report["frames"]["indices"], dtype=np.int64)
+        # A streamed run tracked every frame (the trajectory) but gave depth to some.
+        depth_indices = np.asarray(report["frames"].get("depth_indices", indices), dtype=np.int64)
     except (ValueError, KeyError, TypeError) as error:
         raise ReconInputError(f"{report_path}: unreadable report ({error})") from None
+    names = report["frames"].get("depth_names", report["frames"].get("names"))
     depth = None
     if (path / DEPTH_DIR).is_dir():
-        files = depth_files(path, report["frames"].get("names"))
-        if len(files) != len(indices):
+        files = depth_files(path, names)
+        if len(files) != len(depth_indices):
             raise ReconInputError(
-                f"{path / DEPTH_DIR}: {len(files)} depth maps for {len(indices)} frames in {REPORT_JSON}"
+                f"{path / DEPTH_DIR}: {len(files)} depth maps for {len(depth_indices)} frames in {REPORT_JSON}"
             )
         depth = np.stack([read_depth(f) for f in files]) if files else None
     poses = read_trajectory(path)
     if poses is not None and len(poses) != len(indices):
         raise ReconInputError(f"{path / TRAJECTORY}: {len(poses)} poses for {len(indices)} frames in {REPORT_JSON}")
+    if len(depth_indices) != len(indices) or not np.array_equal(depth_indices, indices):
+        row = {int(i): k for k, i in enumerate(indices)}
+        if poses is not None:
+            poses = poses[[row[int(i)] for i in depth_indices]]
+        indices = depth_indices
     return OutputFolderData(path, report, indices, depth, poses, read_mesh(path))
 
 

@@ -1,0 +1,119 @@
+"""The rules of the streamed pipeline that decide what to work on, as pure functions.
+
+* Depth frames by motion: of the tracked frames, the ones that get depth and are fused are
+  chosen as the video plays, by a rule that needs only the last chosen frame (no memory of
+  the video): a frame is taken when the camera has moved ``motion`` x the median depth, or
+  turned ``rotation`` degrees, since the last one taken. This is the keyframe rule of
+  KinectFusion-style and DROID-SLAM-style systems (parallax relative to scene depth), so a
+  slow pan of a long video gives few frames and a fast walk many, where a fixed frame
+  budget would keep one frame in ten of both. The defaults (2 % of the depth, 2 degrees)
+  give every 4th-5th frame of the 7-Scenes kitchen walk and every 1st-2nd of TUM fr1/rpy's
+  fast rotations: the densities the depth stages were measured at (docs/benchmarks.md).
+* Windows: the depth frames are adjusted by MEDeA in windows of ``window`` frames of which
+  the first ``overlap`` were already adjusted by the previous window. Those shared frames
+  give the new window its context (MEDeA's pairs reach back into them) and its anchor:
+  the new window's depth is rescaled by the median ratio of the shared frames' finished
+  depth to their depth in the new window, so that the whole stays at one scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def parse_depth_frames(choice: str) -> int | None:
+    """The step of a "K" choice of depth frames, None for "motion"; 1 for "all"."""
+    if choice == "motion":
+        return None
+    return 1 if choice == "all" else int(choice)
+
+
+@dataclass
+class MotionSelector:
+    """Picks depth frames one at a time (module docstring). motion: translation as a
+    fraction of the median depth; rotation: degrees; step: take every step-th frame
+    instead (None: by motion). depth: the median depth of the last frame taken, metres
+    (the scale of ``motion``; 1 m until a frame with depth was taken)."""
+
+    motion: float = 0.02
+    rotation: float = 2.0
+    step: int | None = None
+    depth: float = 1.0
+    _last_pose: np.ndarray | None = None
+    _count: int = 0
+
+    def __call__(self, pose: np.ndarray, median_depth: float | None = None) -> bool:
+        """Whether the next frame (camera-to-world ``pose``) is a depth frame; median_depth:
+        its prior's median depth in metres, which becomes the scale when it is taken (None:
+        not known yet, set ``depth`` once it is)."""
+        position, self._count = self._count, self._count + 1
+        if self.step is not None:
+            return position % self.step == 0
+        pose = np.asarray(pose, np.float64)
+        if not np.isfinite(pose).all():
+            return False
+        if self._last_pose is None:
+            take = True
+        else:
+            moved = float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
+            turned = rotation_angle(self._last_pose[:3, :3].T @ pose[:3, :3])
+            take = moved >= self.motion * max(self.depth, 1e-3) or turned >= self.rotation
+        if take:
+            self._last_pose = pose
+            if median_depth is not None and median_depth > 0:
+                self.depth = float(median_depth)
+        return take
+
+
+def rotation_angle(rotation: np.ndarray) -> float:
+    """Angle in degrees of a 3x3 rotation."""
+    cos = np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)
+    return math.degrees(math.acos(cos))
+
+
+@dataclass(frozen=True)
+class Window:
+    """Positions start:stop of the depth frames; those before ``new`` were finished by the
+    previous window (context and scale anchor), those from ``new`` on are finished here."""
+
+    start: int
+    stop: int
+    new: int
+
+    @property
+    def shared(self) -> int:
+        return self.new - self.start
+
+
+def plan_windows(count: int, window: int, overlap: int) -> list[Window]:
+    """Windows over ``count`` depth frames: at most ``window`` frames each, consecutive ones
+    sharing ``overlap``; the frames are spread evenly so that the last window is not a
+    sliver. One window when everything fits."""
+    if count <= window:
+        return [Window(0, count, 0)]
+    step = window - overlap
+    windows_needed = math.ceil((count - overlap) / step)
+    new_per_window = (count - overlap) / windows_needed
+    bounds = [0] + [overlap + round(new_per_window * (k + 1)) for k in range(windows_needed)]
+    bounds[-1] = count
+    out = []
+    for k in range(windows_needed):
+        new = bounds[k]
+        out.append(Window(max(0, new - overlap), bounds[k + 1], new))
+    return out
+
+
+def anchor_factor(finished: np.ndarray, current: np.ndarray, min_pixels: int = 100) -> float:
+    """exp(median log ratio) of finished to current depth over pixels valid in both
+    ((M, H, W) each, the shared frames); 1 when too few pixels are valid."""
+    finished, current = np.asarray(finished, np.float32), np.asarray(current, np.float32)
+    valid = (finished > 0) & (current > 0) & np.isfinite(finished) & np.isfinite(current)
+    if int(valid.sum()) < min_pixels:
+        return 1.0
+    return float(np.exp(np.median(np.log(finished[valid] / current[valid]))))
+
+
+__all__ = ["MotionSelector", "Window", "anchor_factor", "parse_depth_frames", "plan_windows", "rotation_angle"]
