@@ -59,6 +59,38 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- recon batch
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .batch import FAILED, BatchOptions, default_gpus_per_task, format_progress, format_table, run_batch
+
+    # The run options mean what they mean for `recon run`: the same conversion, on a stand-in
+    # input and output that each input's copy replaces. The device is resolved in each task,
+    # on the node Ray picks, not here.
+    run_args = argparse.Namespace(**{**vars(args), "input": ".", "output": ".", "overwrite": False, "device": "cpu",
+                                     "rerun": ["save" if args.save_recording else "off"]})
+    template = dataclasses.replace(pipeline_config_from_args(run_args), device=args.device)
+    gpus = default_gpus_per_task(args.device) if args.gpus_per_task is None else args.gpus_per_task
+    options = BatchOptions(address=args.address, num_cpus=args.num_cpus, cpus_per_task=args.cpus_per_task,
+                           gpus_per_task=gpus, memory_per_task=args.memory_per_task)
+
+    def on_done(outcome, k: int, n: int) -> None:
+        for message in outcome.warnings:  # the task's warnings, as `recon run` would have shown them
+            logging.getLogger("recon.batch").warning("%s: %s", outcome.input, message)
+        if not args.quiet:
+            print(format_progress(outcome, k, n), flush=True)
+
+    rows = run_batch(args.inputs, args.output, template, options, on_done)
+    print(format_table(rows))
+    failed = sum(row.status == FAILED for row in rows)
+    if failed:
+        raise ReconInputError(f"{failed} of {len(rows)} inputs failed")
+    return 0
+
+
 # --------------------------------------------------------------------------- recon demo
 
 
@@ -148,7 +180,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- main
 
-_COMMANDS = {"run": _cmd_run, "demo": _cmd_demo, "view": _cmd_view, "eval": _cmd_eval}
+_COMMANDS = {"run": _cmd_run, "batch": _cmd_batch, "demo": _cmd_demo, "view": _cmd_view, "eval": _cmd_eval}
 
 
 class _StderrHandler(logging.StreamHandler):

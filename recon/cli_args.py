@@ -344,6 +344,36 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_arguments(run)
     add_medea_arguments(run)
 
+    batch = sub.add_parser(
+        "batch", help="many videos / folders -> one output folder each, run in parallel on Ray",
+        description="Run the pipeline on every input as a Ray task (a local Ray instance, or a cluster joined with "
+                    "--address): OUT/<input name without suffix>/ per input, one line per input as it finishes, "
+                    "a summary table and OUT/batch.json. Inputs whose output is complete (report.json) are skipped, "
+                    "so running the same command again resumes; a failed input does not stop the others (exit code "
+                    "2 when any failed). The run options are those of `recon run`, the same for every input. "
+                    "Needs Ray: pip install -e .[batch].",
+    )
+    batch.add_argument("inputs", nargs="+", metavar="INPUT",
+                       help="video files, image folders or RGB-D dataset folders (as for `recon run`)")
+    batch.add_argument("-o", "--output", required=True,
+                       help="folder of the results: OUT/<input name>/ per input (a name taken by an earlier input "
+                            "gets -2, -3, ...), OUT/batch.json")
+    batch.add_argument("--address", help="join this Ray cluster (auto: the one `ray start` made here; HOST:6379; "
+                                         "ray://HOST:10001); default: start a local Ray instance")
+    batch.add_argument("--num-cpus", type=int, help="CPUs of the local Ray instance (default: all of this machine's)")
+    batch.add_argument("--cpus-per-task", type=int, default=2,
+                       help="CPUs Ray reserves for each input, and torch's threads in it (default %(default)s)")
+    batch.add_argument("--gpus-per-task", type=float,
+                       help="GPUs Ray reserves for each input, may be a fraction (default: 1 with --device cuda, "
+                            "else 0)")
+    batch.add_argument("--memory-per-task", type=float, metavar="GB",
+                       help="memory Ray reserves for each input (default: none reserved)")
+    batch.add_argument("--save-recording", action="store_true",
+                       help="write OUT/<name>/recording.rrd for each input (Rerun is otherwise off)")
+    add_device_arguments(batch)
+    add_run_arguments(batch)
+    add_medea_arguments(batch)
+
     demo = sub.add_parser(
         "demo", help="render a synthetic room as a video, run `recon run` on it, score it against ground truth",
         description="The built-in sample: renders a textured synthetic room to OUT/input/synthetic.mp4 with a "
