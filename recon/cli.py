@@ -1,6 +1,6 @@
-"""The `recon` command line: `recon run` (the pipeline), `recon demo` (the synthetic sample
-end to end), `recon view` (Rerun inspection of a result) and `recon eval` (scores against a
-dataset's ground truth).
+"""The `recon` command line: `recon run` (the pipeline), `recon batch` (many inputs on Ray),
+`recon demo` (the synthetic sample end to end), `recon view` (Rerun inspection of a result)
+and `recon eval` (scores against a dataset's ground truth).
 
 This module runs the commands; their options, which mirror the typed configs
 (recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed and turned into

@@ -1,5 +1,5 @@
 """The `recon` command line's arguments: the parser (`build_parser`: the sub-commands run,
-demo, view and eval), its option groups mirroring the typed configs
+batch, demo, view and eval), its option groups mirroring the typed configs
 (recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions, mvs_core.MvsConfig, the pose
 options), and the conversion of parsed arguments into those configs. Named choices come
 from recon.choices. The commands that run on the parsed arguments are in recon.cli.

@@ -352,7 +352,7 @@ class _Poser:
         for k, position in enumerate(positions):
             self.recent_prior[int(position)] = prior_depth[k]
             _, pose = self.frontend.add(int(position), seq.rgb[k])
-            out.append(pose)
+            out.append(np.full((4, 4), np.nan) if pose is None else pose)
         # The tracker asks for a frame's prior when it tracks it or promotes it to a
         # keyframe one frame later: a short history is enough.
         for old in [p for p in self.recent_prior if p < positions[0] - 2 * PRIOR_BATCH]:
