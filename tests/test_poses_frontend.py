@@ -1,5 +1,6 @@
 """The dense pose front end (recon.poses.frontend) on the synthetic room (conftest: pose_room):
-accuracy, metric scale, lens calibration, focal search, and tracking loss named by frame."""
+accuracy, metric scale, lens calibration, focal search, tracking loss named by frame, and the
+streaming front end (frame by frame) giving the batch result."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
+from recon.errors import ReconInputError
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
 from recon.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses
@@ -63,3 +66,69 @@ def test_tracking_loss_names_the_frame(pose_room):
     with pytest.raises(TrackingLostError, match="tracking lost at frame 12") as info:
         estimate_poses(frames, depth, seq.intrinsics, method="frontend", progress=False)
     assert info.value.frame == 12
+
+
+def _stream(seq, prior, intrinsics, config=None):
+    """StreamingFrontend fed the room frame by frame: (the front end, what add returned per
+    frame, the result of finish with the frames read back from seq.rgb)."""
+    from recon.poses.frontend import StreamingFrontend
+
+    stream = StreamingFrontend(intrinsics, lambda i, frame: prior[i], config)
+    live = [stream.add(i, frame) for i, frame in enumerate(seq.rgb)]
+    return stream, live, stream.finish(lambda i: seq.rgb[i])
+
+
+def test_streaming_frontend_gives_the_batch_poses_and_live_poses(pose_room):
+    """Fed one frame at a time with the frames read back at the end, the streaming front end
+    is the batch one (bit for bit); the poses add returns while tracking are the final ones
+    up to the global BA and the metric scale."""
+    from recon.poses.frontend import estimate_poses_frontend
+
+    seq, prior = pose_room
+    stream, live, res = _stream(seq, prior, seq.intrinsics)
+    batch = estimate_poses_frontend(seq.rgb, lambda i, frame: prior[i], seq.intrinsics, progress=False)
+    assert np.array_equal(res.poses, batch.poses)
+    assert np.array_equal(res.keyframes, batch.keyframes) and np.array_equal(res.keyframe_depth, batch.keyframe_depth)
+    assert res.diagnostics["frame_status"] == batch.diagnostics["frame_status"]
+    status = [s for s, _ in live]
+    assert status[0] == "keyframe" and np.array_equal(live[0][1], np.eye(4))
+    assert set(status) <= {"keyframe", "tracked"} and status.count("keyframe") >= 3
+    # Every frame add called a keyframe is one (a frame said "tracked" may become one later).
+    assert set(res.keyframes.tolist()) >= {i for i, s in enumerate(status) if s == "keyframe"}
+    poses = np.stack([p for _, p in live])
+    assert poses.shape == (36, 4, 4) and np.isfinite(poses).all()
+    # Before the global BA, the final non-keyframe alignment and the metric rescale: 13 mm
+    # (2 % of the path) from the final poses after a Sim(3) alignment, the scale 8 % apart.
+    length = path_length(res.poses)
+    drift = ate_rmse(poses, res.poses, "sim3")
+    assert drift["rmse"] <= 0.03 * length, f"live poses {drift['rmse']:.4f} m from the final ones ({length:.2f} m path)"
+    assert 0.8 < drift["scale"] < 1.25
+    assert rpe(poses, res.poses, delta=10)["rot_rmse_deg"] < 1.0  # the true 10-frame rotation is ~4 deg
+    # Per non-keyframe the state keeps a few numbers and 4x4 poses, no images or flows.
+    s = stream.state
+    per_frame = [s.frame_T, s.rel, s.refs, s.status, s.inlier]
+    tensors = [v for d in per_frame for v in d.values() if isinstance(v, torch.Tensor)]
+    tensors += [x for d in per_frame for v in d.values() if isinstance(v, tuple) for x in v
+                if isinstance(x, (torch.Tensor, np.ndarray))]
+    assert all(t.numel() <= 16 for t in tensors)
+
+
+def test_streaming_frontend_buffers_frames_for_the_focal_search(pose_room):
+    """Without intrinsics the first 8 * calib_keyframes frames wait for the focal search;
+    the frame that completes the buffer starts tracking, and the result is the batch one."""
+    from recon.poses.frontend import StreamingFrontend, estimate_poses_frontend
+
+    seq, prior = pose_room
+    cfg = FrontendConfig(calib_keyframes=4)  # a 32-frame buffer, so that tracking starts mid-video
+    stream, live, res = _stream(seq, prior, None, cfg)
+    assert live[:31] == [("buffered", None)] * 31
+    assert live[31][0] in ("keyframe", "tracked") and all(p is not None for _, p in live[31:])
+    status, pose = stream.current(0)
+    assert status == "keyframe" and np.array_equal(pose, np.eye(4))
+    batch = estimate_poses_frontend(seq.rgb, lambda i, frame: prior[i], None, progress=False, config=cfg)
+    assert np.array_equal(res.poses, batch.poses) and res.intrinsics == batch.intrinsics
+    assert res.diagnostics["focal_search"] == batch.diagnostics["focal_search"]
+    with pytest.raises(RuntimeError, match="twice"):
+        stream.finish(lambda i: seq.rgb[i])
+    with pytest.raises(ReconInputError, match="frame 2 given where frame 0 was expected"):
+        StreamingFrontend(seq.intrinsics, prior).add(2, seq.rgb[2])

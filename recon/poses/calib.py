@@ -7,15 +7,24 @@ on f) and the final robust reprojection cost is the score. A coarse sweep over a
 of field-of-view candidates brackets the minimum, then golden-section search on log f
 refines it. Rotation is what makes f observable: the flow of a rotating camera bends with
 x^2 / f, which no choice of depths can imitate.
+
+:func:`estimate_focal` picks those keyframes (by the front end's motion filter) and scores
+f; :func:`search_focal` does the sweep and the golden section.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
+
+from recon.poses import ba
+from recon.poses import flow as fl
+from recon.poses.frontend_config import FrontendConfig, disp_from_depth, make_geometry
+from recon.poses.result import PriorSource, TrackingLostError, pool_depth
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -79,3 +88,55 @@ def search_focal(
         n += 1
     f_best, s_best = min(evals, key=lambda e: e[1])
     return FocalSearch(focal=float(f_best), evaluations=evals, bracketed=bracketed)
+
+
+def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendConfig, progress: bool = False
+                   ) -> FocalSearch:
+    """Focal length (pixels, fx = fy, principal point at the centre) minimising the BA cost
+    of the first keyframes. frames: the first frames of the video (H, W, 3) uint8."""
+    height, width = frames[0].shape[:2]
+    ba_geo = make_geometry((height, width), cfg.calib_stride)
+
+    factor = cfg.calib_stride // cfg.calib_flow_stride
+    flow_shape = (ba_geo.ba_shape[0] * factor, ba_geo.ba_shape[1] * factor)
+    # Keyframes by the motion filter (independent of the focal length).
+    grays = [fl.prepare_gray(f, flow_shape) for f in frames]
+    kfs = [0]
+    for i in range(1, len(frames)):
+        fwd, _, cf, _ = fl.flow_pair(grays[kfs[-1]], grays[i], cfg.flow)
+        if fl.mean_magnitude(fwd, cf) * (width / flow_shape[1]) * (640.0 / width) > cfg.keyframe_flow:
+            kfs.append(i)
+        if len(kfs) >= cfg.calib_keyframes:
+            break
+    if len(kfs) < 3:
+        raise TrackingLostError(
+            f"cannot estimate the focal length: the first {len(frames)} frames move too little "
+            f"({len(kfs)} keyframes); pass intrinsics or a field of view", frame=0)
+    pairs = [(a, b) for a in range(len(kfs)) for b in range(a + 1, min(a + 3, len(kfs)))]
+    edge_data = []
+    for a, b in pairs:
+        fwd, bwd, cf, cb = fl.flow_pair(grays[kfs[a]], grays[kfs[b]], cfg.flow)
+        edge_data.append((a, b, *fl.pool_edge(fwd, cf, factor, cfg.flow)))
+        edge_data.append((b, a, *fl.pool_edge(bwd, cb, factor, cfg.flow)))
+    ii = torch.tensor([e[0] for e in edge_data])
+    jj = torch.tensor([e[1] for e in edge_data])
+    edges = ba.Edges(ii, jj, torch.stack([e[2] for e in edge_data]), torch.stack([e[3] for e in edge_data]))
+    priors = [disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_shape), cfg.prior_weight) for k in kfs]
+    disp0 = torch.stack([p[0] for p in priors])
+    pw = torch.stack([p[1] for p in priors])
+    opts = replace(cfg.ba, iters=cfg.calib_iters, prior_weight=cfg.prior_weight)
+    score_opts = replace(opts, huber_auto=0.0, huber=1.0)
+
+    def score(f: float) -> float:
+        intr = ba_geo.ba_intrinsics((f, f, (width - 1) / 2.0, (height - 1) / 2.0))
+        T = torch.eye(4, dtype=torch.float64).repeat(len(kfs), 1, 1)
+        for k in range(1, len(kfs)):
+            sel = (edges.ii == k - 1) & (edges.jj == k)
+            e = edges.select(sel)
+            Tk, _, _ = ba.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
+                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight)
+            T[k] = Tk[0]
+        T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)
+        return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts)
+
+    return search_focal(score, candidate_focals(width, height), tol=cfg.calib_tol)

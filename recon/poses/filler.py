@@ -1,7 +1,8 @@
 """The front end's trajectory filler (DROID-SLAM's ``trajectory_filler``): once the
 keyframes are final, every other frame is aligned, motion only, against the keyframes
-before and after it; a frame without reliable flow to either gets the geodesic between them
-and is marked "interpolated".
+before and after it (and the one tracking aligned it to, whose flow is made again: the
+state keeps no flow per frame); a frame without reliable flow to either gets the geodesic
+between them and is marked "interpolated".
 
 ``align_to_keyframes`` is shared with the SfM fallback, which registers the frames COLMAP
 did not take the same way.
@@ -15,6 +16,7 @@ from tqdm import tqdm
 
 from recon.poses import ba, lie
 from recon.poses import flow as fl
+from recon.poses import graph as gr
 from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig
 from recon.poses.track_state import TrackState
@@ -26,7 +28,6 @@ def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progr
     T_kf = g.poses()
     kf_frames = np.array(g.frames)
     jobs = [i for i in range(num_frames) if state.status.get(i) != "keyframe"]
-    known = {i: ref for i, ref in state.refs.items()}
 
     def init_of(i: int, prev: int, nxt: int) -> torch.Tensor:
         if i in state.rel:
@@ -35,7 +36,7 @@ def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progr
 
     prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
     out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
-                             kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, known,
+                             kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, state.refs,
                              prior_of, progress, state.k1)
     for i, (T, ok, ratio, inlier) in out.items():
         state.frame_T[i] = T
@@ -66,10 +67,13 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     kf_frames (K,) sorted frame indices of the keyframes, kf_gray their flow-resolution grey
     images, T_kf (K, 4, 4) world-to-camera poses, disp_kf (K, H, W) BA-grid inverse depth.
     gray_of(i): frame i's flow-resolution grey image. init_of(i, prev, nxt): initial pose
-    (default: geodesic between the keyframes before and after). known: {i: (k, target,
-    weight)} flow measurements already made (from tracking). prior_of(i): (prior inverse
-    depth, tie weight) on the BA grid, for the per-frame metric ratio (``frame_depth_ratios``);
-    k1: the lens' radial term.
+    (default: geodesic between the keyframes before and after). known: {i: (k, seeded)}
+    frames tracking aligned to keyframe k, with DIS seeded or not: that flow is made again
+    and used without the correlation checks, which it passed while tracking (unseeded, it
+    is the same flow; seeded, the seed now comes from the initial pose and the final
+    keyframe depth: with every frame seeded, poses moved by at most 1.4 mm). prior_of(i):
+    (prior inverse depth, tie weight) on the BA grid, for the per-frame metric ratio
+    (``frame_depth_ratios``); k1: the lens' radial term.
     Returns {i: (T_cw (4, 4), ok, ratio, inlier)}: inlier is the share of the flow confidence
     the alignment explains (NaN without flow to any keyframe); ok is False when the alignment kept less than
     ``cfg.lost_inlier`` of its flow confidence (a keyframe whose flow fails
@@ -87,10 +91,14 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             nxt = int(np.searchsorted(kf_frames, i))
             prev = nxt - 1
             T_init.append(init_of(i, prev, nxt))
-            if i in known:
-                k, t, w = known[i]
-                frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
             gray = None
+            if i in known:
+                k, seeded = known[i]
+                gray = gray_of(i)
+                seed = gr.seed_flows(T_kf[k], T_init[-1], disp_kf[k], intr, gray.shape, k1) if seeded else ()
+                fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow, *seed)
+                t, w = fl.pool_edge(fwd, cf, 2, cfg.flow)
+                frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
             for k in (prev, nxt):
                 if k < 0 or k >= K or (i in known and known[i][0] == k):
                     continue

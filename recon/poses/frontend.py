@@ -1,5 +1,6 @@
-"""The DROID-SLAM-style front end with classical parts: the entry point that drives its
-roles over one state, and the focal-length search for videos without intrinsics.
+"""The DROID-SLAM-style front end with classical parts: :class:`StreamingFrontend`, which
+drives its roles over one state a frame at a time, and :func:`estimate_poses_frontend`, the
+same fed from a whole video.
 
 The roles, after DROID-SLAM's files: ``track_state`` (the state, its ``depth_video``),
 ``motion_filter`` (keyframe policy), ``tracker`` (the local window: alignment, keyframes,
@@ -21,94 +22,215 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import replace
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, calib, filler
-from recon.poses import flow as fl
-from recon.poses.frontend_config import FrontendConfig, disp_from_depth, make_geometry
+from recon.poses import ba, backend, filler
+from recon.poses.calib import estimate_focal
+from recon.poses.frontend_config import FrontendConfig, make_geometry
 from recon.poses.result import (
     PoseResult,
     PriorSource,
     TrackingLostError,
+    check_frame,
     invert_poses,
     iterate_frames,
     parse_intrinsics,
-    pool_depth,
 )
 from recon.poses.track_state import TrackState
 from recon.poses.tracker import Tracker
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FrontendConfig", "estimate_focal", "estimate_poses_frontend"]
+__all__ = ["FrontendConfig", "StreamingFrontend", "estimate_focal", "estimate_poses_frontend"]
 
 
-# --------------------------------------------------------------------------- focal search
+class StreamingFrontend:
+    """The front end fed one frame at a time, for videos too long to hold in memory.
+
+    ``add(index, frame)`` tracks the next frame and says how it went; ``finish(frame_lookup)``
+    does what needs the whole video (global BA, the non-keyframes aligned to their final
+    keyframes, the metric rescale) and returns the :class:`PoseResult`.
+
+    intrinsics: (fx, fy, cx, cy) in pixels of the frames (or a 3x3 matrix), or None to search
+    the focal length (principal point at the centre): the first ``8 * calib_keyframes``
+    frames are then kept until the search has them, and tracked after it. prior: a callable
+    ``prior(index, frame)`` -> (h, w) metric depth (0 invalid), called for the frames that
+    need it (keyframes), or an (N, h, w) array (see :class:`PriorSource`).
+
+    Memory (``TrackState``): frames are not kept (the previous one excepted, which may
+    become a keyframe); what grows is the keyframe graph, per keyframe its grey image,
+    depths and flow edges, and per other frame two 4x4 poses, a status, an inlier fraction
+    and the keyframe it was aligned to. ``finish`` reads the frames back through
+    ``frame_lookup``.
+    """
+
+    def __init__(self, intrinsics, prior, config: FrontendConfig | None = None):
+        self.cfg = config or FrontendConfig()
+        self.prior = prior if isinstance(prior, PriorSource) else PriorSource(prior)
+        self.intrinsics = parse_intrinsics(intrinsics)
+        self.diagnostics: dict = {"method": "frontend"}
+        self.state: TrackState | None = None
+        self.tracker: Tracker | None = None
+        self.count = 0  # frames added
+        self._pending: list[np.ndarray] = []  # frames waiting for the focal search
+        self._shape: tuple[int, int] | None = None
+        self._seconds = 0.0
+        self._finished = False
+
+    def add(self, index: int, frame: np.ndarray) -> tuple[str, np.ndarray | None]:
+        """Track frame `index` (frames come in order: 0, 1, 2, ...), (H, W, 3) uint8 RGB.
+
+        Returns its status ("keyframe", "tracked", "relocalised", "lost", or "buffered"
+        while the focal search waits for frames) and its camera-to-world pose (4, 4) as
+        tracked now: before the global BA and the metric rescale (identity for frame 0),
+        None while it has none (buffered, lost). A buffered frame's pose is ``current(i)``
+        once the frame that completes the buffer has been added.
+        Raises TrackingLostError when more than ``max_lost`` frames in a row are lost.
+        """
+        if self._finished:
+            raise RuntimeError("StreamingFrontend.add after finish")
+        if index != self.count:
+            raise ReconInputError(f"frame {index} given where frame {self.count} was expected (frames come in order)")
+        # A copy: the tracker keeps the previous frame, and a caller may reuse its buffer.
+        frame = np.array(check_frame(frame, index, self._shape))
+        self._shape = frame.shape[:2]
+        self.count += 1
+        with self._running():
+            if self.intrinsics is None:
+                self._pending.append(frame)
+                if len(self._pending) < 8 * self.cfg.calib_keyframes:
+                    return "buffered", None
+                self._calibrate()
+            else:
+                self._track(index, frame)
+        return self.current(index)
+
+    def current(self, index: int) -> tuple[str, np.ndarray | None]:
+        """Status and camera-to-world pose (4, 4) of frame `index` as tracked now (see ``add``)."""
+        if not 0 <= index < self.count:
+            raise IndexError(f"frame {index} has not been added ({self.count} frames so far)")
+        s = self.state
+        if s is None or index not in s.status:
+            return "buffered", None
+        T = s.frame_T.get(index)
+        return s.status[index], None if T is None else invert_poses(T.numpy())
+
+    def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False) -> PoseResult:
+        """Poses of every frame added, metric: the lost-at-the-end check, global BA, the
+        non-keyframes aligned to their final keyframes (frames read back through
+        ``frame_lookup(i)`` -> (H, W, 3) uint8, the frame given to ``add(i, ...)``), the metric
+        rescale. seconds: the time spent in ``add`` and ``finish``. The diagnostics are
+        those of :func:`estimate_poses_frontend`. Raises TrackingLostError."""
+        if self._finished:
+            raise RuntimeError("StreamingFrontend.finish called twice")
+        if self.count == 0:
+            raise TrackingLostError("no frames to track", frame=0)
+        self._finished = True
+        with self._running():
+            if self.state is None:  # a video shorter than the focal search's buffer
+                self._calibrate()
+            result = self._finish(frame_lookup, progress)
+        result.seconds = self._seconds
+        return result
+
+    # ------------------------------------------------------------------ steps
+
+    @contextmanager
+    def _running(self) -> Iterator[None]:
+        """The front end's torch threads (restored after, as other work shares the process)
+        and the time spent, for ``PoseResult.seconds``."""
+        threads = torch.get_num_threads()
+        if self.cfg.torch_threads:
+            torch.set_num_threads(self.cfg.torch_threads)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._seconds += time.perf_counter() - t0
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+
+    def _track(self, index: int, frame: np.ndarray) -> None:
+        if self.state is None:
+            geo = make_geometry(frame.shape[:2], self.cfg.ba_stride)
+            self.state = TrackState(self.intrinsics, geo, self.prior, self.cfg)
+            self.tracker = Tracker(self.state)
+            self.tracker.start(index, frame)
+        else:
+            self.tracker.track(index, frame)
+
+    def _calibrate(self) -> None:
+        """Focal search on the buffered first frames, then track them."""
+        frames, self._pending = self._pending, []
+        height, width = frames[0].shape[:2]
+        search = estimate_focal(frames, self.prior, self.cfg)
+        self.intrinsics = (search.focal, search.focal, (width - 1) / 2.0, (height - 1) / 2.0)
+        self.diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
+                                            "evaluations": search.evaluations}
+        log.info("estimated focal length %.1f px (horizontal FOV %.1f deg)", search.focal,
+                 math.degrees(2 * math.atan(width / (2 * search.focal))))
+        for i, frame in enumerate(frames):
+            self._track(i, frame)
+
+    def _check_end(self) -> None:
+        """A loss that runs into the end of the video (more than half of ``max_lost``) is a failure."""
+        s, last = self.state, self.count - 1
+        if s.lost_run and len(s.lost_run) > self.cfg.max_lost // 2 and s.lost_run[-1] == last:
+            first = s.lost_run[0]
+            raise TrackingLostError(f"tracking lost at frame {first} and not recovered before the end of the video",
+                                    frame=first)
+
+    def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool) -> PoseResult:
+        s, n = self.state, self.count
+        self._check_end()
+        backend.global_ba(s)
+        filler.align_non_keyframes(s, frame_lookup, n, progress)
+        g = s.graph
+        for k, i in enumerate(g.frames):
+            s.frame_T[i] = g.poses([k])[0]
+        scale = backend.metric_rescale(s)
+        T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
+        return PoseResult(
+            poses=invert_poses(T_cw),
+            intrinsics=tuple(float(v) for v in self.intrinsics),
+            keyframes=np.array(g.frames, dtype=np.int64),
+            seconds=0.0,
+            diagnostics={**self.diagnostics, **self._diagnostics(scale)},
+            keyframe_depth=(1.0 / g.disps()).float().numpy(),
+        )
+
+    def _diagnostics(self, scale: float) -> dict:
+        s, n = self.state, self.count
+        last = s.ba_reports[-1] if s.ba_reports else ba.BAReport()
+        status = [s.status.get(i, "tracked") for i in range(n)]
+        return dict(
+            num_keyframes=len(s.graph),
+            edges=s.graph.kinds(),
+            metric_scale_factor=scale,
+            frame_status=status,
+            frame_inlier=[s.inlier.get(i, float("nan")) for i in range(n)],
+            feature_starts=s.feature_starts,
+            lost_frames=[i for i, st in enumerate(status) if st in ("recovered", "interpolated")],
+            relocalisations=s.reloc_events,
+            ba_rmse_px=last.rmse,
+            ba_inlier_fraction=last.inlier_fraction,
+            ba_grid=s.geo.ba_shape[::-1],  # reported (w, h), as the run reports always had it
+            lens_k1=s.k1,
+        )
 
 
-def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendConfig, progress: bool = False
-                   ) -> calib.FocalSearch:
-    """Focal length (pixels, fx = fy, principal point at the centre) minimising the BA cost
-    of the first keyframes. frames: the first frames of the video (H, W, 3) uint8."""
-    height, width = frames[0].shape[:2]
-    ba_geo = make_geometry((height, width), cfg.calib_stride)
-
-    factor = cfg.calib_stride // cfg.calib_flow_stride
-    flow_shape = (ba_geo.ba_shape[0] * factor, ba_geo.ba_shape[1] * factor)
-    # Keyframes by the motion filter (independent of the focal length).
-    grays = [fl.prepare_gray(f, flow_shape) for f in frames]
-    kfs = [0]
-    for i in range(1, len(frames)):
-        fwd, _, cf, _ = fl.flow_pair(grays[kfs[-1]], grays[i], cfg.flow)
-        if fl.mean_magnitude(fwd, cf) * (width / flow_shape[1]) * (640.0 / width) > cfg.keyframe_flow:
-            kfs.append(i)
-        if len(kfs) >= cfg.calib_keyframes:
-            break
-    if len(kfs) < 3:
-        raise TrackingLostError(
-            f"cannot estimate the focal length: the first {len(frames)} frames move too little "
-            f"({len(kfs)} keyframes); pass intrinsics or a field of view", frame=0)
-    pairs = [(a, b) for a in range(len(kfs)) for b in range(a + 1, min(a + 3, len(kfs)))]
-    edge_data = []
-    for a, b in pairs:
-        fwd, bwd, cf, cb = fl.flow_pair(grays[kfs[a]], grays[kfs[b]], cfg.flow)
-        edge_data.append((a, b, *fl.pool_edge(fwd, cf, factor, cfg.flow)))
-        edge_data.append((b, a, *fl.pool_edge(bwd, cb, factor, cfg.flow)))
-    ii = torch.tensor([e[0] for e in edge_data])
-    jj = torch.tensor([e[1] for e in edge_data])
-    edges = ba.Edges(ii, jj, torch.stack([e[2] for e in edge_data]), torch.stack([e[3] for e in edge_data]))
-    priors = [disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_shape), cfg.prior_weight) for k in kfs]
-    disp0 = torch.stack([p[0] for p in priors])
-    pw = torch.stack([p[1] for p in priors])
-    opts = replace(cfg.ba, iters=cfg.calib_iters, prior_weight=cfg.prior_weight)
-    score_opts = replace(opts, huber_auto=0.0, huber=1.0)
-
-    def score(f: float) -> float:
-        intr = ba_geo.ba_intrinsics((f, f, (width - 1) / 2.0, (height - 1) / 2.0))
-        T = torch.eye(4, dtype=torch.float64).repeat(len(kfs), 1, 1)
-        for k in range(1, len(kfs)):
-            sel = (edges.ii == k - 1) & (edges.jj == k)
-            e = edges.select(sel)
-            Tk, _, _ = ba.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
-                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight)
-            T[k] = Tk[0]
-        T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)
-        return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts)
-
-    return calib.search_focal(score, calib.candidate_focals(width, height), tol=cfg.calib_tol)
-
-
-# --------------------------------------------------------------------------- entry point
+# --------------------------------------------------------------------------- whole videos
 
 
 def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool = True,
                             config: FrontendConfig | None = None) -> PoseResult:
-    """Track a video with the dense front end.
+    """Track a video with the dense front end (:class:`StreamingFrontend` fed every frame).
 
     frames: (N, H, W, 3) uint8 RGB (or a sequence of such frames); prior_depth: (N, h, w)
     metric depth (0 invalid) or a callable ``prior(index, frame)``; intrinsics: (fx, fy,
@@ -121,74 +243,16 @@ def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool
     flow: geodesic between keyframes)), relocalisation events, BA rmse / inlier fraction.
     Raises TrackingLostError when more than ``max_lost`` consecutive frames cannot be aligned.
     """
-    cfg = config or FrontendConfig()
-    threads = torch.get_num_threads()
-    if cfg.torch_threads:
-        torch.set_num_threads(cfg.torch_threads)
-    try:
-        return _estimate(frames, prior_depth, intrinsics, progress, cfg)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _estimate(frames, prior_depth, intrinsics, progress: bool, cfg: FrontendConfig) -> PoseResult:
     t0 = time.perf_counter()
-    frames_list = [f for _, f in iterate_frames(frames)]
+    frames_list = [f for _, f in iterate_frames(frames)]  # views of an array; the filler reads them back
     if not frames_list:
         raise TrackingLostError("no frames to track", frame=0)
     prior = PriorSource(prior_depth)
     if not prior.is_callable and len(prior) != len(frames_list):
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
-    height, width = frames_list[0].shape[:2]
-    diagnostics: dict = {"method": "frontend"}
-    intr = parse_intrinsics(intrinsics)
-    if intr is None:
-        search = estimate_focal(frames_list[: 8 * cfg.calib_keyframes], prior, cfg, progress)
-        intr = (search.focal, search.focal, (width - 1) / 2.0, (height - 1) / 2.0)
-        diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
-                                       "evaluations": search.evaluations}
-        log.info("estimated focal length %.1f px (horizontal FOV %.1f deg)", search.focal,
-                 math.degrees(2 * math.atan(width / (2 * search.focal))))
-    state = TrackState(intr, make_geometry((height, width), cfg.ba_stride), prior, cfg)
-    tracker = Tracker(state)
-    tracker.start(0, frames_list[0])
-    for i in tqdm(range(1, len(frames_list)), desc="tracking", unit="frame", disable=not progress, leave=False):
-        tracker.track(i, frames_list[i])
-    if state.lost_run:
-        first = state.lost_run[0]
-        if len(state.lost_run) > cfg.max_lost // 2 and state.lost_run[-1] == len(frames_list) - 1:
-            raise TrackingLostError(f"tracking lost at frame {first} and not recovered before the end of the video",
-                                    frame=first)
-    backend.global_ba(state)
-    filler.align_non_keyframes(state, lambda i: frames_list[i], len(frames_list), progress)
-    g = state.graph
-    for k, i in enumerate(g.frames):
-        state.frame_T[i] = g.poses([k])[0]
-    scale = backend.metric_rescale(state)
-    T_cw = torch.stack([state.frame_T[i] for i in range(len(frames_list))]).numpy()
-    poses = invert_poses(T_cw)
-    last = state.ba_reports[-1] if state.ba_reports else ba.BAReport()
-    status = [state.status.get(i, "tracked") for i in range(len(frames_list))]
-    diagnostics.update(
-        num_keyframes=len(g),
-        edges=g.kinds(),
-        metric_scale_factor=scale,
-        frame_status=status,
-        frame_inlier=[state.inlier.get(i, float("nan")) for i in range(len(frames_list))],
-        feature_starts=state.feature_starts,
-        lost_frames=[i for i, s in enumerate(status) if s in ("recovered", "interpolated")],
-        relocalisations=state.reloc_events,
-        ba_rmse_px=last.rmse,
-        ba_inlier_fraction=last.inlier_fraction,
-        ba_grid=state.geo.ba_shape[::-1],  # reported (w, h), as the run reports always had it
-        lens_k1=state.k1,
-    )
-    depth = (1.0 / g.disps()).float().numpy()
-    return PoseResult(
-        poses=poses,
-        intrinsics=tuple(float(v) for v in intr),
-        keyframes=np.array(g.frames, dtype=np.int64),
-        seconds=time.perf_counter() - t0,
-        diagnostics=diagnostics,
-        keyframe_depth=depth,
-    )
+    stream = StreamingFrontend(intrinsics, prior, config)
+    for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress, leave=False)):
+        stream.add(i, frame)
+    result = stream.finish(frames_list.__getitem__, progress)
+    result.seconds = time.perf_counter() - t0
+    return result

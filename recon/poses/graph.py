@@ -11,7 +11,8 @@ This module owns:
   the current poses and depths (DROID's frame distance), used to find proximity edges;
 * :func:`select_proximity`: the nearest keyframes by that distance, with temporal
   non-maximum suppression so that one revisit does not take all the edges;
-* :func:`predicted_flow`: the flow the geometry predicts, used to seed DIS on long edges.
+* :func:`predicted_flow`: the flow the geometry predicts, used to seed DIS on long edges;
+  :func:`seed_flows`: both ways between a keyframe and a frame at a given pose.
 """
 
 from __future__ import annotations
@@ -184,3 +185,13 @@ def predicted_flow(
     scale = np.array([wf / width, hf / height], dtype=np.float32)
     up = cv2.resize(flow.numpy().astype(np.float32), (wf, hf), interpolation=cv2.INTER_LINEAR)
     return np.ascontiguousarray(up * scale)
+
+
+def seed_flows(T_kf: torch.Tensor, T: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor,
+               flow_shape: tuple[int, int], k1: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Flows (hf, wf, 2) from a keyframe (pose T_kf (4, 4), BA depth disp_kf (H, W)) to a frame
+    at pose T (4, 4) and back, as its depth predicts them (which stands in for the frame's
+    on the way back): DIS seeds for a frame whose motion is beyond DIS's unseeded reach."""
+    T_pair, D_pair = torch.stack([T_kf, T]), torch.stack([disp_kf, disp_kf])
+    return (predicted_flow(T_pair, D_pair, intr, 0, 1, flow_shape, k1),
+            predicted_flow(T_pair, D_pair, intr, 1, 0, flow_shape, k1))

@@ -30,8 +30,9 @@ class TrackState:
 
     graph: keyframes (frame index, grey image, pose, BA depth, prior) and flow edges.
     frame_T: {frame: T_cw (4, 4)} every frame tracked so far (keyframes: their graph pose).
-    refs: {non-keyframe: (keyframe id, BA target (h, w, 2), weight (h, w))}: the flow that
-        aligned it, reused by the filler.
+    refs: {non-keyframe: (keyframe id, seeded)}: the keyframe whose flow aligned it and
+        whether DIS was seeded; the filler makes that flow again from the frame (keeping
+        the flow, 115 KB a frame at 640x480, made the state grow with the video).
     rel: {non-keyframe: T_frame <- T_keyframe (4, 4)} its pose relative to that keyframe, so
         that it follows the keyframe through later BA.
     status: {frame: one of result.FRAME_STATES, or "lost" while tracking}.
@@ -44,8 +45,9 @@ class TrackState:
     inlier: {frame: share of its flow confidence its tracked pose explains} (evidence for
         the quality gate; last_inlier: that of the last accepted alignment).
     k1, lens_calibrated: the lens' radial term and whether the BA has estimated it.
-    kf_detail, kf_keypoints: keyframes' half-size grey images and ORB keypoints (the
-        feature start); feature_starts counts the frames it started.
+    kf_detail, kf_keypoints: half-size grey images and ORB keypoints (the feature start)
+        of the keyframes it can still use (the tracker drops older ones); feature_starts
+        counts the frames it started.
     reloc_events, ba_reports: what happened, for the diagnostics.
     """
 
@@ -56,7 +58,7 @@ class TrackState:
         self.intrinsics = intrinsics
         self.intr = geo.ba_intrinsics(intrinsics)
         self.graph = gr.FrameGraph(geo.ba_shape)
-        self.refs: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = {}
+        self.refs: dict[int, tuple[int, bool]] = {}
         self.frame_T: dict[int, torch.Tensor] = {}
         self.rel: dict[int, torch.Tensor] = {}
         self.frame_ratios: dict[int, float] = {}

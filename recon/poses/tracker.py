@@ -61,10 +61,10 @@ class Tracker:
                 return
             s.ref_kf = found[0]
             status = "relocalised"
-        kf, T, fwd, bwd, cf, cb, target, weight = found
+        kf, T, fwd, bwd, cf, cb, seeded = found
         s.lost_run = []
         s.frame_T[index] = T
-        s.refs[index] = (kf, target, weight)
+        s.refs[index] = (kf, seeded)
         s.rel[index] = T @ lie.inv(s.graph.poses([kf])[0])
         s.status[index] = status
         s.inlier[index] = s.last_inlier
@@ -104,12 +104,7 @@ class Tracker:
         """Flows keyframe kf <-> a frame at pose T (flow resolution) predicted by the keyframe's
         depth (which stands in for the frame's on the way back)."""
         s = self.state
-        T_pair = torch.stack([s.graph.poses([kf])[0], T])
-        disp = s.graph.disps([kf])[0]
-        D_pair = torch.stack([disp, disp])
-        forward = gr.predicted_flow(T_pair, D_pair, s.intr, 0, 1, s.geo.flow_shape, s.k1)
-        backward = gr.predicted_flow(T_pair, D_pair, s.intr, 1, 0, s.geo.flow_shape, s.k1)
-        return forward, backward
+        return gr.seed_flows(s.graph.poses([kf])[0], T, s.graph.disps([kf])[0], s.intr, s.geo.flow_shape, s.k1)
 
     def _from_features(self, kf: int, gray: np.ndarray, frame: np.ndarray):
         """Alignment to keyframe kf started from the pose ORB matches give by PnP against the
@@ -147,8 +142,9 @@ class Tracker:
 
     def _against(self, kf: int, gray: np.ndarray, T0: torch.Tensor, seed=None):
         """Flow from keyframe kf to a frame (seed: predicted flows both ways, or None) and
-        the frame's pose aligned to it from T0, or None when the flow or the alignment is
-        not to be trusted (``last_failure`` says why)."""
+        the frame's pose aligned to it from T0: (kf, T, flows fwd, bwd, confidences cf, cb,
+        seeded), or None when the flow or the alignment is not to be trusted
+        (``last_failure`` says why)."""
         s = self.state
         cfg = s.cfg
         fwd, bwd, cf, cb = fl.flow_pair(s.graph.gray[kf], gray, cfg.flow, *(seed or (None, None)))
@@ -169,7 +165,7 @@ class Tracker:
             s.last_failure = f"inlier fraction {inl:.2f} < {cfg.lost_inlier}"
             return None
         s.last_inlier = inl
-        return kf, T, fwd, bwd, cf, cb, target, weight
+        return kf, T, fwd, bwd, cf, cb, seed is not None
 
     def _promote_previous(self, index: int) -> bool:
         """Make the previous frame a keyframe when it tracked (and is not one already)."""
@@ -229,3 +225,15 @@ class Tracker:
         backend.window_ba(s, k)
         s.ref_kf = k
         s.frame_T[index] = g.poses([k])[0]
+        self._forget_detail()
+
+    def _forget_detail(self) -> None:
+        """Drop the detail images and ORB keypoints of keyframes no feature start can use
+        again: only the reference keyframe and the relocalisation candidates (the last
+        ``reloc_candidates`` others) are tried, and the reference is always one of the
+        last ``reloc_candidates + 1``. Keeps their memory per keyframe from growing."""
+        s = self.state
+        oldest = len(s.graph) - 1 - s.cfg.reloc_candidates
+        for k in [k for k in s.kf_detail if k < oldest and k != s.ref_kf]:
+            del s.kf_detail[k]
+            s.kf_keypoints.pop(k, None)
