@@ -2,17 +2,19 @@
 one-shot (batch) pipeline, on one long 640x480 video.
 
 The video: 7-Scenes redkitchen frames 0-399 played forwards, backwards, forwards, ... (a
-camera walking the kitchen back and forth), written once as an mp4 at 30 fps; runs use its
-first 300, 1200 and 3600 frames (``--max-frames``). Every run is a separate `recon run`
-process with estimated poses (the streaming front end / the one-shot front end), the
-FastDepth prior from ``--weights`` (default ../shared/weights/fastdepth), MEDeA (fast
-preset), the refinement, fusion, export; peak resident memory is the process's VmHWM as its
-report.json records it.
+camera walking the kitchen back and forth), written once as an mp4 at 30 fps with its
+ground-truth trajectory as a TUM file; runs use its first 300, 1200 and 3600 frames
+(``--max-frames``). Every run is a separate `recon run` process with the poses from that
+file (not polished), the FastDepth prior from ``--weights`` (default
+../shared/weights/fastdepth), MEDeA (fast preset), the refinement, fusion and export; peak
+resident memory is the process's VmHWM as its report.json records it. Rows with estimated
+poses run the streaming front end.
 
 Rows:
 * ``stream``: the defaults of a long input (depth frames by motion, windows of 48);
 * ``stream, all frames``: every tracked frame gets depth (the one-shot run's work);
-* ``batch``: `--stream off` (every frame in memory at once; only where it fits).
+* ``batch``: `--stream off` (every frame in memory at once; only where it fits);
+* ``stream, estimated poses``: the streaming front end instead of the pose file.
 
 Usage: python benchmarks/stream.py [--lengths 300 1200 3600] [--batch-lengths 300 1200]
 Prints a table, writes benchmarks/results/stream.json. Run it alone on the machine
@@ -38,19 +40,23 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 
 
-def ping_pong_video(path: Path, frames: int, dataset: Path) -> Path:
-    """The back-and-forth walk (module docstring) as an mp4 of `frames` frames."""
+def ping_pong_video(path: Path, frames: int, dataset: Path) -> tuple[Path, Path]:
+    """The back-and-forth walk (module docstring) as an mp4 of `frames` frames, and its
+    ground-truth trajectory as a TUM file beside it (one pose per video frame)."""
     from recon.io.frames import open_source
+    from recon.io.trajectories import write_poses
     from recon.io.video import write_video
 
-    if path.is_file():
-        return path
+    poses_path = path.with_suffix(".tum.txt")
+    if path.is_file() and poses_path.is_file():
+        return path, poses_path
     source = open_source(dataset, width=640)
     clip = np.stack([f.rgb for f in source])
     order = np.concatenate([np.arange(len(clip)), np.arange(len(clip) - 2, 0, -1)])
     picks = np.resize(order, frames)
     write_video(clip[picks], path, fps=30.0)
-    return path
+    write_poses(poses_path, source.poses[picks], "tum", timestamps=np.arange(frames) / 30.0)
+    return path, poses_path
 
 
 def run(video: Path, out: Path, frames: int, mode: str, extra: list[str], weights: Path) -> dict:
@@ -71,30 +77,40 @@ def run(video: Path, out: Path, frames: int, mode: str, extra: list[str], weight
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--lengths", type=int, nargs="+", default=[300, 1200, 3600])
+    parser.add_argument("--lengths", type=int, nargs="*", default=[300, 1200, 3600])
     parser.add_argument("--batch-lengths", type=int, nargs="*", default=[300, 1200])
     parser.add_argument("--all-frames-lengths", type=int, nargs="*", default=[300])
+    parser.add_argument("--estimate-lengths", type=int, nargs="*", default=[300])
+    parser.add_argument("--extra", default="", help="more `recon run` options for every run, e.g. \"--refine none "
+                        "--depth-frames 12\" for a quick memory-growth series (say so with the figures)")
+    parser.add_argument("--json", default="stream", help="results file name under benchmarks/results/")
     parser.add_argument("--work", type=Path, default=Path("/tmp/recon-stream-bench"))
     parser.add_argument("--weights", type=Path, default=SHARED / "weights" / "fastdepth")
     parser.add_argument("--dataset", type=Path, default=SHARED / "data" / "7scenes-redkitchen")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    longest = max(args.lengths + args.batch_lengths + args.all_frames_lengths)
-    video = ping_pong_video(args.work / f"pingpong_{longest}.mp4", longest, args.dataset)
-
-    plan = [("stream", n, "on", []) for n in args.lengths]
-    plan += [("stream, all frames", n, "on", ["--depth-frames", "all"]) for n in args.all_frames_lengths]
-    plan += [("batch", n, "off", ["--frame-budget", str(n)]) for n in args.batch_lengths]
+    longest = max(args.lengths + args.batch_lengths + args.all_frames_lengths + args.estimate_lengths)
+    video, poses = ping_pong_video(args.work / f"pingpong_{longest}.mp4", longest, args.dataset)
+    # Given poses (the ground truth as a pose file) and no polish, so that stream and batch
+    # do the same work; estimated poses in rows of their own.
+    given = ["--poses", str(poses), "--intrinsics", "525,525,320,240", "--no-polish", *args.extra.split()]
+    plan = [("stream", n, "on", given) for n in args.lengths]
+    plan += [("batch", n, "off", [*given, "--frame-budget", str(n)]) for n in args.batch_lengths]
+    plan += [("stream, estimated poses", n, "on", ["--poses", "estimate", "--intrinsics", "525,525,320,240",
+                                                   *args.extra.split()])
+             for n in args.estimate_lengths]
+    plan += [("stream, all frames", n, "on", [*given, "--depth-frames", "all"]) for n in args.all_frames_lengths]
     rows, results = [], []
     for label, n, mode, extra in plan:
-        result = {"run": label, "length": n, **run(video, args.work / f"out_{mode}_{n}_{len(extra)}", n, mode, extra,
-                                                   args.weights)}
+        folder = args.work / f"out_{args.json}_{label.replace(' ', '').replace(',', '_')}_{n}"
+        result = {"run": label, "length": n, **run(video, folder, n, mode, extra, args.weights)}
         results.append(result)
         print(json.dumps({k: v for k, v in result.items() if k != "seconds"}), flush=True)
         rows.append([label, n, result.get("depth_frames", "-"), f"{result.get('peak_rss_mb', float('nan')):.0f}",
                      f"{result.get('s_per_frame', float('nan')):.3f}", result.get("error", "")])
+        # Written after every run: a long series stopped part-way keeps what it measured.
+        write_json(args.json, {"machine": machine(), "video": str(video), "extra": args.extra, "results": results})
     print(table(["run", "frames", "depth frames", "peak RSS MB", "s/frame", "error"], rows))
-    write_json("stream", {"machine": machine(), "video": str(video), "results": results})
 
 
 if __name__ == "__main__":

@@ -92,8 +92,10 @@ def render_wall(poses, intrinsics, height: int, width: int, distance: float = 3.
 
 def read_recording(path) -> tuple[list[str], dict[str, set[str]], dict[str, list[int]], dict[str, dict[str, list]]]:
     """An .rrd read back with rerun's chunk API: entity paths; component columns per entity;
-    "frame" values per entity (and "epoch" values under "<entity>#epoch"); first-row values
-    of every component column per entity. Skips the calling test without rerun.chunk."""
+    "frame" values per entity (and "epoch" values under "<entity>#epoch", "time" values in
+    seconds under "<entity>#time"); first-row values of every component column per entity.
+    Skips the calling test without rerun.chunk. The layout the file opens with:
+    :func:`recording_blueprint`."""
     rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
     reader = rr_chunk.RrdReader(path)
     assert len(reader.recordings()) == 1
@@ -111,7 +113,96 @@ def read_recording(path) -> tuple[list[str], dict[str, set[str]], dict[str, list
             values[chunk.entity_path].setdefault(name, batch.column(name).to_pylist())
         if "epoch" in chunk.timeline_names:
             frames[chunk.entity_path + "#epoch"].extend(batch.column("epoch").to_pylist())
+        if "time" in chunk.timeline_names:  # a duration in nanoseconds
+            nanoseconds = batch.column("time").cast("int64").to_pylist()
+            frames[chunk.entity_path + "#time"].extend(None if t is None else t / 1e9 for t in nanoseconds)
     return entities, components, frames, values
+
+
+def recording_blueprint(path) -> dict:
+    """The layout (Rerun blueprint) an .rrd carries, read with rerun's chunk API; skips the
+    calling test without rerun.chunk. Asserts the file holds one blueprint store, of the
+    recording's application id.
+
+    Returns {"timeline": the time panel's timeline, "play_state": "Following" | ... | None,
+    "root": the root container, "views": every view depth-first, "activation": {"make_active":
+    bool, "make_default": bool} from ``rerun rrd print`` of the CLI bundled with rerun-sdk (the
+    activation command is no chunk), None without that CLI}. A container is {"type":
+    "container", "kind": "Tabs" | "Horizontal" | "Vertical" | "Grid", "name", "contents": [...],
+    "active_tab": index or None}; a view {"type": "view", "class": "3D" | "2D" | "TimeSeries" |
+    "TextLog" | ..., "name", "origin", "contents": [query lines]}."""
+    import uuid
+
+    rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
+    from rerun.blueprint.components import ContainerKind, PlayState
+
+    reader = rr_chunk.RrdReader(path)
+    recordings, blueprints = reader.recordings(), reader.blueprints()
+    assert len(blueprints) == 1, f"{path}: {len(blueprints)} blueprint stores"
+    assert len(recordings) == 1 and blueprints[0].application_id == recordings[0].application_id
+    # {blueprint entity: {field: last logged value}}, e.g. {"view/<id>": {"space_origin": ["/world"]}}
+    fields: dict[str, dict[str, list]] = defaultdict(dict)
+    for chunk in reader.stream(store=blueprints[0]):
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if ":" in name and not name.startswith("rerun."):
+                rows = [row for row in batch.column(name).to_pylist() if row is not None]
+                if rows:
+                    fields[chunk.entity_path.lstrip("/")][name.split(":", 1)[1]] = rows[-1]
+
+    def first(entity: str, field: str):
+        value = fields[entity].get(field)
+        return value[0] if value else None
+
+    def node(entity: str) -> dict:
+        if entity.startswith("view/"):
+            return {"type": "view", "class": first(entity, "class_identifier"), "name": first(entity, "display_name"),
+                    "origin": first(entity, "space_origin"),
+                    "contents": list(fields[f"{entity}/ViewContents"].get("query", []))}
+        children = list(fields[entity].get("contents", []))
+        active = first(entity, "active_tab")
+        return {"type": "container", "kind": ContainerKind(first(entity, "container_kind")).name,
+                "name": first(entity, "display_name"), "contents": [node(child) for child in children],
+                "active_tab": children.index(active) if active in children else None}
+
+    def walk(item: dict):
+        if item["type"] == "view":
+            yield item
+        else:
+            for child in item["contents"]:
+                yield from walk(child)
+
+    root_id = first("viewport", "root_container")
+    root = node(f"container/{uuid.UUID(bytes=bytes(root_id))}") if root_id else None
+    play_state = first("time_panel", "play_state")
+    return {
+        "timeline": first("time_panel", "timeline"),
+        "play_state": PlayState(play_state).name if play_state is not None else None,
+        "root": root,
+        "views": list(walk(root)) if root else [],
+        "activation": _blueprint_activation(path, blueprints[0].recording_id),
+    }
+
+
+def _blueprint_activation(path, blueprint_id: str) -> dict[str, bool] | None:
+    """make_active / make_default of the blueprint's activation command, from the bundled CLI."""
+    import re
+    import subprocess
+
+    try:
+        import rerun_cli
+    except ImportError:
+        return None
+    cli = Path(rerun_cli.__file__).parent / "rerun"
+    if not cli.is_file():
+        return None
+    printed = subprocess.run([str(cli), "rrd", "print", str(path)], capture_output=True, text=True, timeout=120,
+                             check=True).stdout
+    found = re.search(rf'BlueprintActivationCommand\(StoreId\(Blueprint, "[^"]*", "{re.escape(blueprint_id)}"\), '
+                      r"make_active: (\w+), make_default: (\w+)\)", printed)
+    if found is None:
+        return {"make_active": False, "make_default": False}
+    return {"make_active": found.group(1) == "true", "make_default": found.group(2) == "true"}
 
 
 # --------------------------------------------------------------------------- frame sources (io video, io frames)

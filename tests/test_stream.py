@@ -1,5 +1,6 @@
 """The streamed pipeline (recon.stream) against the one-shot pipeline on the synthetic room:
-the same poses and frames give the same depth and mesh, within the goals of issue 22."""
+the same poses and frames give the same depth and mesh (issue 22's goals), and the
+recording a streamed run saves shows the reconstruction growing."""
 
 from __future__ import annotations
 
@@ -16,11 +17,15 @@ from recon.io.output_folder import OutputFolder, load_output
 from recon.pipeline import run_pipeline
 from recon.synthetic import render_sequence, simulate_prior
 
+from helpers import read_recording, recording_blueprint
+
+FRAMES = 36
+
 
 @pytest.fixture(scope="module")
 def room_video(tmp_path_factory):
     """36 frames of the synthetic room at 256x192 as a video, its trajectory and a simulated prior."""
-    seq = render_sequence(36, 256, 192, seed=0)
+    seq = render_sequence(FRAMES, 256, 192, seed=0)
     out = OutputFolder(tmp_path_factory.mktemp("room"))
     return seq, write_demo_inputs(out, seq, simulate_prior(seq.depth, seed=1))
 
@@ -32,25 +37,46 @@ def _config(room_video, output, stream: str, **fields) -> PipelineConfig:
     return PipelineConfig(input=inputs["video"], output=output, width=None, intrinsics=seq.intrinsics,
                           poses=str(inputs["poses"]), prior="folder", prior_path=inputs["prior"], medea=medea,
                           polish=False, stream=stream, depth_frames="all", window=16, window_overlap=4,
-                          rerun="off", progress=False, **fields)
+                          progress=False, **fields)
 
 
-def test_streamed_run_matches_the_one_shot_run(room_video, tmp_path):
+@pytest.fixture(scope="module")
+def both_runs(room_video, tmp_path_factory):
+    """(one-shot result, streamed result, the streamed run's folder); the streamed run saves
+    its recording with a mesh update every 10 fused frames."""
+    root = tmp_path_factory.mktemp("runs")
+    batch = run_pipeline(_config(room_video, root / "batch", "off", rerun="off"))
+    streamed = run_pipeline(_config(room_video, root / "stream", "on", rerun="save", mesh_every=10))
+    return batch, streamed, root / "stream"
+
+
+def test_streamed_run_matches_the_one_shot_run(room_video, both_runs):
     seq, _ = room_video
-    batch = run_pipeline(_config(room_video, tmp_path / "batch", "off"))
-    streamed = run_pipeline(_config(room_video, tmp_path / "stream", "on"))
-
+    batch, streamed, folder = both_runs
     assert streamed.report["streamed"] and streamed.report["windows"]["count"] == 3
-    written = load_output(tmp_path / "stream")
-    assert np.array_equal(written.indices, np.arange(36))  # every frame got depth, in order
+    written = load_output(folder)
+    assert np.array_equal(written.indices, np.arange(FRAMES))  # every frame got depth, in order
+    assert np.allclose(written.poses, seq.poses, atol=1e-4)
     batch_depth = depth_metrics(batch.depth, seq.depth)["abs_rel"]
     stream_depth = depth_metrics(written.depth, seq.depth)["abs_rel"]
-    print(f"abs rel one-shot {batch_depth:.4f} streamed {stream_depth:.4f}")
     assert batch_depth < 0.05
     assert stream_depth <= batch_depth * 1.02 + 1e-3
     f_batch = mesh_scores(batch.fusion.mesh, seq)["fscore"]
     f_stream = mesh_scores(streamed.fusion.mesh, seq)["fscore"]
-    print(f"F@5cm one-shot {f_batch:.4f} streamed {f_stream:.4f}", streamed.report["windows"]["each"])
     assert f_batch > 0.8 and f_stream >= f_batch - 0.02
-    print(batch.seconds, streamed.seconds)
-    assert np.allclose(written.poses, seq.poses, atol=1e-4)
+
+
+def test_streamed_recording_grows_and_opens_on_the_reconstruction(both_runs):
+    _, streamed, folder = both_runs
+    path = folder / "recording.rrd"
+    assert streamed.files["recording"] == path and path.is_file()
+    _, _, frames, _ = read_recording(path)
+    rgb = frames["/world/camera/rgb"]
+    assert rgb == sorted(rgb) and len(set(rgb)) == FRAMES  # every frame, in increasing order
+    for depth in ("prior_depth", "adjusted_depth", "refined_depth", "confidence"):
+        assert sorted(set(frames[f"/world/camera/{depth}"])) == list(range(FRAMES))
+    meshes = sorted(frames["/world/mesh"])
+    assert len([f for f in meshes if f < FRAMES - 1]) >= 2  # the mesh grew before the end
+    layout = recording_blueprint(path)
+    assert layout["timeline"] == "frame"
+    assert any(view["class"] == "3D" for view in layout["views"])

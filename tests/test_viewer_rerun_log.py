@@ -1,4 +1,5 @@
-"""viewer: log a tiny run to an .rrd, read it back with rerun's chunk API, check it."""
+"""viewer: log a tiny run to an .rrd, read it back with rerun's chunk API, check it; the
+default layout (viewer.blueprint) as built and as saved in the .rrd."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from viewer import RerunLogger, default_mode, rerun_log
+from viewer import RerunLogger, default_blueprint, default_mode, rerun_log
+from viewer.blueprint import LOSSES_TAB, RECONSTRUCTION_TAB, SCENE_VIEW
 
-from helpers import read_recording
+from helpers import read_recording, recording_blueprint
 
 N_FRAMES = 5
 H, W = 24, 40
@@ -153,3 +155,101 @@ def test_bad_arguments(tmp_path):
         RerunLogger("nope")
     with pytest.raises(ValueError):
         RerunLogger("save")
+    with RerunLogger("save", tmp_path / "bad.rrd") as logger, pytest.raises(TypeError):
+        logger.log_mesh(np.eye(3), [[0, 1, 2]], None, "world/other")  # entity is keyword-only
+
+
+# ---------------------------------------------------------------------- live logging and the layout
+
+DEPTH_ENTITIES = ("/world/camera/prior_depth", "/world/camera/adjusted_depth", "/world/camera/refined_depth",
+                  "/world/camera/confidence")
+
+
+def _log_live(logger: RerunLogger) -> None:
+    """A streamed run: tracking, RGB + camera per frame, depth one frame late, the mesh
+    growing at frames 1 and 3, losses at the end."""
+    rng = np.random.default_rng(1)
+    vertices = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=np.float32)
+    for i, pose in enumerate(_poses()):
+        logger.log_tracking(i, "keyframe" if i == 0 else "tracked", pose)
+        logger.log_frame(i, rng.integers(0, 256, (H, W, 3), dtype=np.uint8), pose=pose, intrinsics=INTRINSICS,
+                         timestamp=i / 30.0)
+        if i > 0:  # the previous frame's depth arrives after this frame's RGB
+            prior = (1.0 + rng.random((H, W))).astype(np.float32)
+            logger.log_depth(i - 1, prior_depth=prior)
+            logger.log_depth(i - 1, adjusted_depth=prior * 1.1, refined_depth=prior, confidence=rng.random((H, W)))
+        if i in (1, 3):
+            logger.log_mesh(vertices[: i + 1], [[0, 1, 2]] if i == 1 else [[0, 1, 2], [1, 3, 2]], index=i)
+    logger.log_depth(N_FRAMES - 1, prior_depth=np.ones((H, W), np.float32))
+    logger.log_losses(_history())
+
+
+def test_live_logging_roundtrip_with_layout(tmp_path):
+    path = tmp_path / "live.rrd"
+    with RerunLogger("save", path, max_width=W // 2) as logger:
+        _log_live(logger)
+    entities, components, frames, values = read_recording(path)
+
+    # every frame once, in order, RGB and depth at the same frame and time
+    rgb_frames = frames["/world/camera/rgb"]
+    assert rgb_frames == sorted(rgb_frames) == list(range(N_FRAMES))
+    assert sorted(frames["/world/camera/prior_depth"]) == list(range(N_FRAMES))
+    for entity in DEPTH_ENTITIES[1:]:
+        assert sorted(frames[entity]) == list(range(N_FRAMES - 1))
+    times = dict(zip(frames["/world/camera/rgb"], frames["/world/camera/rgb#time"]))
+    depth_times = dict(zip(frames["/world/camera/prior_depth"], frames["/world/camera/prior_depth#time"]))
+    assert depth_times == times
+    # depth logged later is resampled to the size the frame's RGB was logged at
+    assert values["/world/camera/prior_depth"]["DepthImage:format"][0][0]["width"] == W // 2
+    # the trajectory holds one centre per frame; tracking lines on the frame timeline
+    assert sorted(frames["/tracking"]) == list(range(N_FRAMES))
+    assert len(values["/world/trajectory"]["LineStrips3D:strips"][0][0]) == 1
+
+    # the mesh: two updates on the frame timeline, none static
+    assert sorted(frames["/world/mesh"]) == [1, 3]
+    assert "/world/mesh#time" in frames  # frames 1 and 3 carry their timestamps
+    assert {"Mesh3D:vertex_positions", "Mesh3D:triangle_indices"} <= components["/world/mesh"]
+
+    # the layout travels with the file, active and default
+    layout = recording_blueprint(path)
+    _check_layout(layout)
+    assert layout["play_state"] == "Following"
+    if layout["activation"] is not None:  # None: no bundled CLI to read the activation command
+        assert layout["activation"] == {"make_active": True, "make_default": True}
+
+
+def _check_layout(layout: dict) -> None:
+    """The default layout: frame timeline; tabs "reconstruction" (active: the 3D scene without
+    depth, a row of 2D views) and "losses" (time series of medea/)."""
+    assert layout["timeline"] == "frame"
+    root = layout["root"]
+    assert root["kind"] == "Tabs" and root["active_tab"] == 0
+    reconstruction, losses = root["contents"]
+    assert reconstruction["name"] == RECONSTRUCTION_TAB and losses["name"] == LOSSES_TAB
+
+    scene, row = reconstruction["contents"]
+    assert scene["class"] == "3D" and scene["name"] == SCENE_VIEW and scene["origin"] == "/world"
+    assert "+ /world/**" in scene["contents"]
+    for entity in DEPTH_ENTITIES:
+        assert f"- {entity}" in scene["contents"]
+    assert row["kind"] == "Horizontal"
+    images = [(view["class"], view["origin"]) for view in row["contents"] if view["class"] == "2D"]
+    assert images == [("2D", "/world/camera/rgb")] + [("2D", entity) for entity in DEPTH_ENTITIES]
+    assert {view["class"] for view in losses["contents"]} == {"TimeSeries"}
+    assert all(view["origin"].startswith("/medea/") for view in losses["contents"])
+    assert [view["class"] for view in layout["views"]].count("3D") == 1
+
+
+def test_default_blueprint_is_pure_and_complete():
+    import rerun.blueprint as rrb
+
+    blueprint = default_blueprint()
+    assert isinstance(blueprint, rrb.Blueprint)
+    assert blueprint.time_panel.timeline == "frame"
+    tabs = blueprint.root_container
+    assert isinstance(tabs, rrb.Tabs) and tabs.active_tab == 0
+    reconstruction, losses = tabs.contents
+    scene = reconstruction.contents[0]
+    assert isinstance(scene, rrb.Spatial3DView) and scene.origin == "/world"
+    assert [view.origin for view in losses.contents] == ["/medea/stage1", "/medea/stage2"]
+    assert [view.origin for view in default_blueprint(["only"]).root_container.contents[1].contents] == ["/medea/only"]

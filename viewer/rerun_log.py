@@ -1,7 +1,9 @@
 """Rerun logging for the pipeline: frames, cameras, trajectory, mesh and MEDeA losses.
 
 Written against rerun-sdk 0.41. Every call goes to a dedicated ``rr.RecordingStream``
-(never the global one), so several loggers can live in one process.
+(never the global one), so several loggers can live in one process. Every mode (spawn,
+save, serve) first sends the layout of :mod:`viewer.blueprint` as the active and default
+blueprint, so a saved .rrd opens on the 3D scene and the "frame" timeline.
 
 Entity layout::
 
@@ -10,16 +12,34 @@ Entity layout::
     world/camera/rgb              Image
     world/camera/prior_depth      DepthImage (meter=1)
     world/camera/adjusted_depth   DepthImage (meter=1)
-    world/trajectory              LineStrips3D of the camera centres so far
+    world/camera/refined_depth    DepthImage (meter=1)
+    world/camera/confidence       Image (8-bit grey, 255 = every view agrees)
+    world/trajectory              LineStrips3D of the camera centres so far (in frame order)
     world/dropped                 Points3D: centres of frames the quality gate dropped (red)
     tracking                      TextLog: each frame's tracking state (keyframe, tracked,
                                   relocalised, recovered, interpolated, dropped)
-    world/mesh                    Mesh3D (static)
+    world/mesh                    Mesh3D: static, or one update per ``index`` on "frame"
     world/points                  Points3D (static)
     medea/<stage>/<term>          Scalars on the "epoch" timeline
 
 Frames are on the "frame" sequence timeline (and "time", a duration in seconds, when a
-timestamp is given).
+timestamp is given; the logger remembers each frame's timestamp, so everything logged
+later for that frame carries it too).
+
+Live (streamed) logging, in any order per frame::
+
+    logger.log_tracking(i, "tracked", pose)            # tracking state (TextLog)
+    logger.log_frame(i, rgb, pose=pose, intrinsics=K)  # camera + RGB, before depth exists
+    logger.log_depth(i, prior_depth=prior)             # later: depth at the same frame time,
+    logger.log_depth(i, adjusted_depth=d, refined_depth=r, confidence=c)  # RGB not re-sent
+    logger.log_mesh(vertices, triangles, colors, index=i)  # the mesh so far, at frame i
+
+Depth and confidence logged after the frame's RGB are resampled to the RGB's logged size
+(the pinhole's resolution). A mesh logged with ``index`` is shown from that frame on,
+until the next update replaces it; successive updates each store a whole mesh, so a live
+run should send one every few frames, not every frame. A static mesh (``index=None``) is
+shown at every time and hides all indexed updates of the same entity (Rerun's static
+data wins): log the final mesh of a live run at its last frame instead.
 
 Conventions are the project's: camera-to-world 4x4 poses, OpenCV camera axes (x right,
 y down, z forward), z-depth in metres with 0 = invalid, intrinsics ``fx, fy, cx, cy`` in
@@ -145,6 +165,8 @@ class RerunLogger:
     plus web viewer on localhost), "off" (every call is a no-op); None = ``default_mode()``.
     max_width: images wider than this are downscaled for logging (intrinsics follow);
     None logs full resolution. jpeg_quality: if set, RGB is logged JPEG-compressed.
+    blueprint: the layout sent as the active and default blueprint; None =
+    :func:`viewer.blueprint.default_blueprint`.
     """
 
     def __init__(
@@ -158,6 +180,7 @@ class RerunLogger:
         grpc_port: int | None = None,
         web_port: int | None = None,
         open_browser: bool = False,
+        blueprint: Any = None,
     ) -> None:
         mode = default_mode() if mode is None else mode
         if mode not in MODES:
@@ -169,11 +192,18 @@ class RerunLogger:
         self.max_width = max_width
         self.jpeg_quality = jpeg_quality
         self.url: str | None = None  # gRPC URL in "serve" mode
-        self._centres: list[np.ndarray] = []
+        # Per frame index, so that frames may be logged in pieces and out of order: camera
+        # centres (the trajectory), timestamps, logged image size (height, width).
+        self._centres: dict[int, np.ndarray] = {}
+        self._timestamps: dict[int, float] = {}
+        self._sizes: dict[int, tuple[int, int]] = {}
         self._dropped: list[np.ndarray] = []
         self._rec: rr.RecordingStream | None = None
         if mode == "off":
             return
+
+        # blueprint imports this module's entity paths, so it is imported here, not on top
+        from .blueprint import default_blueprint
 
         rec = rr.RecordingStream(app_id)
         if mode == "spawn":
@@ -184,12 +214,25 @@ class RerunLogger:
         else:  # serve
             self.url = rec.serve_grpc(grpc_port=grpc_port)
             rr.serve_web_viewer(web_port=web_port, open_browser=open_browser, connect_to=self.url)
+        # Active as well as default: a viewer that already holds a layout for this app id
+        # (spawn, a reused web viewer) switches to this one instead of keeping its own.
+        rec.send_blueprint(default_blueprint() if blueprint is None else blueprint, make_active=True,
+                           make_default=True)
         self._rec = rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_DOWN, static=True)
 
     @property
     def enabled(self) -> bool:
         return self._rec is not None
+
+    def _at_frame(self, rec: rr.RecordingStream, index: int) -> None:
+        """Set the time to frame ``index`` (and its timestamp when known) and nothing else,
+        so no other timeline's value (another frame's "time", an "epoch") leaks in."""
+        rec.reset_time()
+        rec.set_time("frame", sequence=index)
+        timestamp = self._timestamps.get(index)
+        if timestamp is not None:
+            rec.set_time("time", duration=timestamp)
 
     # ------------------------------------------------------------------ frames
 
@@ -207,31 +250,36 @@ class RerunLogger:
     ) -> None:
         """Log frame ``index``: images, camera (pose + intrinsics) and the trajectory so far.
 
-        rgb: (H, W, 3) uint8 or float in [0, 1] (CHW accepted); depths (prior, MEDeA's
-        adjusted, the refinement's): (H, W) metres, resampled (nearest) to the logged RGB
-        size; confidence: (H, W) in [0, 1], the refinement's (logged as an 8-bit image);
-        pose: 4x4 camera-to-world; intrinsics: (fx, fy, cx, cy) or 3x3 in pixels of ``rgb``;
-        timestamp: seconds.
+        Every argument after ``index`` may be None and is then not logged, so a frame can
+        be logged in pieces (RGB and camera while tracking, depth later: see
+        :meth:`log_depth`). rgb: (H, W, 3) uint8 or float in [0, 1] (CHW accepted); depths
+        (prior, MEDeA's adjusted, the refinement's): (H, W) metres, resampled (nearest) to
+        the logged RGB size; confidence: (H, W) in [0, 1], the refinement's (logged as an
+        8-bit image); pose: 4x4 camera-to-world; intrinsics: (fx, fy, cx, cy) or 3x3 in
+        pixels of ``rgb`` (of the depth when rgb is None); timestamp: seconds.
         """
         rec = self._rec
         if rec is None:
             return
-        rec.set_time("frame", sequence=int(index))
+        index = int(index)
         if timestamp is not None:
-            rec.set_time("time", duration=float(timestamp))
+            self._timestamps[index] = float(timestamp)
+        self._at_frame(rec, index)
 
-        # The logged resolution, shared by every image under the pinhole.
+        # The logged resolution, shared by every image under the pinhole: the RGB's, else
+        # the one this frame's RGB was logged at earlier, else the depth's.
         image = _rgb_uint8(rgb) if rgb is not None else None
         if image is not None:
             src_h, src_w = image.shape[:2]
+            height, width = _logged_size(src_h, src_w, self.max_width)
+            self._sizes[index] = (height, width)
         else:
-            first = next((d for d in (prior_depth, adjusted_depth, refined_depth) if d is not None), None)
+            first = next((d for d in (prior_depth, adjusted_depth, refined_depth, confidence) if d is not None), None)
             if first is None:
                 src_h = src_w = None
             else:
                 src_h, src_w = _depth_f32(first).shape
-        if src_h is not None:
-            height, width = _logged_size(src_h, src_w, self.max_width)
+                height, width = self._sizes.setdefault(index, _logged_size(src_h, src_w, self.max_width))
 
         if image is not None:
             image = _resize_rgb(image, height, width)
@@ -243,7 +291,7 @@ class RerunLogger:
                               (REFINED_DEPTH, refined_depth)):
             if depth is not None:
                 rec.log(entity, rr.DepthImage(_resize_nearest(_depth_f32(depth), height, width), meter=1.0))
-        if confidence is not None and src_h is not None:
+        if confidence is not None:
             conf = _resize_nearest(np.clip(_depth_f32(confidence), 0.0, 1.0), height, width)
             rec.log(CONFIDENCE, rr.Image((conf * 255.0 + 0.5).astype(np.uint8)))
 
@@ -266,8 +314,22 @@ class RerunLogger:
             if t.shape != (4, 4):
                 raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {t.shape}")
             rec.log(CAMERA, rr.Transform3D(translation=t[:3, 3], mat3x3=t[:3, :3]))
-            self._centres.append(t[:3, 3].copy())
-            rec.log(TRAJECTORY, rr.LineStrips3D([np.stack(self._centres)], colors=[[255, 128, 0]]))
+            self._centres[index] = t[:3, 3].copy()
+            centres = np.stack([self._centres[k] for k in sorted(self._centres)])
+            rec.log(TRAJECTORY, rr.LineStrips3D([centres], colors=[[255, 128, 0]]))
+
+    def log_depth(
+        self,
+        index: int,
+        prior_depth: Any = None,
+        adjusted_depth: Any = None,
+        refined_depth: Any = None,
+        confidence: Any = None,
+    ) -> None:
+        """Depth (and the refinement's confidence) of frame ``index``, logged at that frame's
+        time after its RGB and camera (:meth:`log_frame`), which are not logged again;
+        arguments as in :meth:`log_frame`, None ones not logged."""
+        self.log_frame(index, None, prior_depth, adjusted_depth, refined_depth=refined_depth, confidence=confidence)
 
     def log_tracking(self, index: int, state: str, pose: Any = None) -> None:
         """Frame ``index``'s tracking state on the frame timeline (a TextLog line; states
@@ -276,7 +338,7 @@ class RerunLogger:
         rec = self._rec
         if rec is None:
             return
-        rec.set_time("frame", sequence=int(index))
+        self._at_frame(rec, int(index))
         trouble = state.split(":")[0] in _TROUBLE
         rec.log(TRACKING, rr.TextLog(f"frame {index}: {state}", level=rr.TextLogLevel.WARN if trouble
                                      else rr.TextLogLevel.INFO))
@@ -288,25 +350,33 @@ class RerunLogger:
 
     # ------------------------------------------------------------------ geometry
 
-    def log_mesh(self, vertices: Any, triangles: Any, vertex_colors: Any = None, entity: str = MESH) -> None:
-        """Static triangle mesh in world coordinates; vertex_colors uint8 or float in [0, 1]."""
+    def log_mesh(self, vertices: Any, triangles: Any, vertex_colors: Any = None, index: int | None = None, *,
+                 entity: str = MESH) -> None:
+        """Triangle mesh in world coordinates; vertex_colors uint8 or float in [0, 1].
+
+        index None: static (shown at every time). An int: logged on the "frame" timeline
+        at that frame, replacing the previous update from there on (a growing live
+        reconstruction); do not mix both on one entity (static data hides the updates)."""
         rec = self._rec
         if rec is None:
             return
+        if index is not None and not isinstance(index, (int, np.integer)):
+            raise TypeError(f"index must be a frame index or None, got {index!r} (entity is keyword-only)")
         colors = None
         if vertex_colors is not None:
             colors = _to_numpy(vertex_colors)
             if colors.dtype != np.uint8:
                 colors = np.clip(colors.astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        rec.log(
-            entity,
-            rr.Mesh3D(
-                vertex_positions=_to_numpy(vertices).astype(np.float32),
-                triangle_indices=_to_numpy(triangles).astype(np.uint32),
-                vertex_colors=colors,
-            ),
-            static=True,
+        mesh = rr.Mesh3D(
+            vertex_positions=_to_numpy(vertices).astype(np.float32),
+            triangle_indices=_to_numpy(triangles).astype(np.uint32),
+            vertex_colors=colors,
         )
+        if index is None:
+            rec.log(entity, mesh, static=True)
+            return
+        self._at_frame(rec, int(index))
+        rec.log(entity, mesh)
 
     def log_points(self, points: Any, colors: Any = None, radii: float | None = None, entity: str = POINTS) -> None:
         """Static point cloud in world coordinates; colors uint8 or float in [0, 1]."""
