@@ -6,7 +6,9 @@ A test file never imports another test file.
 
 from __future__ import annotations
 
+import json
 import shutil
+import struct
 from collections import defaultdict
 from pathlib import Path
 
@@ -203,6 +205,28 @@ def _blueprint_activation(path, blueprint_id: str) -> dict[str, bool] | None:
     if found is None:
         return {"make_active": False, "make_default": False}
     return {"make_active": found.group(1) == "true", "make_default": found.group(2) == "true"}
+
+
+# --------------------------------------------------------------------------- GLB files (export)
+
+
+def glb_json(data: bytes) -> dict:
+    """The JSON chunk of a GLB file's bytes."""
+    length = struct.unpack_from("<I", data, 12)[0]
+    return json.loads(data[20:20 + length])
+
+
+def glb_vertex_colors(path) -> np.ndarray:
+    """(N, 4) uint8 COLOR_0 of the first primitive, read from the file itself (trimesh drops
+    vertex colours when a primitive has a material, which glTF viewers multiply them into)."""
+    data = Path(path).read_bytes()
+    document = glb_json(data)
+    accessor = document["accessors"][document["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"]]
+    view = document["bufferViews"][accessor["bufferView"]]
+    assert accessor["componentType"] == 5121 and accessor["type"] == "VEC4"  # normalised uint8 RGBA
+    binary = 20 + struct.unpack_from("<I", data, 12)[0] + 8
+    start = binary + view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    return np.frombuffer(data, np.uint8, accessor["count"] * 4, start).reshape(-1, 4)
 
 
 # --------------------------------------------------------------------------- frame sources (io video, io frames)

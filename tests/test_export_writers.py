@@ -4,6 +4,7 @@ GLB, point cloud, trajectory, intrinsics, depth maps, report) and the GLB's y-up
 from __future__ import annotations
 
 import json
+import struct
 
 import numpy as np
 import open3d as o3d
@@ -24,7 +25,7 @@ from recon.io.output_folder import (
 )
 from recon.io.trajectories import read_poses
 
-from helpers import no_temp_files
+from helpers import glb_json, glb_vertex_colors, no_temp_files
 
 
 def _glb_mesh(path) -> trimesh.Trimesh:
@@ -57,7 +58,7 @@ def test_export_all(tmp_path, fusion_room, fused_room):
     assert len(ply.vertices) == len(glb.vertices) == len(fused_room.mesh.vertices)
     assert len(ply.triangles) == len(glb.faces) == len(fused_room.mesh.triangles)
     assert np.allclose(glb.vertices, np.asarray(ply.vertices) * [1, -1, -1], atol=1e-5)
-    assert np.abs(glb.visual.vertex_colors[:, :3] / 255.0 - np.asarray(ply.vertex_colors)).max() < 0.01
+    assert np.abs(glb_vertex_colors(root / MESH_GLB)[:, :3] / 255.0 - np.asarray(ply.vertex_colors)).max() < 0.01
     # Trajectory, intrinsics, depth, report.
     traj = read_poses(root / TRAJECTORY, "tum")
     assert np.allclose(traj.poses, fusion_room.poses, atol=1e-6)
@@ -86,9 +87,28 @@ def test_glb_is_y_up(tmp_path):
     assert len(glb.vertices) == 4
     assert np.allclose(glb.vertices[:, 1], -1.5)  # down in a y-up viewer
     assert np.allclose(glb.vertices[:, 2], -np.asarray(floor.vertices)[:, 2])  # in front = -z
-    assert np.allclose(glb.visual.vertex_colors[0, :3], [51, 102, 153])
+    assert np.allclose(glb_vertex_colors(path)[0, :3], [51, 102, 153])
     # The rotation is proper (det +1): triangle normals turn with the vertices.
     if not floor.has_triangle_normals():
         floor.compute_triangle_normals()
     n_cv = np.asarray(floor.triangle_normals)
     assert np.allclose(glb.face_normals, n_cv * [1, -1, -1], atol=1e-6)
+
+
+def test_glb_has_a_matte_material(tmp_path):
+    """glTF's default material is fully metallic (a scan renders black under ambient light):
+    every primitive gets a non-metallic, fully rough one, and the file still loads."""
+    box = o3d.geometry.TriangleMesh.create_box()
+    box.compute_vertex_normals()
+    box.vertex_colors = o3d.utility.Vector3dVector(np.full((8, 3), 0.5))
+    path = write_mesh_glb(tmp_path / "box.glb", box)
+    data = path.read_bytes()
+    assert struct.unpack_from("<I", data, 8)[0] == len(data)
+    document = glb_json(data)
+    primitives = [p for mesh in document["meshes"] for p in mesh["primitives"]]
+    assert primitives
+    for primitive in primitives:
+        pbr = document["materials"][primitive["material"]]["pbrMetallicRoughness"]
+        assert pbr["metallicFactor"] == 0.0 and pbr["roughnessFactor"] == 1.0
+    assert len(_glb_mesh(path).faces) == 12
+    assert np.allclose(glb_vertex_colors(path)[:, :3], 128, atol=1)

@@ -100,7 +100,37 @@ def glb_bytes(mesh) -> bytes:
     if mesh.has_vertex_normals():
         kwargs["vertex_normals"] = to_gltf_axes(np.asarray(mesh.vertex_normals))
     tm = trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.triangles), process=False, **kwargs)
-    return tm.export(file_type="glb")
+    return with_matte_material(tm.export(file_type="glb"))
+
+
+# Without a material glTF's default applies, which is fully metallic: under ambient light
+# (three.js's MeshStandardMaterial) a scan then renders black. Scans are matte: no metal,
+# full roughness, the vertex colours as the base colour.
+MATTE_MATERIAL = {"name": "recon scan", "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                                                                 "metallicFactor": 0.0, "roughnessFactor": 1.0}}
+
+
+def with_matte_material(glb: bytes) -> bytes:
+    """The GLB with MATTE_MATERIAL given to every primitive that has no material (the JSON
+    chunk rewritten, padded with spaces to 4 bytes as the GLB container requires)."""
+    import json
+    import struct
+
+    magic, version, _ = struct.unpack_from("<4sII", glb, 0)
+    json_length, json_type = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or json_type != b"JSON":
+        raise ValueError("not a GLB with a JSON chunk first")
+    document = json.loads(glb[20:20 + json_length])
+    materials = document.setdefault("materials", [])
+    materials.append(MATTE_MATERIAL)
+    for mesh in document.get("meshes", []):
+        for primitive in mesh.get("primitives", []):
+            primitive.setdefault("material", len(materials) - 1)
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    rest = glb[20 + json_length:]
+    header = struct.pack("<4sII", magic, version, 12 + 8 + len(text) + len(rest))
+    return header + struct.pack("<I4s", len(text), b"JSON") + text + rest
 
 
 def write_mesh_glb(path, mesh, overwrite: bool = False) -> Path:

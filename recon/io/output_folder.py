@@ -15,7 +15,7 @@ written is lost:
 Layout (written by :func:`recon.export.export_reconstruction` and the pipeline)::
 
     mesh.ply          binary PLY, world coordinates (OpenCV axes, metres), vertex colours
-    mesh.glb          the same vertices in glTF axes (y up), vertex colours
+    mesh.glb          the same vertices in glTF axes (y up), vertex colours, a matte material
     point_cloud.ply   optional surface points with colours
     trajectory.txt    camera-to-world poses, TUM format (t tx ty tz qx qy qz qw), OpenCV camera axes
     intrinsics.json   fx, fy, cx, cy, width, height of the depth maps (+ per-frame values)
