@@ -411,3 +411,11 @@ def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path,
     entities, _, frames, _ = read_recording(result / "recording.rrd")
     assert "/tracking" in entities and "/world/dropped" in entities
     assert sorted(frames["/tracking"]) == list(range(27))
+
+
+@pytest.mark.parametrize("output", ["/proc/recon_out", "/proc/self/status/out"])
+def test_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys, output):
+    """/proc cannot hold a folder (mkdir fails) and a file cannot hold one either: the one-line
+    error and exit 2, before any frame is decoded."""
+    video = _video(tmp_path / "clip.mp4", 4)
+    _run_fails(capsys, ["run", str(video), "-o", output, "--quiet"], output, "output folder")

@@ -182,7 +182,15 @@ class OutputFolder:
             raise ReconInputError(f"{self.path}: output path exists and is not a folder")
         if self.path.is_dir() and any(self.path.iterdir()) and not overwrite:
             raise ReconInputError(f"{self.path}: output folder is not empty (pass overwrite to write into it)")
-        self.path.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            # Checked now, before any heavy work: a folder that cannot take a file fails at once.
+            probe = self.path / f".recon-write-check-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as error:
+            raise ReconInputError(f"{self.path}: cannot write the output folder here "
+                                  f"({error.strerror or type(error).__name__})") from None
 
     def path_for(self, name) -> Path:
         """Absolute path of `name` inside the folder (its parent folders created)."""
