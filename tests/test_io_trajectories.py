@@ -147,3 +147,31 @@ def test_structural_errors(tmp_path):
         read_poses(_write(tmp_path / "odd.txt", "1 2 3 4 5\n"))
     with pytest.raises(ValueError, match="names has 1 entries for 2 poses"):
         write_poses(tmp_path / "x.txt", random_poses(2), "tum", names=["a"])
+
+
+def test_tum_file_is_recognised_by_all_its_lines_and_errors_say_the_format(tmp_path):
+    """A TUM trajectory whose first data line happens to have 4 numbers is still a TUM file
+    (the format is decided by all lines), and the error names that line and the format
+    assumed, instead of "expected 4 numbers per row of a 4x4 pose"."""
+    from recon.errors import ReconInputError
+    from recon.io.trajectories import detect_pose_format, read_poses
+
+    rows = [f"{k / 30:.4f} {0.1 * k:.3f} 0 0 0 0 0 1" for k in range(6)]
+    good = tmp_path / "ok.txt"
+    good.write_text("\n".join(rows) + "\n")
+    assert detect_pose_format(good) == "tum" and len(read_poses(good)) == 6
+    odd = tmp_path / "odd.txt"
+    odd.write_text("0.0 1.0 2.0 3.0\n" + "\n".join(rows) + "\n")
+    assert detect_pose_format(odd) == "tum"
+    with pytest.raises(ReconInputError) as info:
+        read_poses(odd)
+    message = str(info.value)
+    assert "odd.txt" in message and "TUM" in message and "6 of 7 lines have 8 numbers" in message
+    assert "4x4" not in message
+    matrix = tmp_path / "pose.txt"
+    matrix.write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    assert detect_pose_format(matrix) == "matrices"
+    mixed = tmp_path / "mixed.txt"
+    mixed.write_text("1 2 3\n1 2 3 4 5\n1 2\n")
+    with pytest.raises(ReconInputError, match="unknown pose file format"):
+        detect_pose_format(mixed)

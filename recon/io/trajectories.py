@@ -52,6 +52,7 @@ from recon.io.pose_files import (
 from recon.poses.rigid import make_poses, matrix_to_quat, opencv_to_opengl, opengl_to_opencv, quat_to_matrix
 
 FORMATS = ("tum", "colmap", "nerfstudio", "matrices", "log")
+FORMAT_NAMES = {"tum": "a TUM trajectory", "matrices": "a 4x4 matrix file", "log": "an Open3D .log trajectory"}
 
 _TUM_COLUMNS = "timestamp tx ty tz qx qy qz qw"
 
@@ -287,21 +288,36 @@ def detect_pose_format(path) -> str:
         return "log"
     if path.name in ("cameras.bin", "images.bin", "points3D.bin", "cameras.txt", "images.txt", "points3D.txt"):
         return "colmap"
-    lines = data_lines(path)
-    widths = [len(t) for _, t in lines[:5]]
-    if widths and widths[0] == 8:
-        return "tum"
-    if widths and widths[0] == 3 and all(w == 4 for w in widths[1:5]):
-        return "log"
-    if widths and widths[0] == 4:
-        return "matrices"
-    raise input_error(path, f"unknown pose file format (first data line has {widths[0] if widths else 0} columns)")
+    return _text_format(path)[0]
+
+
+def _text_format(path: Path) -> tuple[str, str]:
+    """(format, why) of a text pose file from the column counts of all its data lines (one
+    odd line, such as a first line with 4 numbers in a TUM file, does not decide it)."""
+    widths = [len(t) for _, t in data_lines(path)]
+    if not widths:
+        raise input_error(path, "unknown pose file format (no data lines)")
+    eights = sum(w == 8 for w in widths)
+    if eights * 2 >= len(widths):
+        return "tum", f"{eights} of {len(widths)} lines have 8 numbers"
+    if widths[0] == 3 and len(widths) % 5 == 0 and all(w == 4 for k, w in enumerate(widths) if k % 5):
+        return "log", "blocks of a 3-number line and four 4-number lines"
+    fours = sum(w == 4 for w in widths)
+    if len(widths) <= 5 and fours * 2 >= len(widths):
+        return "matrices", f"{fours} of {len(widths)} lines have 4 numbers"
+    counts = ", ".join(f"{widths.count(w)} lines of {w}" for w in sorted(set(widths)))
+    raise input_error(path, f"unknown pose file format ({counts} numbers; TUM has 8 per line, a 4x4 matrix file 4 "
+                            "lines of 4, an Open3D .log blocks of 3 + 4x4)")
 
 
 def read_poses(path, fmt: str | None = None) -> PoseData:
     """Read camera-to-world poses (OpenCV axes) from `path`; `fmt` is auto-detected when None."""
     path = Path(path)
-    fmt = detect_pose_format(path) if fmt is None else fmt
+    why = None
+    if fmt is None:
+        fmt = detect_pose_format(path)
+        if path.is_file() and path.suffix not in (".json", ".log") and fmt != "colmap":
+            why = _text_format(path)[1]
     readers = {
         "tum": read_tum,
         "colmap": read_colmap,
@@ -313,7 +329,12 @@ def read_poses(path, fmt: str | None = None) -> PoseData:
         raise ValueError(f"unknown pose format {fmt!r}; expected one of {FORMATS}")
     if not path.exists():
         raise input_error(path, "no such file or folder")
-    return readers[fmt](path)
+    try:
+        return readers[fmt](path)
+    except ReconInputError as error:
+        if why is None:
+            raise
+        raise ReconInputError(f"{error} (read as {FORMAT_NAMES.get(fmt, fmt)}: {why})") from None
 
 
 def write_poses(path, poses, fmt: str, names=None, timestamps=None, intrinsics=None) -> None:
