@@ -44,6 +44,12 @@ def fusion_summary(fused, min_confidence: float | None) -> dict:
             "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
 
 
+def _input_section(config, source) -> dict:
+    """What was read: the input path, its kind, size and frame rate."""
+    return {"path": str(config.input), "kind": source.kind, "description": source.description,
+            "native_size": _wh(source.native_shape), "fps": source.fps}
+
+
 def versions() -> dict:
     import open3d
     import rerun
@@ -62,8 +68,7 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
     to the output folder}."""
     features = seq.features
     return {
-        "input": {"path": str(config.input), "kind": source.kind, "description": source.description,
-                  "native_size": _wh(source.native_shape), "fps": source.fps},
+        "input": _input_section(config, source),
         "frames": {"count": len(seq), "indices": seq.indices.tolist(), "names": list(seq.names),
                    "working_size": _wh(source.shape)},
         "intrinsics": {"values": list(seq.intrinsics), "source": intrinsics_from},
@@ -102,8 +107,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
     depth_idx = video.indices[video.depth_frame]
     anchors = [w["anchor"] for w in windows[1:]]
     return {
-        "input": {"path": str(config.input), "kind": source.kind, "description": source.description,
-                  "native_size": _wh(source.native_shape), "fps": source.fps},
+        "input": _input_section(config, source),
         "streamed": True,
         "frames": {"count": int(kept.sum()), "tracked": len(video.indices), "indices": video.indices[kept].tolist(),
                    "depth_frames": len(depth_idx), "depth_indices": depth_idx.tolist(),
