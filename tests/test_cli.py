@@ -5,6 +5,8 @@ every kind of bad input (one-line error, exit code 2, nothing previously written
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -189,6 +191,27 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, make_input, expected):
     assert not out.exists(), "a failed run must not leave an output folder behind"
 
 
+def _run_subprocess(*argv: str) -> subprocess.CompletedProcess:
+    """`python -m recon.cli ARGV` in a fresh process: its stderr is all of file descriptor 2,
+    what C libraries print included (capsys sees only Python's sys.stderr)."""
+    return subprocess.run([sys.executable, "-m", "recon.cli", *argv], capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("content", [b"", np.random.default_rng(0).bytes(5000), b"not a video\n" * 50],
+                         ids=["empty", "random-bytes", "text"])
+def test_not_a_video_says_one_line_and_nothing_from_ffmpeg(tmp_path, content):
+    """FFmpeg's own complaint ("moov atom not found") stays off stderr: recon's line says it."""
+    fake = tmp_path / "clip.mp4"
+    fake.write_bytes(content)
+    proc = _run_subprocess("run", str(fake), "-o", str(tmp_path / "out"), "--quiet")
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("recon: error: "), lines
+    assert str(fake) in lines[0] and "not a video" in lines[0]
+    assert proc.stdout == ""
+    assert not (tmp_path / "out").exists()
+
+
 def test_existing_output_folder_is_kept(tmp_path, capsys):
     video = _video(tmp_path / "clip.mp4", 4)
     out = tmp_path / "out"
@@ -261,9 +284,6 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
 
 def test_output_cut_short_by_the_reader_is_not_an_error():
     """`recon run --pose-option list | head -1`: the pipe closes early; no traceback."""
-    import subprocess
-    import sys
-
     proc = subprocess.Popen([sys.executable, "-m", "recon.cli", "run", "--pose-option", "list"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
     assert proc.stdout.read(20)  # the header, then stop reading

@@ -5,6 +5,8 @@ bad-video error, and writing frames as an mp4."""
 from __future__ import annotations
 
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -106,6 +108,20 @@ def test_not_a_video(tmp_path):
     with pytest.raises(ReconInputError) as exc:
         open_source(fake)
     assert "fake.mp4" in one_line(exc) and "video" in str(exc.value)
+
+
+def test_damaged_video_decodes_without_ffmpeg_noise(tmp_path):
+    """FFmpeg's complaints while decoding a damaged video ("header damaged") stay off stderr.
+    A fresh process: FFmpeg writes them to file descriptor 2 from C, which capsys would miss."""
+    rng = np.random.default_rng(0)
+    path = write_video(rng.integers(0, 256, (30, 96, 128, 3), dtype=np.uint8), tmp_path / "damaged.mp4")
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3: len(data) // 3 + 2000] = rng.bytes(2000)
+    path.write_bytes(bytes(data))
+    code = "import sys; from recon.io.video import VideoSource; print(sum(1 for _ in VideoSource(sys.argv[1])))"
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert int(proc.stdout) > 0
 
 
 def test_video_without_frames(tmp_path):

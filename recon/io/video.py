@@ -28,6 +28,14 @@ import numpy as np
 from recon.errors import ReconInputError
 from recon.io.source import Frame, FrameSource, Selection, resize_rgb, size_at_width, wxh
 
+# FFmpeg prints its own complaints about a file on stderr ("moov atom not found" for a file
+# that is not a video, "header damaged" while decoding a damaged one); recon says what
+# matters in its own one-line error, so FFmpeg is quiet (AV_LOG_QUIET). OpenCV reads this
+# once, at its first use of FFmpeg in the process (a capture or a writer), which is after
+# this module is imported. A value set by the user is kept: OPENCV_FFMPEG_LOGLEVEL=16 shows
+# FFmpeg's errors again (OpenCV then prints them on stdout, prefixed "[OPENCV:FFMPEG:16]").
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
 VIDEO_SUFFIXES = (
     ".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".3gp", ".mts", ".ts",
 )
