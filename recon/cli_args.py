@@ -171,8 +171,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("depth prior")
     g.add_argument("--prior", choices=PRIOR_CHOICES, default=d.prior,
                    help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (--prior-path)")
-    g.add_argument("--prior-path", type=Path, help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; "
-                                                   "16-bit PNG in millimetres), matched by frame name")
+    g.add_argument("--prior-path", type=Path,
+                   help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; 16-bit PNG in millimetres; "
+                        "0, NaN and inf: no depth), matched by frame name")
     g.add_argument("--weights", type=Path, help="FastDepth weights (file or folder); default: $RECON_WEIGHTS, "
                                                 "../shared/weights, ~/.cache/recon/weights")
     g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")

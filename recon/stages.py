@@ -114,6 +114,7 @@ def prior_function(source: FrameSource, name: str, *, path: Path | None = None, 
         model = make_prior("fastdepth", weights=weights, features=features, **common)
     elif name == "sensor" and not (isinstance(source, DatasetSource) and source.has_depth):
         raise ReconInputError(f"{source.path}: --prior sensor needs an RGB-D dataset folder with depth")
+    nonfinite: dict[str, int] = {}  # folder prior: depth file -> NaN/inf pixels, over the whole run
 
     def prior(seq: Sequence, positions):
         if name == "fastdepth":
@@ -126,9 +127,26 @@ def prior_function(source: FrameSource, name: str, *, path: Path | None = None, 
         output = batch_model(seq.rgb, seq.intrinsics)
         if output.kind != "metric":
             raise ReconInputError(f"depth prior {name} gave {output.kind} depth; the pipeline needs metric depth")
+        if name == "folder":
+            output = _count_nonfinite(output, nonfinite, path)
         return output
 
     return prior
+
+
+def _count_nonfinite(output, counts: dict[str, int], folder: Path):
+    """The folder prior's output with its NaN/inf counts summed over the run so far (the
+    streamed pipeline calls the prior batch by batch; report.json shows the last info), and
+    one warning when the first are found."""
+    found = output.info.get("nonfinite_files", {})
+    if found and not counts:
+        first = next(iter(found))
+        log.warning("%s: NaN or inf pixels in the depth maps (first: %s, %d pixels) are read as invalid (no depth); "
+                    "report.json counts them (prior.info.nonfinite_pixels, nonfinite_files)", folder, first,
+                    found[first])
+    counts.update(found)
+    return replace(output, info={**output.info, "nonfinite_pixels": sum(counts.values()),
+                                 "nonfinite_files": dict(counts)})
 
 
 # --------------------------------------------------------------------------- poses

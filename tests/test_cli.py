@@ -310,6 +310,66 @@ def _depth_folder(tmp_path: Path, n: int) -> Path:
     return folder
 
 
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    """8 frames of the synthetic room at 160x120 as a video, its trajectory and (as the folder
+    prior) its true depth, with NaN in the top 10 rows of frame 2 and inf in the left 4
+    columns of frame 5, as depth tools write for "no depth"."""
+    from recon.demo import write_demo_inputs
+    from recon.io.output_folder import OutputFolder
+    from recon.synthetic import render_sequence
+
+    seq = render_sequence(8, 160, 120, seed=0)
+    inputs = write_demo_inputs(OutputFolder(tmp_path_factory.mktemp("scene")), seq, seq.depth)
+    files = sorted(inputs["prior"].glob("*.npy"))
+    for k, rows, cols, value in ((2, slice(0, 10), slice(None), np.nan), (5, slice(None), slice(0, 4), np.inf)):
+        depth = np.load(files[k])
+        depth[rows, cols] = value
+        np.save(files[k], depth)
+    return seq, inputs, files
+
+
+def _small_scene_argv(small_scene, out: Path, prior: Path | None = None) -> list[str]:
+    seq, inputs, _ = small_scene
+    return ["run", str(inputs["video"]), "-o", str(out), "--poses", str(inputs["poses"]), "--prior", "folder",
+            "--prior-path", str(prior or inputs["prior"]), "--intrinsics", ",".join(map(str, seq.intrinsics)),
+            "--width", "160", "--no-medea", "--refine", "none", "--depth-frames", "all", "--rerun", "off", "--no-npy",
+            "--quiet"]
+
+
+@pytest.mark.parametrize("stream", ["off", "on"])
+def test_folder_prior_nan_and_inf_are_invalid_pixels(small_scene, tmp_path, capsys, stream):
+    """A depth folder with NaN and inf pixels: the run completes, says so once in a warning,
+    and report.json counts them per file (one-shot and streamed runs alike)."""
+    _, _, files = small_scene
+    out = tmp_path / "out"
+    assert main(_small_scene_argv(small_scene, out) + ["--stream", stream]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert all(line.startswith("recon: warning: ") for line in err), err
+    said = [line for line in err if "NaN" in line]
+    assert len(said) == 1 and str(files[2].parent) in said[0], err
+    report = json.loads((out / "report.json").read_text())
+    assert report.get("streamed", False) == (stream == "on")
+    info = report["prior"]["info"]
+    assert info["nonfinite_pixels"] == 10 * 160 + 4 * 120
+    assert info["nonfinite_files"] == {files[2].name: 10 * 160, files[5].name: 4 * 120}
+    # The invalid pixels have no depth in the output either.
+    depth = read_depth_png_mm(out / "depth" / files[2].with_suffix(".png").name)
+    assert depth.shape == (120, 160) and (depth[:10] == 0).all() and (depth[10:] > 0).mean() > 0.95
+
+
+def test_folder_prior_map_without_valid_pixel_is_refused(small_scene, tmp_path, capsys):
+    _, _, files = small_scene
+    prior = tmp_path / "prior"
+    prior.mkdir()
+    for path in files:
+        np.save(prior / path.name, np.load(path))
+    np.save(prior / files[3].name, np.full_like(np.load(files[3]), np.nan))
+    out = tmp_path / "out"
+    _run_fails(capsys, _small_scene_argv(small_scene, out, prior), str(prior / files[3].name), "no valid pixel")
+    assert not out.exists()
+
+
 def test_warnings_are_prefixed_lines_on_stderr(capsys):
     import logging
 

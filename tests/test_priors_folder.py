@@ -85,14 +85,43 @@ def test_folder_errors(tmp_path):
     np.save(tmp_path / "f1.npy", np.zeros((H, W), np.float32))
     prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(2), "frame 1", tmp_path / "f1.npy",
                     "no valid pixel")
+    np.save(tmp_path / "f1.npy", np.full((H, W), np.nan, np.float32))
+    prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(2), "frame 1", tmp_path / "f1.npy",
+                    "no valid pixel")
+    # NaN is read as an invalid pixel unless the caller asks for strictness.
     nan = depth[1].copy()
     nan[5, 5] = np.nan
     np.save(tmp_path / "f1.npy", nan)
-    prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(2), "frame 1", "NaN")
-    out = FolderDepthPrior(tmp_path, allow_nan=True, progress=False)(prior_frames(2))
-    assert out.depth[1, 5, 5] == 0
+    prior_error(FolderDepthPrior(tmp_path, allow_nan=False, progress=False), prior_frames(2), "frame 1", "NaN")
+    for prior in (FolderDepthPrior(tmp_path, progress=False), FolderDepthPrior(tmp_path, allow_nan=True,
+                                                                                progress=False)):
+        out = prior(prior_frames(2))
+        assert out.depth[1, 5, 5] == 0 and out.info["nonfinite_pixels"] == 1
     with pytest.raises(ReconInputError, match="does not exist"):
         FolderDepthPrior(tmp_path / "missing")
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".pfm", ".tiff"])
+def test_nan_and_inf_are_invalid_pixels_and_counted(tmp_path, suffix):
+    """Depth tools write NaN (or inf) for "no depth": such pixels become 0 (invalid), and the
+    output's info counts them per file, over every batch of the call."""
+    maps = prior_depth(3)
+    maps[0, 5, 5] = np.nan
+    maps[0, 7, :5] = np.inf
+    maps[2, :, 0] = -np.inf
+    for k, d in enumerate(maps):
+        _write(tmp_path / f"f{k}{suffix}", d)
+    out = FolderDepthPrior(tmp_path, progress=False, batch_size=2)(prior_frames(3))
+    np.testing.assert_allclose(out.depth, np.where(np.isfinite(maps), maps, 0.0), atol=1e-6)
+    assert out.info["nonfinite_pixels"] == 6 + H
+    assert out.info["nonfinite_files"] == {f"f0{suffix}": 6, f"f2{suffix}": H}
+    # Disparity maps the same way; a clean folder counts nothing.
+    out = FolderDepthPrior(tmp_path, kind="disparity", progress=False)(prior_frames(3))
+    assert out.depth[0, 5, 5] == 0 and out.info["nonfinite_pixels"] == 6 + H
+    for k, d in enumerate(prior_depth(3)):
+        _write(tmp_path / f"f{k}{suffix}", d)
+    out = FolderDepthPrior(tmp_path, progress=False)(prior_frames(3))
+    assert out.info["nonfinite_pixels"] == 0 and out.info["nonfinite_files"] == {}
 
 
 def test_folder_disparity_aligned_to_reference(tmp_path):

@@ -3,6 +3,9 @@
 This module owns matching depth files to frames (by file stem, else by natural sorted
 order) and the checks that turn a bad map into a one-line ReconInputError naming the frame
 and file. Reading the files is :mod:`recon.io.depth_maps`.
+NaN and inf mark invalid pixels like 0 does (depth tools commonly write NaN for "no
+depth"): they become 0, and the output's info counts them per file (``nonfinite_pixels``,
+``nonfinite_files``); only a map with no valid pixel at all is an error.
 Affine-invariant disparity is aligned to metric depth by :mod:`recon.priors.align` when an
 ``align_to`` reference is given (see DepthPrior).
 """
@@ -10,6 +13,7 @@ Affine-invariant disparity is aligned to metric depth by :mod:`recon.priors.alig
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -59,22 +63,26 @@ def match_depth_files(files: list[Path], frame_names: list[str] | None, count: i
     return matched
 
 
-def check_map(values: np.ndarray, kind: str, frame: int, path: Path, allow_nan: bool) -> np.ndarray:
-    """Validate one map and mark invalid pixels 0 (depth: also non-positive ones).
+def check_map(values: np.ndarray, kind: str, frame, path: Path, allow_nan: bool = True) -> tuple[np.ndarray, int]:
+    """Validate one map and mark invalid pixels 0: zero, NaN and inf ones (depth: also
+    negative ones). frame: how the error names the frame (its index or name).
+
+    Returns:
+        The map (float32) and its number of NaN and inf pixels.
 
     Raises:
-        ReconInputError: NaN present (unless allowed) or no valid pixel at all.
+        ReconInputError: no valid pixel at all, or NaN present with ``allow_nan`` False.
     """
     finite = np.isfinite(values)
-    if np.isnan(values).any() and not allow_nan:
+    if not allow_nan and np.isnan(values).any():
         raise ReconInputError(
-            f"{path}: {kind} of frame {frame} contains NaN ({int(np.isnan(values).sum())} pixels);"
-            " use 0 for invalid pixels or allow_nan=True"
+            f"{path}: {kind} of frame {frame} contains NaN ({int(np.isnan(values).sum())} pixels)"
+            " and NaN is not allowed (allow_nan=False)"
         )
     valid = finite & (values > 0) if kind == "depth" else finite & (values != 0)
     if not valid.any():
         raise ReconInputError(f"{path}: {kind} of frame {frame} has no valid pixel (all zero, NaN or inf)")
-    return np.where(valid, values, 0.0).astype(np.float32)
+    return np.where(valid, values, 0.0).astype(np.float32), int(finite.size - np.count_nonzero(finite))
 
 
 class FolderDepthPrior(DepthPrior):
@@ -90,13 +98,18 @@ class FolderDepthPrior(DepthPrior):
         depth_scale: metres per stored unit; default 0.001 for 16-bit PNG, 1 otherwise.
         resize: resize maps of another size (same aspect) to the frame size with nearest
             neighbours; False makes a size mismatch an error.
-        allow_nan: treat NaN as invalid instead of rejecting the file.
+        allow_nan: read NaN (like inf) as an invalid pixel; False makes a map with NaN an
+            error instead.
+
+    The output's ``info`` counts the NaN and inf pixels read as invalid:
+    ``nonfinite_pixels`` (all maps of the call) and ``nonfinite_files`` ({file name: pixels},
+    only the files that have any).
     """
 
     name = "folder"
 
     def __init__(self, path, frame_names=None, kind: str = "depth", depth_scale: float | None = None,
-                 resize: bool = True, allow_nan: bool = False, batch_size: int = 16, device: str = "cpu",
+                 resize: bool = True, allow_nan: bool = True, batch_size: int = 16, device: str = "cpu",
                  progress: bool = True, align_to=None):
         super().__init__(batch_size=batch_size, device=device, progress=progress, align_to=align_to)
         if kind not in ("depth", "disparity"):
@@ -112,15 +125,23 @@ class FolderDepthPrior(DepthPrior):
         self.depth_scale = depth_scale
         self.resize = resize
         self.allow_nan = allow_nan
+        self.nonfinite: dict[str, int] = {}  # of the current call: file name -> NaN/inf pixels
 
     def plan(self, frames, intrinsics) -> list[Path]:
         if self.frame_names is not None and len(self.frame_names) != len(frames):
             raise ReconInputError(f"{self.folder}: {len(self.frame_names)} frame names for {len(frames)} frames")
+        self.nonfinite = {}
         return match_depth_files(self.files, self.frame_names, len(frames), self.folder)
 
     def load(self, frame: int, path: Path, size: tuple[int, int]) -> np.ndarray:
-        """One checked map (H, W) float32 at the frame size."""
-        values = check_map(read_depth_file(path, self.depth_scale), self.kind, frame, path, self.allow_nan)
+        """One checked map (H, W) float32 at the frame size; its NaN/inf pixels are counted."""
+        # By name when known: the streamed pipeline calls the prior batch by batch, so the
+        # index is only the frame's place in the batch.
+        label = frame if self.frame_names is None else self.frame_names[frame]
+        values, nonfinite = check_map(read_depth_file(path, self.depth_scale), self.kind, label, path,
+                                      self.allow_nan)
+        if nonfinite:
+            self.nonfinite[path.name] = nonfinite
         if values.shape != size:
             if not self.resize:
                 raise ReconInputError(
@@ -140,3 +161,9 @@ class FolderDepthPrior(DepthPrior):
         kind = "metric" if self.kind == "depth" else "affine_disparity"
         return PriorOutput(depth=maps, kind=kind, info={"model": "folder", "folder": str(self.folder),
                                                         "stored": self.kind})
+
+    def finalize(self, output: PriorOutput) -> PriorOutput:
+        """The NaN/inf counts of every batch of the call go into ``info``."""
+        counts = dict(self.nonfinite)
+        return replace(output, info={**output.info, "nonfinite_pixels": sum(counts.values()),
+                                     "nonfinite_files": counts})
