@@ -162,7 +162,19 @@ def load_tfjs_graph(model_json: str | Path) -> TFJSGraph:
         manifest = spec["weightsManifest"]
     except (KeyError, TypeError):
         raise ReconInputError(f"{path}: not a TF.js graph model (no modelTopology.node / weightsManifest)") from None
-    weights = read_weight_manifest(manifest, path.parent)
+    return graph_from_topology(raw_nodes, read_weight_manifest(manifest, path.parent), str(path))
+
+
+def graph_from_topology(raw_nodes: list[dict], weights: dict[str, np.ndarray], source: str) -> TFJSGraph:
+    """A :class:`TFJSGraph` from a TF.js ``modelTopology.node`` list and its decoded weights.
+
+    Shared by the TF.js reader above and the packaged model (:mod:`recon.priors.packaged`,
+    which keeps the same topology beside float16 weights), so both are checked alike.
+
+    Raises:
+        ReconInputError: a constant without weights or with another shape, or a cycle;
+            the message starts with ``source``.
+    """
     nodes = []
     input_shape = None
     for raw in raw_nodes:
@@ -174,11 +186,11 @@ def load_tfjs_graph(model_json: str | Path) -> TFJSGraph:
         )
         if node.op == "Const":
             if node.name not in weights:
-                raise ReconInputError(f"{path}: constant {node.name} has no entry in the weight manifest")
+                raise ReconInputError(f"{source}: constant {node.name} has no entry in the weight manifest")
             dims = node.attr.get("value", {}).get("tensor", {}).get("tensorShape", {}).get("dim")
             if dims is not None and [int(d["size"]) for d in dims] != list(weights[node.name].shape):
                 raise ReconInputError(
-                    f"{path}: constant {node.name} has shape {list(weights[node.name].shape)} in the manifest"
+                    f"{source}: constant {node.name} has shape {list(weights[node.name].shape)} in the manifest"
                     f" but {[int(d['size']) for d in dims]} in the graph"
                 )
         if node.op == "Placeholder":
@@ -188,8 +200,8 @@ def load_tfjs_graph(model_json: str | Path) -> TFJSGraph:
     try:
         nodes = _topological(nodes)
     except GraphError as exc:
-        raise ReconInputError(f"{path}: {exc}") from None
-    return TFJSGraph(nodes=nodes, constants=weights, input_shape=input_shape, source=str(path))
+        raise ReconInputError(f"{source}: {exc}") from None
+    return TFJSGraph(nodes=nodes, constants=weights, input_shape=input_shape, source=source)
 
 
-__all__ = ["GraphError", "GraphNode", "TFJSGraph", "load_tfjs_graph", "read_weight_manifest"]
+__all__ = ["GraphError", "GraphNode", "TFJSGraph", "graph_from_topology", "load_tfjs_graph", "read_weight_manifest"]
