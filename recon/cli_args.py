@@ -174,8 +174,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--prior-path", type=Path,
                    help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; 16-bit PNG in millimetres; "
                         "0, NaN and inf: no depth), matched by frame name")
-    g.add_argument("--weights", type=Path, help="FastDepth weights (file or folder); default: $RECON_WEIGHTS, "
-                                                "../shared/weights, ~/.cache/recon/weights")
+    g.add_argument("--weights", type=Path, help="FastDepth weights (model.json, .npz or a folder); default: "
+                                                "$RECON_WEIGHTS, then the model packaged with recon")
     g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
 
     g = parser.add_argument_group("multi-view stereo refinement (after MEDeA)")

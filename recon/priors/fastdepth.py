@@ -1,7 +1,8 @@
 """FastDepth, the default metric depth prior (Wofk et al., ICRA 2019; MIT licence).
 
-This module owns everything FastDepth-specific: loading the TF.js export through
-:mod:`recon.priors.tfjs` (cached), the preprocessing that maps an arbitrary camera onto
+This module owns everything FastDepth-specific: loading the network (the packaged model
+or a TF.js export, see :mod:`recon.priors.weights`) through :mod:`recon.priors.tfjs`
+(cached), the preprocessing that maps an arbitrary camera onto
 what the network saw in training (NYU Depth v2), picking encoder feature layers for
 MEDeA's feature-metric loss, and the :class:`FastDepthPrior` itself.
 
@@ -26,8 +27,9 @@ import torch.nn.functional as F
 
 from ..errors import ReconInputError
 from .base import DepthPrior, PriorOutput
+from .packaged import read_graph
 from .tfjs import GraphNet, activation_bounds, compile_graph
-from .tfjs_format import GraphError, load_tfjs_graph
+from .tfjs_format import GraphError
 from .weights import find_weights
 
 MODEL_NAME = "fastdepth"
@@ -55,7 +57,11 @@ _MIN_SIDE = 64
 
 
 def load_fastdepth(weights: str | os.PathLike | None = None) -> tuple[GraphNet, Path]:
-    """The FastDepth network (CPU, eval mode, shared cache) and the model.json it came from.
+    """The FastDepth network (CPU, eval mode, shared cache) and the file it came from.
+
+    weights: a TF.js ``model.json``, a packaged ``.npz`` or a folder holding one (see
+        :func:`recon.priors.weights.find_weights`); None: $RECON_WEIGHTS, then the model
+        packaged with recon (``recon/priors/models/fastdepth.npz``).
 
     Raises:
         ReconInputError: weights not found (lists the places tried) or corrupt.
@@ -67,7 +73,7 @@ def load_fastdepth(weights: str | os.PathLike | None = None) -> tuple[GraphNet, 
 
 @functools.lru_cache(maxsize=2)
 def _load_cached(path: str, mtime_ns: int, size: int) -> GraphNet:
-    graph = load_tfjs_graph(path)
+    graph = read_graph(path)  # either format gives the same TF.js graph
     try:
         net = compile_graph(graph)
     except (GraphError, KeyError, IndexError) as exc:
@@ -213,7 +219,7 @@ class FastDepthPrior(DepthPrior):
 
     Args:
         weights: explicit weights location (file, model folder, or folder holding
-            ``fastdepth/``); otherwise $RECON_WEIGHTS, ../shared/weights, ~/.cache/recon/weights.
+            ``fastdepth/``); otherwise $RECON_WEIGHTS, then the packaged model.
         resize: network input, see :func:`network_size`. Default "focal": the whole frame at
             the training focal lengths (224x224 for 640x480 at fx=585, 256x256 at fx=525).
             "nyu_crop" runs the NYU crop at 224x224 plus a full-frame "focal" pass that

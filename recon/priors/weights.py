@@ -1,13 +1,26 @@
 """Where model weights come from.
 
-Weights are never shipped in (or copied into) the repository. A model named ``name`` is
-looked for as ``<place>/<name>/<filename>`` in this order:
+The default FastDepth weights (Wofk et al., ICRA 2019) ship with the package, as
+``recon/priors/models/<name>.npz``: converted once from a TF.js export of the authors' model
+by ``scripts/convert_fastdepth.py`` (MIT licence, notice beside it; format in
+:mod:`recon.priors.packaged`). They are the only weights in the repository.
 
-1. an explicit path given by the caller (CLI ``--weights``): either the file itself, the
-   model's folder, or a folder holding ``<name>/``;
-2. ``$RECON_WEIGHTS`` (same three forms);
-3. ``../shared/weights`` next to the repository checkout;
-4. ``~/.cache/recon/weights``.
+A model named ``name`` is looked for in this order:
+
+1. an explicit path given by the caller (CLI ``--weights``): the file itself (a TF.js
+   ``model.json`` or a packaged ``.npz``), the model's folder, or a folder holding
+   ``<name>/`` (or ``<name>.npz``);
+2. ``$RECON_WEIGHTS`` (same forms);
+3. the packaged file.
+
+An explicit path that holds nothing is an error; ``$RECON_WEIGHTS`` that holds nothing
+falls through to the packaged file (``report.json`` names the file used).
+
+``../shared/weights`` next to the checkout and ``~/.cache/recon/weights`` are no longer
+searched. Before the packaged file they would make a development checkout run other files
+than a user's install does (the bug where a clone without ``../shared`` failed while
+every developer's run worked), and after it they would never be reached. Nothing ever
+wrote the cache; ``RECON_WEIGHTS=~/.cache/recon/weights`` still uses weights put there.
 
 Nothing is ever downloaded.
 """
@@ -20,34 +33,38 @@ from pathlib import Path
 from ..errors import ReconInputError
 
 ENV_VAR = "RECON_WEIGHTS"
-# parents[2] is the repository checkout (recon/priors/weights.py -> repo); its sibling
-# ``shared/`` is where the project keeps data and weights that are not ours to commit.
-SHARED_WEIGHTS = Path(__file__).resolve().parents[2].parent / "shared" / "weights"
-CACHE_WEIGHTS = Path("~/.cache/recon/weights")
+# Package data (pyproject.toml [tool.setuptools.package-data]), so a plain `pip install .`
+# has it too.
+PACKAGED_MODELS = Path(__file__).resolve().parent / "models"
+PACKAGED_SUFFIX = ".npz"
+
+
+def packaged_weights(name: str) -> Path:
+    """Where the packaged file of model ``name`` lies (whether or not it exists)."""
+    return PACKAGED_MODELS / f"{name}{PACKAGED_SUFFIX}"
 
 
 def weight_roots(explicit: str | os.PathLike | None = None) -> list[Path]:
-    """The places searched, most specific first (explicit path, env var, shared, cache)."""
+    """The places searched, most specific first (explicit path, env var, packaged models)."""
     roots = []
     if explicit is not None:
         roots.append(Path(explicit).expanduser())
     env = os.environ.get(ENV_VAR)
     if env:
         roots.append(Path(env).expanduser())
-    roots.append(SHARED_WEIGHTS)
-    roots.append(CACHE_WEIGHTS.expanduser())
+    roots.append(PACKAGED_MODELS)
     return roots
 
 
 def _candidates(root: Path, name: str, filename: str) -> list[Path]:
-    """A root may be the file, the model folder, or a folder holding ``name/``."""
+    """A root may be the file, the model folder, or a folder holding ``name/`` or ``name.npz``."""
     if root.is_file():
         return [root]
-    return [root / name / filename, root / filename]
+    return [root / name / filename, root / filename, root / f"{name}{PACKAGED_SUFFIX}"]
 
 
 def find_weights(name: str, filename: str, explicit: str | os.PathLike | None = None) -> Path:
-    """Path of ``filename`` of model ``name``.
+    """Path of the weights of model ``name``: its TF.js ``filename`` or its packaged ``.npz``.
 
     An explicit path that holds no such file is an error even when another place would
     have one: the user asked for that path.
@@ -64,12 +81,14 @@ def find_weights(name: str, filename: str, explicit: str | os.PathLike | None = 
             f"{name} weights not found at --weights {explicit} (tried: {', '.join(map(str, tried))})"
         )
     tried = []
-    for root in weight_roots():
-        for path in _candidates(root, name, filename):
-            tried.append(path)
-            if path.is_file():
-                return path
+    env = os.environ.get(ENV_VAR)
+    if env:
+        tried += _candidates(Path(env).expanduser(), name, filename)
+    tried.append(packaged_weights(name))
+    for path in tried:
+        if path.is_file():
+            return path
     raise ReconInputError(
-        f"{name} weights not found (tried: {', '.join(map(str, tried))}); "
-        f"pass --weights or set ${ENV_VAR} to the folder holding {name}/{filename}"
+        f"{name} weights not found (tried: {', '.join(map(str, tried))}); the packaged file is missing from"
+        f" this install: reinstall recon, or pass --weights or set ${ENV_VAR} to the folder holding {name}/{filename}"
     )
