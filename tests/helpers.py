@@ -307,6 +307,34 @@ def prior_error(prior, frames, *words) -> str:
     return message
 
 
+def save_tiny_dpt(folder: Path) -> Path:
+    """A randomly initialised DPT (affine-invariant disparity, like MiDaS) of a few kB, and its
+    image processor, saved as a local Hugging Face model folder. Needs transformers."""
+    import transformers as T
+
+    config = T.DPTConfig(hidden_size=16, num_hidden_layers=4, num_attention_heads=2, intermediate_size=32,
+                         image_size=32, patch_size=8, backbone_out_indices=[0, 1, 2, 3],
+                         neck_hidden_sizes=[8, 8, 8, 8], fusion_hidden_size=8)
+    T.DPTForDepthEstimation(config).save_pretrained(folder)
+    T.DPTImageProcessor(size={"height": 32, "width": 32}).save_pretrained(folder)
+    return folder
+
+
+def save_tiny_depth_anything(folder: Path) -> Path:
+    """A randomly initialised metric Depth Anything (max depth 10 m) of a few kB, and its image
+    processor, saved as a local Hugging Face model folder. Needs transformers."""
+    import transformers as T
+
+    backbone = T.Dinov2Config(hidden_size=16, num_hidden_layers=4, num_attention_heads=2, mlp_ratio=2,
+                              image_size=28, patch_size=14, out_indices=[1, 2, 3, 4], reshape_hidden_states=False)
+    config = T.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=16, neck_hidden_sizes=[8, 8, 8, 8],
+                                   fusion_hidden_size=8, head_hidden_size=8, depth_estimation_type="metric",
+                                   max_depth=10)
+    T.DepthAnythingForDepthEstimation(config).save_pretrained(folder)
+    T.DPTImageProcessor(size={"height": 28, "width": 28}).save_pretrained(folder)
+    return folder
+
+
 def copy_fastdepth_weights(src: Path, dst: Path) -> Path:
     """A copy of the FastDepth TF.js files of src in the new folder dst; its model.json."""
     dst.mkdir(parents=True)

@@ -8,6 +8,8 @@ config (:func:`model_kind`) and reported in ``PriorOutput.kind``.
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import inspect
 from pathlib import Path
 
@@ -22,15 +24,59 @@ from .resample import resize_bilinear
 METRIC_MODEL_TYPES = ("zoedepth", "glpn", "depth_pro")
 
 
+_MISSING_TRANSFORMERS = ("the 'hf' depth prior needs the optional dependency transformers: pip install 'recon[hf]'"
+                         " (or pip install transformers)")
+
+
 def _transformers():
     try:
         import transformers
     except ImportError:
-        raise ReconInputError(
-            "the 'hf' depth prior needs the optional dependency transformers: pip install 'recon[hf]'"
-            " (or pip install transformers)"
-        ) from None
+        raise ReconInputError(_MISSING_TRANSFORMERS) from None
     return transformers
+
+
+def check_model_folder(model) -> Path:
+    """The cheap checks of an HF prior, without importing transformers or reading weights:
+    ``model`` is a folder holding config.json, and transformers is installed. Returns the
+    path; raises ReconInputError (one line) otherwise. Whether transformers can load the
+    model is known only by loading it (:class:`HFDepthPrior`)."""
+    path = Path(model).expanduser()
+    if not path.exists():
+        raise ReconInputError(f"{path}: no such Hugging Face model folder (models are never downloaded)")
+    if not path.is_dir():
+        raise ReconInputError(f"{path}: not a folder; a local Hugging Face model is a folder with config.json")
+    if not (path / "config.json").is_file():
+        raise ReconInputError(
+            f"{path}: not a local Hugging Face model folder (no config.json); models are never downloaded"
+        )
+    if importlib.util.find_spec("transformers") is None:
+        raise ReconInputError(_MISSING_TRANSFORMERS)
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_loading(transformers, progress: bool):
+    """transformers' own output while loading: its load report (a multi-line table, on
+    stderr) is not shown, its weight-loading bar only with ``progress``."""
+    logging = transformers.utils.logging
+    verbosity, bar = logging.get_verbosity(), logging.is_progress_bar_enabled()
+    logging.set_verbosity_error()
+    if not progress:
+        logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        logging.set_verbosity(verbosity)
+        if bar:
+            logging.enable_progress_bar()
+
+
+def _load_error(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if "ignore_mismatched_sizes" in text:  # transformers points at the report it printed; we did not print it
+        text = "its weights do not have the sizes config.json gives"
+    return text
 
 
 def model_kind(config) -> str:
@@ -62,17 +108,15 @@ class HFDepthPrior(DepthPrior):
     def __init__(self, model, kind: str | None = None, batch_size: int = 4, device: str = "cpu",
                  progress: bool = True, align_to=None):
         super().__init__(batch_size=batch_size, device=device, progress=progress, align_to=align_to)
+        self.path = check_model_folder(model)
         transformers = _transformers()
-        self.path = Path(model).expanduser()
-        if not (self.path / "config.json").is_file():
-            raise ReconInputError(
-                f"{self.path}: not a local Hugging Face model folder (no config.json); models are never downloaded"
-            )
         try:
-            self.processor = transformers.AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
-            self.model = transformers.AutoModelForDepthEstimation.from_pretrained(self.path, local_files_only=True)
-        except (OSError, ValueError, KeyError) as exc:
-            raise ReconInputError(f"{self.path}: cannot load the depth model ({str(exc).splitlines()[0]})") from None
+            with _quiet_loading(transformers, progress):
+                self.processor = transformers.AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
+                self.model = transformers.AutoModelForDepthEstimation.from_pretrained(self.path,
+                                                                                      local_files_only=True)
+        except Exception as exc:  # anything in a folder the user gave: bad JSON, weights, sizes, model type
+            raise ReconInputError(f"{self.path}: cannot load the depth model ({_load_error(exc)})") from None
         self.model = self.model.eval().to(device)
         self.kind = kind or model_kind(self.model.config)
         if self.kind not in PRIOR_KINDS:
