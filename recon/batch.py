@@ -384,6 +384,7 @@ def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOp
     import_ray()  # the missing package is the first thing to hear about
     options.validate()
     check_device(template.device)
+    template.validate()  # the run options, once, before any task (e.g. --prior hf without a model folder)
     template = batch_template(template)
     out = Path(out)
     if out.exists() and not out.is_dir():

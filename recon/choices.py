@@ -15,8 +15,12 @@ POSE_CHOICES = ("auto", "gt", "estimate")
 # front end and falls back to SfM when tracking is lost.
 POSE_METHODS = ("auto", "frontend", "sfm")
 # The depth prior of `recon run` (PipelineConfig.prior): a network, a dataset's sensor depth,
-# a folder of depth maps.
-PRIOR_CHOICES = ("fastdepth", "sensor", "folder")
+# a folder of depth maps, a local Hugging Face depth model (recon.priors.hf).
+PRIOR_CHOICES = ("fastdepth", "sensor", "folder", "hf")
+# The metric depth an "hf" model's affine-invariant disparity is fitted to, frame by frame
+# (PipelineConfig.prior_align; recon.priors.base.DepthPrior align_to): FastDepth on the same
+# frames, or an RGB-D dataset's sensor depth.
+PRIOR_ALIGN_CHOICES = ("fastdepth", "sensor")
 # The prior of `recon demo` (DemoOptions.prior): ground truth distorted like a network, or the network.
 DEMO_PRIORS = ("simulated", "fastdepth")
 # The refinement after MEDeA (PipelineConfig.refine, recon.refine).
@@ -28,5 +32,5 @@ RERUN_MODES = ("spawn", "save", "serve", "off")
 # Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget.
 STREAM_CHOICES = ("auto", "on", "off")
 
-__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES",
-           "STREAM_CHOICES"]
+__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_ALIGN_CHOICES", "PRIOR_CHOICES", "REFINE_CHOICES",
+           "RERUN_MODES", "STREAM_CHOICES"]

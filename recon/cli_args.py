@@ -14,7 +14,16 @@ import torch
 
 from medea_core import MedeaConfig
 
-from .choices import DEMO_PRIORS, POSE_CHOICES, POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
+from .choices import (
+    DEMO_PRIORS,
+    POSE_CHOICES,
+    POSE_METHODS,
+    PRIOR_ALIGN_CHOICES,
+    PRIOR_CHOICES,
+    REFINE_CHOICES,
+    RERUN_MODES,
+    STREAM_CHOICES,
+)
 from .errors import ReconInputError
 
 
@@ -170,10 +179,19 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
     g = parser.add_argument_group("depth prior")
     g.add_argument("--prior", choices=PRIOR_CHOICES, default=d.prior,
-                   help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (--prior-path)")
-    g.add_argument("--prior-path", type=Path,
-                   help="folder with one depth map per frame (.npy/.png/.exr/.tiff, metres; 16-bit PNG in millimetres; "
-                        "0, NaN and inf: no depth), matched by frame name")
+                   help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (depth maps in "
+                        "--prior-path), hf (a local Hugging Face depth model in --prior-path; needs transformers: "
+                        "pip install -e .[hf])")
+    g.add_argument("--prior-path", type=Path, metavar="PATH",
+                   help="folder: one depth map per frame (.npy/.png/.exr/.tiff, metres; 16-bit PNG in millimetres; "
+                        "0, NaN and inf: no depth), matched by frame name. hf: the model folder (config.json, "
+                        "weights, preprocessor_config.json, as save_pretrained writes them); nothing is downloaded")
+    g.add_argument("--prior-align", choices=PRIOR_ALIGN_CHOICES, default=d.prior_align,
+                   help="hf: a model that predicts affine-invariant disparity (DPT/MiDaS, relative Depth Anything; "
+                        "read from its config.json) is fitted per frame (scale and shift) to the metric depth of "
+                        "fastdepth (FastDepth on the same frames, --weights) or sensor (an RGB-D dataset's depth); "
+                        "metric models (ZoeDepth, GLPN, Depth Pro, metric Depth Anything) are used as they are "
+                        "(default %(default)s)")
     g.add_argument("--weights", type=Path, help="FastDepth weights (model.json, .npz or a folder); default: "
                                                 "$RECON_WEIGHTS, then the model packaged with recon")
     g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
@@ -295,7 +313,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
-        prior=args.prior, prior_path=args.prior_path,
+        prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
         refine=args.refine, mvs=mvs_config_from_args(args), polish=not args.no_polish,
         fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
@@ -316,6 +334,8 @@ RUN_EXAMPLES = """examples:
   recon run my_video.mp4 -o out/ --fov 70 --stride 2   known field of view, every 2nd frame
   recon run frames/ -o out/ --poses poses.txt          image folder with a TUM trajectory
   recon run rgbd_dataset_freiburg1_desk/ -o out/ --prior sensor --poses gt
+  recon run my_video.mp4 -o out/ --prior hf --prior-path models/depth-anything-small
+                                                       a local Hugging Face depth model (aligned to FastDepth)
   recon run my_video.mp4 -o out/ --rerun save          also write out/recording.rrd
   recon view out/                                      inspect the result in Rerun
 """

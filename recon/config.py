@@ -15,7 +15,7 @@ import numpy as np
 from medea_core import MedeaConfig
 from mvs_core import MvsConfig
 
-from .choices import POSE_METHODS, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
+from .choices import POSE_METHODS, PRIOR_ALIGN_CHOICES, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
 from .errors import ReconInputError
 from .fusion import FusionOptions
 from .poses.polish import PolishConfig
@@ -45,8 +45,13 @@ class PipelineConfig:
     pose_method: estimator, "auto" | "frontend" | "sfm".
     pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
         ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
-    prior: "fastdepth", "sensor" (a dataset's depth) or "folder" (prior_path holds one
-        depth map per frame, matched by name). weights: FastDepth weights location.
+    prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
+        depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
+        depth model folder; recon.priors.hf). weights: FastDepth weights location.
+    prior_align: what an "hf" model that predicts affine-invariant disparity (its kind is
+        read from its config, recon.priors.hf.model_kind) is fitted to, per frame, to make
+        it metric: "fastdepth" (FastDepth on the same frames) or "sensor" (an RGB-D
+        dataset's depth). Metric models are used as they are.
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
@@ -84,6 +89,7 @@ class PipelineConfig:
     pose_options: dict[str, Any] = field(default_factory=dict)
     prior: str = "fastdepth"
     prior_path: Path | None = None
+    prior_align: str = "fastdepth"
     weights: Path | None = None
     features: bool = True
     adjust: bool = True
@@ -103,10 +109,7 @@ class PipelineConfig:
 
     def validate(self) -> None:
         """One-line ReconInputError for options that cannot work (they come from the CLI)."""
-        if self.prior not in PRIOR_CHOICES:
-            raise ReconInputError(f"prior must be one of {', '.join(PRIOR_CHOICES)}, got {self.prior!r}")
-        if self.prior == "folder" and self.prior_path is None:
-            raise ReconInputError("prior 'folder' needs a folder of depth maps (--prior-path)")
+        self._validate_prior()
         if self.refine not in REFINE_CHOICES:
             raise ReconInputError(f"refine must be one of {', '.join(REFINE_CHOICES)}, got {self.refine!r}")
         try:
@@ -139,6 +142,23 @@ class PipelineConfig:
         if int(self.frame_budget) < 2:
             raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
         self.fusion.validate()
+
+    def _validate_prior(self) -> None:
+        """The prior's choices and the cheap checks of its files (an "hf" model folder: that
+        transformers is installed and the folder holds config.json; not yet that it loads)."""
+        if self.prior not in PRIOR_CHOICES:
+            raise ReconInputError(f"prior must be one of {', '.join(PRIOR_CHOICES)}, got {self.prior!r}")
+        if self.prior == "folder" and self.prior_path is None:
+            raise ReconInputError("prior 'folder' needs a folder of depth maps (--prior-path)")
+        if self.prior == "hf":
+            if self.prior_path is None:
+                raise ReconInputError("prior 'hf' needs a local Hugging Face model folder (--prior-path MODEL_DIR)")
+            from .priors.hf import check_model_folder
+
+            check_model_folder(self.prior_path)
+        if self.prior_align not in PRIOR_ALIGN_CHOICES:
+            raise ReconInputError(
+                f"prior alignment must be one of {', '.join(PRIOR_ALIGN_CHOICES)}, got {self.prior_align!r}")
 
     def to_dict(self) -> dict:
         return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}

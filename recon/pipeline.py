@@ -12,7 +12,9 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
 
 ``decode``     open the input, check the output folder and the pose source, select and
                resize frames (stored at working resolution);
-``prior``      per-frame metric depth (FastDepth by default; sensor depth; a depth folder);
+``prior``      per-frame metric depth (FastDepth by default; sensor depth; a depth folder; a
+               local Hugging Face model, its disparity aligned to FastDepth or sensor depth);
+               the network is loaded before the frames are decoded;
 ``poses``      camera-to-world poses: a pose file, the dataset's ground truth, or estimated
                (frames the quality gate drops leave the sequence here); given poses are
                polished against the frames when the refinement runs (:mod:`recon.poses.polish`:
@@ -57,10 +59,10 @@ from .stages import (
     camera_poses,
     decode,
     default_intrinsics,
-    depth_prior,
     given_intrinsics,
     plan_poses,
     polished_poses,
+    prior_function,
     refine_depth,
     select_frames,
     tracking_states,
@@ -151,6 +153,10 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
             if config.stream == "auto" else "streaming")
         return run_streamed(config, source, out, pose_plan, given_intrinsics(source, config.intrinsics, config.fov),
                             say)
+    with timer.stage("prior"):  # the network is loaded before the frames are decoded: a bad model fails at once
+        prior_of = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
+                                  features=config.features and config.adjust, align=config.prior_align,
+                                  device=config.device, progress=config.progress)
     with timer.stage("decode"):
         seq = decode(source, config.progress)
     intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
@@ -158,9 +164,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
     say(f"depth prior: {config.prior}")
     with timer.stage("prior"):
-        prior = depth_prior(seq, source, config.prior, path=config.prior_path, weights=config.weights,
-                            features=config.features and config.adjust, device=config.device,
-                            progress=config.progress)
+        prior = prior_of(seq, np.arange(len(seq)))
     seq = seq.with_(prior_depth=prior.depth, features=prior.features)
 
     say(f"poses: {config.poses}")

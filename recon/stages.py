@@ -93,38 +93,53 @@ def default_intrinsics(height: int, width: int) -> tuple[float, float, float, fl
 # --------------------------------------------------------------------------- prior
 
 
-def depth_prior(seq: Sequence, source: FrameSource, name: str, *, path: Path | None = None,
-                weights: Path | None = None, features: bool = True, device: str = "cpu", progress: bool = True):
-    """PriorOutput for the frames: depth (N, H, W) metres at working size, optional features.
-    name: "fastdepth", "sensor" (the dataset's depth) or "folder" (maps in ``path``)."""
-    prior = prior_function(source, name, path=path, weights=weights, features=features, device=device,
-                           progress=progress)
-    return prior(seq, np.arange(len(seq)))
+def _has_sensor_depth(source: FrameSource) -> bool:
+    return isinstance(source, DatasetSource) and source.has_depth
 
 
 def prior_function(source: FrameSource, name: str, *, path: Path | None = None, weights: Path | None = None,
-                   features: bool = True, device: str = "cpu", progress: bool = True):
+                   features: bool = True, align: str = "fastdepth", device: str = "cpu", progress: bool = True):
     """``prior(seq, positions) -> PriorOutput`` for frames of ``source`` (a Sequence of them
     and their positions in the selection), the network loaded once: the streamed pipeline
-    calls it batch by batch."""
+    calls it batch by batch. Building it loads the network, so a model that cannot be used
+    fails here, before any frame is decoded.
+
+    name: "fastdepth", "sensor" (the dataset's depth), "folder" (maps in ``path``) or "hf"
+    (the local Hugging Face model in ``path``). align: for an "hf" model that predicts
+    affine-invariant disparity, the metric depth it is fitted to per frame: "fastdepth"
+    or "sensor".
+    """
     from .priors import make_prior
 
     common = dict(device=device, progress=progress)
     if name == "fastdepth":
         model = make_prior("fastdepth", weights=weights, features=features, **common)
-    elif name == "sensor" and not (isinstance(source, DatasetSource) and source.has_depth):
+    elif name == "sensor" and not _has_sensor_depth(source):
         raise ReconInputError(f"{source.path}: --prior sensor needs an RGB-D dataset folder with depth")
+    elif name == "hf":
+        model = _hf_prior(source, path, align, weights, common)
+
+    def sensor_prior(positions):
+        depth = np.stack([source.depth(int(k)) for k in positions])
+        return make_prior("sensor", depth=depth, source=str(source.path), **common)
+
     nonfinite: dict[str, int] = {}  # folder prior: depth file -> NaN/inf pixels, over the whole run
 
     def prior(seq: Sequence, positions):
-        if name == "fastdepth":
+        if name in ("fastdepth", "hf"):
             batch_model = model
+            if name == "hf" and model.kind == "affine_disparity" and align == "sensor":
+                model.align_to = sensor_prior(positions)
         elif name == "sensor":
-            depth = np.stack([source.depth(int(k)) for k in positions])
-            batch_model = make_prior("sensor", depth=depth, source=str(source.path), **common)
+            batch_model = sensor_prior(positions)
         else:
             batch_model = make_prior("folder", path=path, frame_names=seq.names, **common)
-        output = batch_model(seq.rgb, seq.intrinsics)
+        try:
+            output = batch_model(seq.rgb, seq.intrinsics)
+        except ValueError as error:  # a frame whose reference depth is too sparse to fit
+            if name != "hf" or "align" not in str(error):
+                raise
+            raise ReconInputError(f"depth prior hf: aligning to {align} depth failed ({error})") from None
         if output.kind != "metric":
             raise ReconInputError(f"depth prior {name} gave {output.kind} depth; the pipeline needs metric depth")
         if name == "folder":
@@ -147,6 +162,23 @@ def _count_nonfinite(output, counts: dict[str, int], folder: Path):
     counts.update(found)
     return replace(output, info={**output.info, "nonfinite_pixels": sum(counts.values()),
                                  "nonfinite_files": dict(counts)})
+
+
+def _hf_prior(source: FrameSource, path: Path | None, align: str, weights: Path | None, common: dict):
+    """The Hugging Face model (recon.priors.hf) loaded; when its config says it predicts
+    affine-invariant disparity, with the metric reference it is aligned to (FastDepth loaded
+    here; sensor depth is set per batch)."""
+    from .priors import make_prior
+
+    if path is None:
+        raise ReconInputError("--prior hf needs a local Hugging Face model folder (--prior-path MODEL_DIR)")
+    model = make_prior("hf", model=path, **common)
+    if model.kind == "affine_disparity":
+        if align == "fastdepth":
+            model.align_to = make_prior("fastdepth", weights=weights, features=False, **common)
+        elif not _has_sensor_depth(source):
+            raise ReconInputError(f"{source.path}: --prior-align sensor needs an RGB-D dataset folder with depth")
+    return model
 
 
 # --------------------------------------------------------------------------- poses

@@ -187,8 +187,8 @@ class _TrackLoop:
         self.config, self.source, self.store, self.logger, self.clock = config, source, store, logger, clock
         self.intrinsics, self.intrinsics_from = given
         self.prior = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
-                                    features=config.features and config.adjust, device=config.device,
-                                    progress=False)
+                                    features=config.features and config.adjust, align=config.prior_align,
+                                    device=config.device, progress=False)
         self.poser = _Poser(config, source, plan, self.intrinsics, store)
         if not plan.estimated and config.refine != "none" and config.polish:
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "

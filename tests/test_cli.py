@@ -20,7 +20,7 @@ from recon.demo import pose_estimator_available
 from recon.io.output_folder import read_depth_png_mm
 from recon.io.trajectories import read_poses
 
-from helpers import glb_vertex_colors, read_recording
+from helpers import glb_vertex_colors, read_recording, save_tiny_depth_anything, save_tiny_dpt
 
 FRAMES, WIDTH, HEIGHT = 24, 320, 240
 
@@ -407,7 +407,8 @@ def test_help_texts():
         sub = parser._subparsers._group_actions[0].choices[name]
         texts[name] = sub.format_help()
     for option in ("--poses", "--prior", "--intrinsics", "--fov", "--stride", "--width", "--voxel-size", "--device",
-                   "--pose-option", "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:"):
+                   "--pose-option", "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:",
+                   "--prior-path", "--prior-align"):
         assert option in texts["run"], option
     assert "--frames" in texts["demo"] and "--poses" in texts["demo"] and "--pose-option" in texts["demo"]
     assert "recording.rrd" in texts["view"]
@@ -537,3 +538,114 @@ def test_run_on_a_fresh_install_uses_the_packaged_fastdepth(tmp_path, monkeypatc
     report = json.loads((out / "report.json").read_text())
     packaged = Path(recon.priors.__file__).resolve().parent / "models" / "fastdepth.npz"
     assert report["prior"]["name"] == "fastdepth" and report["prior"]["info"]["weights"] == str(packaged)
+# --------------------------------------------------------------------------- a local Hugging Face model (--prior hf)
+
+
+@pytest.fixture(scope="module")
+def rgbd_room(tmp_path_factory) -> Path:
+    """6 frames of the synthetic room at 96x72 as an Open3D/Redwood RGB-D folder: colour, depth
+    (uint16 mm), trajectory.log, camera.json; ground-truth poses and sensor depth for `recon run`."""
+    from recon.io.trajectories import write_poses
+    from recon.synthetic import render_sequence
+
+    room = render_sequence(6, 96, 72, seed=0)
+    root = tmp_path_factory.mktemp("rgbd_room")
+    (root / "color").mkdir()
+    (root / "depth").mkdir()
+    for i, (rgb, depth) in enumerate(zip(room.rgb, room.depth)):
+        cv2.imwrite(str(root / "color" / f"{i:05d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(root / "depth" / f"{i:05d}.png"), np.round(depth * 1000).astype(np.uint16))
+    write_poses(root / "trajectory.log", room.poses, "log")
+    fx, fy, cx, cy = room.intrinsics
+    k = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+    (root / "camera.json").write_text(json.dumps({"width": 96, "height": 72,
+                                                  "intrinsic_matrix": np.asarray(k).T.ravel().tolist()}))
+    return root
+
+
+def _hf_run(rgbd_room: Path, model: Path, out: Path, *options: str) -> dict:
+    """`recon run` on the RGB-D room with ground-truth poses and the HF model; its report.json."""
+    code = main(["run", str(rgbd_room), "-o", str(out), "--prior", "hf", "--prior-path", str(model), "--poses", "gt",
+                 "--width", "0", "--rerun", "off", "--quiet", *options])
+    assert code == 0
+    assert len(list((out / "depth").glob("*.png"))) == 6 and len(list((out / "depth").glob("*.npy"))) == 6
+    assert len(trimesh.load(out / "mesh.ply").vertices) > 0
+    return json.loads((out / "report.json").read_text())
+
+
+def test_hf_prior_affine_disparity_aligned_to_fastdepth(rgbd_room, fastdepth_weights, tmp_path):
+    """A DPT model (affine-invariant disparity, from its config) is fitted to FastDepth by default;
+    report.json says which model, what it predicts and what it was aligned to."""
+    pytest.importorskip("transformers", reason="the hf prior needs the optional extra 'hf' (transformers)")
+    model = save_tiny_dpt(tmp_path / "dpt")
+    report = _hf_run(rgbd_room, model, tmp_path / "out", "--weights", str(fastdepth_weights), "--no-medea",
+                     "--refine", "none")
+    prior = report["prior"]
+    assert prior["name"] == "hf" and prior["kind"] == "metric" and prior["features"] is None
+    assert prior["info"]["path"] == str(model) and prior["info"]["model_type"] == "dpt"
+    assert prior["info"]["output"] == "affine_disparity" and prior["info"]["aligned_to"] == "prior:fastdepth"
+    options = report["options"]
+    assert (options["prior"], options["prior_path"], options["prior_align"]) == ("hf", str(model), "fastdepth")
+    depth = np.load(sorted((tmp_path / "out" / "depth").glob("*.npy"))[0])
+    assert np.isfinite(depth).all() and (depth > 0).mean() > 0.5  # metric, from the alignment
+
+
+def test_hf_prior_aligned_to_sensor_depth(rgbd_room, tmp_path):
+    pytest.importorskip("transformers", reason="the hf prior needs the optional extra 'hf' (transformers)")
+    model = save_tiny_dpt(tmp_path / "dpt")
+    report = _hf_run(rgbd_room, model, tmp_path / "out", "--prior-align", "sensor", "--no-medea", "--refine", "none")
+    assert report["prior"]["info"]["aligned_to"] == "prior:sensor" and report["prior"]["kind"] == "metric"
+    assert report["options"]["prior_align"] == "sensor"
+
+
+def test_hf_prior_metric_model_streamed_with_medea(rgbd_room, tmp_path):
+    """A metric Depth Anything is used as it is (no alignment), also batch by batch in a streamed
+    run, and MEDeA runs on it (no encoder features)."""
+    pytest.importorskip("transformers", reason="the hf prior needs the optional extra 'hf' (transformers)")
+    model = save_tiny_depth_anything(tmp_path / "da")
+    report = _hf_run(rgbd_room, model, tmp_path / "out", "--stream", "on", "--depth-frames", "all",
+                     "--stage1-epochs", "2", "--stage2-epochs", "2", "--refine", "none")
+    prior = report["prior"]
+    assert report["streamed"] and prior["name"] == "hf" and prior["info"]["path"] == str(model)
+    assert prior["info"]["model_type"] == "depth_anything" and prior["info"]["output"] == "metric"
+    assert "aligned_to" not in prior["info"] and report["windows"]["count"] >= 1
+
+
+def test_hf_prior_option_errors(tmp_path, capsys, monkeypatch):
+    """What can be told without loading a model (nor transformers installed): one line, exit 2,
+    no output folder."""
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = str(tmp_path / "out")
+    (tmp_path / "weights.bin").write_bytes(b"")
+    (tmp_path / "empty").mkdir()
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text('{"model_type": "dpt"}')
+    run = ["run", str(video), "-o", out, "--quiet", "--prior", "hf"]
+    _run_fails(capsys, run, "prior 'hf'", "--prior-path MODEL_DIR")
+    _run_fails(capsys, [*run, "--prior-path", str(tmp_path / "missing")], "missing", "no such", "never downloaded")
+    _run_fails(capsys, [*run, "--prior-path", str(tmp_path / "weights.bin")], "weights.bin", "not a folder")
+    _run_fails(capsys, [*run, "--prior-path", str(tmp_path / "empty")], "empty", "no config.json")
+    monkeypatch.setitem(sys.modules, "transformers", None)  # `import transformers` fails, as when not installed
+    _run_fails(capsys, [*run, "--prior-path", str(model)], "needs the optional dependency transformers",
+               "recon[hf]")
+    assert not Path(out).exists()
+
+
+def test_hf_model_that_cannot_load_fails_before_decoding(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("transformers", reason="the hf prior needs the optional extra 'hf' (transformers)")
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("frames decoded before the model was loaded")
+
+    monkeypatch.setattr("recon.pipeline.decode", no_decoding)
+    video = _video(tmp_path / "clip.mp4", 4)
+    out = str(tmp_path / "out")
+    model = save_tiny_dpt(tmp_path / "dpt")
+    (model / "config.json").write_text('{"model_type": "bert"}')  # not a depth model
+    capsys.readouterr()
+    run = ["run", str(video), "-o", out, "--quiet", "--prior", "hf", "--prior-path", str(model)]
+    _run_fails(capsys, run, str(model), "cannot load the depth model")
+    model = save_tiny_dpt(tmp_path / "dpt2")  # loads, predicts disparity: the reference must exist
+    capsys.readouterr()
+    _run_fails(capsys, [*run[:-1], str(model), "--prior-align", "sensor"], "--prior-align sensor", "RGB-D")
+    assert not Path(out).exists()
