@@ -1,0 +1,260 @@
+"""The pipeline on CPU and on CUDA: seconds per stage, and whether both devices give the
+same depth (issue 23).
+
+Two measurements, each a `recon run` (``run_pipeline``) per device in one process:
+
+* ``speed``: a rendered 640x480 video (default 300 frames) with estimated poses, the main
+  job (``recon run video.mp4``), and with the ground-truth poses given;
+* ``agreement``: 7-Scenes redkitchen, every 4th frame of 0-399 (100 frames, colour focal
+  525 px), ground-truth poses given: the median relative difference between the CPU's and
+  CUDA's depth (MEDeA's and the refined), and each device's abs rel against the sensor.
+
+The inputs need neither open3d nor ``../shared`` at run time, so they travel to a GPU
+machine as one folder (frames as JPEG, quality 95: both devices decode the same pixels):
+
+    python benchmarks/device.py --make-inputs gpu_inputs/                 # here
+    python benchmarks/device.py --inputs gpu_inputs/ --devices cpu cuda   # there
+
+Where open3d is not installed (the GPU machine), TSDF fusion, export and Rerun logging
+are not run: a stand-in returns an empty mesh, and the table says so. Their cost does
+not depend on the device except fusion, which Open3D runs on ``CUDA:0`` when its build
+has CUDA. Prints tables, writes benchmarks/results/device.json (or --json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import types
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+STAGES = ("decode", "prior", "poses", "undistort", "medea", "refine", "fusion", "export", "logging")
+
+
+def open3d_available() -> bool:
+    try:
+        import open3d  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def stand_in_for_open3d() -> None:
+    """Lets recon import and run without open3d: fusion gives an empty mesh, export writes nothing."""
+    for name in ("open3d", "open3d.core", "trimesh", "rerun"):
+        stand_in = mock.MagicMock(name=name)
+        stand_in.__version__ = "not installed"
+        sys.modules.setdefault(name, stand_in)
+    import recon.fusion
+    import recon.pipeline
+
+    def fuse(depth, rgb, poses, intrinsics, options, confidence=None):
+        empty = types.SimpleNamespace(vertices=[], triangles=[])
+        return types.SimpleNamespace(mesh=empty, point_cloud=None, voxel_size=0.0, trunc=0.0, max_depth=0.0,
+                                     frames_fused=0, block_estimate=0, blocks_used=0, fragments_removed=0)
+
+    recon.fusion.fuse = fuse
+    recon.pipeline.export_reconstruction = lambda out, **kw: {}
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def make_inputs(folder: Path, frames: int) -> None:
+    """The rendered video with its poses, and 7-Scenes as JPEG frames + TUM poses + sensor depth."""
+    import cv2
+
+    from recon.demo import write_demo_inputs
+    from recon.io.datasets import open_dataset
+    from recon.io.output_folder import OutputFolder
+    from recon.io.trajectories import write_poses
+    from recon.synthetic import render_sequence
+
+    folder.mkdir(parents=True, exist_ok=True)
+    seq = render_sequence(num_frames=frames, width=640, height=480)
+    write_demo_inputs(OutputFolder(folder / "synthetic", overwrite=True), seq, None)
+    json.dump({"intrinsics": [float(v) for v in seq.intrinsics]}, open(folder / "synthetic" / "camera.json", "w"))
+
+    data = open_dataset(ROOT.parent / "shared" / "data" / "7scenes-redkitchen").select(stride=4).with_valid_poses()
+    rgb, depth = data.load_rgb_batch(), data.load_depth_batch()
+    kitchen = folder / "kitchen"
+    (kitchen / "frames").mkdir(parents=True, exist_ok=True)
+    for i, frame in enumerate(rgb):
+        cv2.imwrite(str(kitchen / "frames" / f"{i:04d}.jpg"), frame[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+    write_poses(kitchen / "poses.txt", np.asarray(data.poses), "tum", timestamps=np.arange(len(rgb)) / 30.0)
+    half = (depth[:, ::2, ::2] * 1000).round().clip(0, 65535).astype(np.uint16)
+    np.savez_compressed(kitchen / "sensor_depth.npz", depth_mm=half)
+    json.dump({"intrinsics": [float(v) for v in np.asarray(data.intrinsics).reshape(-1, 4)[0]]},
+              open(kitchen / "camera.json", "w"))
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, threads: int | None) -> dict:
+    from recon.pipeline import PipelineConfig, run_pipeline
+
+    if threads:
+        torch.set_num_threads(threads)
+    config = PipelineConfig(input=input_path, output=workdir / f"out-{device}-{poses.replace('/', '_')[-20:]}",
+                            overwrite=True, intrinsics=tuple(intrinsics), poses=poses, rerun="off", progress=False,
+                            device=device)
+    config.medea.device = device
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    result = run_pipeline(config)
+    wall = time.perf_counter() - start
+    return {"device": device, "threads": torch.get_num_threads(), "frames": len(result.frames), "wall": wall,
+            "seconds": dict(result.seconds), "depth": np.asarray(result.depth, np.float32),
+            "medea_depth": np.asarray(result.adjusted_depth, np.float32),
+            "epochs": {k: int(h.epochs) for k, h in (result.medea.history.items() if result.medea else [])}}
+
+
+def median_difference(a: np.ndarray, b: np.ndarray) -> float:
+    both = (a > 0) & (b > 0)
+    return float(np.median(np.abs(a[both] / b[both] - 1.0)))
+
+
+def abs_rel(depth: np.ndarray, sensor_mm: np.ndarray) -> float:
+    gt = sensor_mm.astype(np.float32) / 1000.0
+    pred = depth[:, ::2, ::2]
+    valid = (gt > 0) & (pred > 0)
+    return float(np.mean(np.abs(pred[valid] - gt[valid]) / gt[valid]))
+
+
+def prior_variants(frames: np.ndarray, intrinsics, devices: list[str], threads: int) -> list[dict]:
+    """FastDepth (+ stride-8 features) seconds per frame by device, batch size and memory layout,
+    after a warm-up batch (the first CUDA call pays for kernel selection)."""
+    from recon.priors.fastdepth import FastDepthPrior
+
+    rows = []
+    for device in devices:
+        torch.set_num_threads(threads if device == "cpu" else torch.get_num_threads())
+        for batch_size in (8, 32):
+            for channels_last in (True, False):
+                prior = FastDepthPrior(features=True, batch_size=batch_size, device=device, progress=False,
+                                       channels_last=channels_last)
+                prior(frames[:batch_size], intrinsics)
+                times = []
+                for _ in range(3):
+                    if device.startswith("cuda"):
+                        torch.cuda.synchronize()
+                    start = time.perf_counter()
+                    prior(frames, intrinsics)
+                    times.append((time.perf_counter() - start) / len(frames))
+                rows.append({"device": device, "batch_size": batch_size, "channels_last": channels_last,
+                             "seconds_per_frame": min(times)})
+                print(f"prior {device} batch {batch_size} channels_last {channels_last}: {min(times):.4f} s/frame",
+                      flush=True)
+    return rows
+
+
+def stage_table(runs: list[dict], fused: bool) -> str:
+    from common import table
+
+    headers = ["stage"] + [f"{r['label']} s/frame" for r in runs]
+    rows = []
+    for stage in STAGES:
+        cells = [f"{r['seconds'].get(stage, 0.0) / r['frames']:.4f}" for r in runs]
+        if not fused and stage in ("fusion", "export", "logging"):
+            cells = ["not run" for _ in runs]
+        rows.append([stage] + cells)
+    rows.append(["total (run)"] + [f"{r['wall'] / r['frames']:.4f}" for r in runs])
+    return table(headers, rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--make-inputs", type=Path, help="write the inputs to this folder and stop")
+    parser.add_argument("--frames", type=int, default=300, help="frames of the rendered video (--make-inputs)")
+    parser.add_argument("--inputs", type=Path, help="the folder --make-inputs wrote")
+    parser.add_argument("--devices", nargs="+", default=["cpu", "cuda"])
+    parser.add_argument("--cpu-threads", type=int, default=2, help="torch threads of the CPU runs (default 2)")
+    parts = ["prior", "agreement", "speed"]
+    parser.add_argument("--parts", nargs="+", default=parts, choices=parts)
+    parser.add_argument("--json", type=Path, help="where to write the results (default benchmarks/results/device.json)")
+    args = parser.parse_args()
+    if args.make_inputs:
+        make_inputs(args.make_inputs, args.frames)
+        return
+    from common import machine
+
+    fused = open3d_available()
+    if not fused:
+        stand_in_for_open3d()
+    payload: dict = {"machine": machine(), "open3d": fused, "torch": torch.__version__,
+                     "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    out_json = args.json or ROOT / "benchmarks" / "results" / "device.json"
+
+    def save() -> None:
+        out_json.parent.mkdir(parents=True, exist_ok=True)
+        out_json.write_text(json.dumps(payload, indent=1))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        workdir = Path(tmp)
+        for part in args.parts:
+            if part == "prior":
+                import cv2
+
+                kitchen = args.inputs / "kitchen"
+                camera = np.asarray(json.loads((kitchen / "camera.json").read_text())["intrinsics"])
+                paths = sorted((kitchen / "frames").glob("*.jpg"))[:64]
+                frames = np.stack([cv2.imread(str(p))[..., ::-1] for p in paths])
+                payload["prior"] = prior_variants(frames, np.tile(camera, (len(frames), 1)), args.devices,
+                                                  args.cpu_threads)
+            elif part == "agreement":
+                kitchen = args.inputs / "kitchen"
+                camera = json.loads((kitchen / "camera.json").read_text())["intrinsics"]
+                sensor = np.load(kitchen / "sensor_depth.npz")["depth_mm"]
+                runs = []
+                for device in args.devices:
+                    threads = args.cpu_threads if device == "cpu" else None
+                    r = run(kitchen / "frames", str(kitchen / "poses.txt"), camera, device, workdir, threads)
+                    r["label"] = device
+                    r["abs_rel"] = {"medea": abs_rel(r["medea_depth"], sensor), "refined": abs_rel(r["depth"], sensor)}
+                    runs.append(r)
+                    print(f"7-Scenes on {device}: {r['wall']:.1f} s, MEDeA epochs {r['epochs']}, "
+                          f"abs rel {r['abs_rel']}", flush=True)
+                record = {"runs": [{k: v for k, v in r.items() if "depth" not in k} for r in runs]}
+                if len(runs) == 2:
+                    record["median_difference"] = {
+                        "medea": median_difference(runs[0]["medea_depth"], runs[1]["medea_depth"]),
+                        "refined": median_difference(runs[0]["depth"], runs[1]["depth"]),
+                    }
+                    print(f"median depth difference {runs[0]['label']} vs {runs[1]['label']}: "
+                          f"{record['median_difference']}", flush=True)
+                payload["agreement"] = record
+                print(stage_table(runs, fused), flush=True)
+            else:
+                video = args.inputs / "synthetic" / "input" / "synthetic.mp4"
+                poses_file = args.inputs / "synthetic" / "input" / "poses_gt.txt"
+                camera = json.loads((args.inputs / "synthetic" / "camera.json").read_text())["intrinsics"]
+                runs = []
+                for device in args.devices:
+                    for poses in ("estimate", str(poses_file)):
+                        threads = args.cpu_threads if device == "cpu" else None
+                        r = run(video, poses, camera, device, workdir, threads)
+                        r["label"] = f"{device} {'estimated' if poses == 'estimate' else 'given'}"
+                        runs.append(r)
+                        print(f"video, {r['label']} poses: {r['wall'] / r['frames']:.4f} s/frame, "
+                              f"{ {k: round(v, 1) for k, v in r['seconds'].items()} }", flush=True)
+                payload["speed"] = {"runs": [{k: v for k, v in r.items() if "depth" not in k} for r in runs]}
+                print(stage_table(runs, fused), flush=True)
+            save()
+    print(f"wrote {out_json}")
+
+
+if __name__ == "__main__":
+    main()
