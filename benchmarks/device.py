@@ -212,7 +212,7 @@ def main() -> None:
                 camera = np.asarray(json.loads((kitchen / "camera.json").read_text())["intrinsics"])
                 paths = sorted((kitchen / "frames").glob("*.jpg"))[:64]
                 frames = np.stack([cv2.imread(str(p))[..., ::-1] for p in paths])
-                payload["prior"] = prior_variants(frames, np.tile(camera, (len(frames), 1)), args.devices,
+                payload["prior"] = prior_variants(frames, camera, args.devices,
                                                   args.cpu_threads)
             elif part == "agreement":
                 kitchen = args.inputs / "kitchen"
