@@ -102,7 +102,8 @@ def make_inputs(folder: Path, frames: int) -> None:
 # --------------------------------------------------------------------------- runs
 
 
-def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, threads: int | None) -> dict:
+def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, threads: int | None,
+        medea_eps: float | None = None) -> dict:
     from recon.pipeline import PipelineConfig, run_pipeline
 
     if threads:
@@ -111,6 +112,8 @@ def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, th
                             overwrite=True, intrinsics=tuple(intrinsics), poses=poses, rerun="off", progress=False,
                             device=device)
     config.medea.device = device
+    if medea_eps is not None:
+        config.medea.stage1.adam_eps = medea_eps
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     start = time.perf_counter()
@@ -184,6 +187,7 @@ def main() -> None:
     parser.add_argument("--cpu-threads", type=int, default=2, help="torch threads of the CPU runs (default 2)")
     parts = ["prior", "agreement", "speed"]
     parser.add_argument("--parts", nargs="+", default=parts, choices=parts)
+    parser.add_argument("--medea-eps", type=float, help="Adam epsilon of MEDeA's Stage I (default: the preset's)")
     parser.add_argument("--json", type=Path, help="where to write the results (default benchmarks/results/device.json)")
     args = parser.parse_args()
     if args.make_inputs:
@@ -194,7 +198,7 @@ def main() -> None:
     fused = open3d_available()
     if not fused:
         stand_in_for_open3d()
-    payload: dict = {"machine": machine(), "open3d": fused, "torch": torch.__version__,
+    payload: dict = {"machine": machine(), "medea_eps": args.medea_eps, "open3d": fused, "torch": torch.__version__,
                      "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
     out_json = args.json or ROOT / "benchmarks" / "results" / "device.json"
 
@@ -221,7 +225,8 @@ def main() -> None:
                 runs = []
                 for device in args.devices:
                     threads = args.cpu_threads if device == "cpu" else None
-                    r = run(kitchen / "frames", str(kitchen / "poses.txt"), camera, device, workdir, threads)
+                    r = run(kitchen / "frames", str(kitchen / "poses.txt"), camera, device, workdir, threads,
+                            args.medea_eps)
                     r["label"] = device
                     r["abs_rel"] = {"medea": abs_rel(r["medea_depth"], sensor), "refined": abs_rel(r["depth"], sensor)}
                     runs.append(r)
@@ -248,6 +253,8 @@ def main() -> None:
                         r = run(video, poses, camera, device, workdir, threads)
                         r["label"] = f"{device} {'estimated' if poses == 'estimate' else 'given'}"
                         runs.append(r)
+                        payload["speed"] = {"runs": [{k: v for k, v in r.items() if "depth" not in k} for r in runs]}
+                        save()
                         print(f"video, {r['label']} poses: {r['wall'] / r['frames']:.4f} s/frame, "
                               f"{ {k: round(v, 1) for k, v in r['seconds'].items()} }", flush=True)
                 payload["speed"] = {"runs": [{k: v for k, v in r.items() if "depth" not in k} for r in runs]}

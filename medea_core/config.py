@@ -22,6 +22,11 @@ class StageConfig:
     # Early stop when the epoch loss has not dropped by at least this fraction of the
     # best loss so far for `patience` consecutive epochs ("1% throughout 40 epochs").
     min_rel_improvement: float = 0.01
+    # Adam's epsilon (torch's default; the paper does not give one). Adam moves every grid
+    # cell by about the learning rate whatever its gradient, so cells the data barely
+    # constrains follow the last bits of their gradient; a larger epsilon (1e-2 against
+    # gradients of ~1e-3) damps them. docs/benchmarks.md, "MEDeA on CPU and CUDA".
+    adam_eps: float = 1e-8
 
 
 @dataclass

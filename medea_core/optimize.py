@@ -90,7 +90,7 @@ def optimise_stage(
     frozen = log_scales.detach().reshape(num, -1).clone()
     table = frozen.clone().requires_grad_(True)
     trainable = trainable.to(device)
-    optimiser = torch.optim.SparseAdam([table], lr=stage.lr)
+    optimiser = torch.optim.SparseAdam([table], lr=stage.lr, eps=stage.adam_eps)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=stage.gamma)
     best, stall = float("inf"), 0
     for epoch in range(stage.epochs):
