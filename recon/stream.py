@@ -493,7 +493,7 @@ def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, un
 def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, seq: Sequence, options):
     """The TSDF volume sized from the prior depth of all depth frames, brought to the scale
     of the first window's adjusted depth (the only adjusted depth known when it opens)."""
-    from .fusion import TsdfVolume, estimate_block_count, o3d_device, volume_size
+    from .fusion import TsdfVolume, estimate_block_count, fusion_device, volume_size
 
     prior, valid = seq.prior_depth, (seq.prior_depth > 0) & (adjusted > 0)
     ratio = float(np.median(adjusted[valid] / prior[valid])) if valid.any() else 1.0
@@ -506,7 +506,7 @@ def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, s
     # The first window sees part of the scene; the hash map grows past this when needed.
     capacity = int(min(options.block_count, max(4096, 2 * estimate)))
     return TsdfVolume(voxel, trunc, max_depth, capacity, colored=True, block_resolution=options.block_resolution,
-                      device=o3d_device(options.device))
+                      device=fusion_device(options.device))
 
 
 def _log_mesh(logger, volume, options, index: int) -> None:

@@ -153,3 +153,20 @@ def test_fuse_real_sensor_depth(tmp_path):
     d = depth[k][v[inside], u[inside]]
     ok = d > 0
     assert ok.sum() > 1000 and np.median(np.abs(cam[inside, 2][ok] - d[ok])) < 0.02
+
+
+def test_cuda_without_open3d_cuda_falls_back_to_the_cpu(monkeypatch, caplog):
+    """--device cuda where only torch has CUDA (pip's Open3D may not): fusion runs on the
+    CPU with one warning instead of failing after the GPU stages; a bad name still fails."""
+    import open3d.core as o3c
+
+    from recon.fusion import fusion_device
+
+    monkeypatch.setattr(o3c.cuda, "is_available", lambda: False)
+    with caplog.at_level(logging.WARNING):
+        assert fusion_device("cuda") == o3c.Device("CPU:0")
+        assert fusion_device("cuda:1") == o3c.Device("CPU:0")
+    assert sum("no CUDA support" in r.getMessage() for r in caplog.records) == 2
+    assert fusion_device("cpu") == o3c.Device("CPU:0")
+    with pytest.raises(ReconInputError):
+        fusion_device("tpu")

@@ -165,6 +165,17 @@ def o3d_device(device: str) -> o3c.Device:
     return o3c.Device("CPU:0")
 
 
+def fusion_device(device: str) -> o3c.Device:
+    """Where TSDF fusion runs: ``device`` when this Open3D build can use it. A CUDA device
+    that only torch can use (pip's Open3D is often built without CUDA) falls back to the
+    CPU with a warning, rather than failing after the torch stages have run on the GPU."""
+    if str(device).strip().lower().startswith("cuda") and not o3c.cuda.is_available():
+        log.warning("this Open3D build has no CUDA support (or sees no GPU): TSDF fusion runs on the CPU; "
+                    "the prior, MEDeA and the refinement still use %s", device)
+        return o3c.Device("CPU:0")
+    return o3d_device(device)
+
+
 # --------------------------------------------------------------------------- parameters
 
 
@@ -357,7 +368,7 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         depth = ConfidentDepth(depth, confidence, threshold)
     poses = np.asarray(poses, dtype=np.float64)
     k_all = _frame_intrinsics(intrinsics, n)
-    device = o3d_device(options.device)
+    device = fusion_device(options.device)
     frames = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
     if len(frames) < n:
         log.warning("TSDF fusion: skipping %d of %d frames with invalid poses", n - len(frames), n)
