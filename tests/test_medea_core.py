@@ -126,6 +126,27 @@ def test_frozen_grids_get_no_updates():
     assert not torch.allclose(result[1], start[1])
 
 
+def test_adam_eps_damps_steps_of_small_gradients():
+    """adam_eps reaches the optimiser: Adam's first step moves a cell by the learning rate
+    whatever its gradient (eps 1e-8); with an eps far above the gradients it moves
+    gradient x lr / eps, i.e. barely."""
+    images, depth, poses, intr = _plane_sequence(3)
+    prior = depth * torch.tensor([1.2, 0.8, 1.1])[:, None, None]
+    config = MedeaConfig(image_scale=0.5)
+    data = prepare_frames(images, prior, poses, intr, None, config.image_scale, "cpu")
+    pairs = torch.tensor([[0, 1], [1, 0], [1, 2], [2, 1]])
+    moved = {}
+    for eps in (1e-8, 10.0):
+        stage = StageConfig(epochs=1, gamma=1.0, patience=100, lr=0.1, adam_eps=eps)
+        result, _ = optimise_stage(data, torch.zeros(3, 8, 10), torch.ones(3, dtype=torch.bool), pairs, stage,
+                                   config, torch.Generator().manual_seed(0))
+        moved[eps] = result.abs()
+    stepped = moved[1e-8] > 0
+    assert stepped.float().mean() > 0.5
+    assert torch.allclose(moved[1e-8][stepped], torch.full_like(moved[1e-8][stepped], 0.1), rtol=1e-3)
+    assert moved[10.0].max() < 1e-3
+
+
 def _smooth_log_grid(generator, amplitude=0.15):
     """A smooth (8, 10) log-scale grid: a random 3x3 field interpolated onto the grid."""
     coarse = torch.randn(1, 1, 3, 3, generator=generator) * amplitude
