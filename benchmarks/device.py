@@ -164,6 +164,42 @@ def prior_variants(frames: np.ndarray, intrinsics, devices: list[str], threads: 
     return rows
 
 
+def pose_devices(folder: Path, devices: list[str], threads: int) -> dict:
+    """The front end (poses estimated) and the polish of given poses with their bundle
+    adjustment on each device: seconds, and how far the cameras end up from the first
+    device's (the rest, DIS flow and bookkeeping, runs on the CPU either way)."""
+    import cv2
+
+    from recon.io.trajectories import read_poses
+    from recon.poses import estimate_poses
+    from recon.poses.polish import polish_poses
+    from recon.priors.fastdepth import FastDepthPrior
+
+    camera = np.asarray(json.loads((folder / "camera.json").read_text())["intrinsics"])
+    frames = np.stack([cv2.imread(str(p))[..., ::-1] for p in sorted((folder / "frames").glob("*.jpg"))])
+    given = read_poses(folder / "poses.txt").poses
+    prior = FastDepthPrior(progress=False, device=devices[-1])(frames, camera).depth
+    torch.set_num_threads(threads)
+    out: dict = {}
+    for job in ("frontend", "polish"):
+        results = {}
+        for device in devices:
+            start = time.perf_counter()
+            if job == "frontend":
+                poses = estimate_poses(frames, prior, camera, method="frontend", device=device, progress=False).poses
+            else:
+                poses = polish_poses(frames, prior, given, camera, progress=False, device=device).poses
+            results[device] = {"seconds_per_frame": (time.perf_counter() - start) / len(frames), "poses": poses}
+        first = results[devices[0]]["poses"]
+        for device, r in results.items():
+            gap = np.linalg.norm(r.pop("poses")[:, :3, 3] - first[:, :3, 3], axis=1)
+            r.update(centre_gap_median_m=float(np.median(gap)), centre_gap_max_m=float(gap.max()))
+            print(f"{job} BA on {device}: {r['seconds_per_frame']:.4f} s/frame, cameras {r['centre_gap_max_m']:.2e} m "
+                  f"(max) from {devices[0]}'s", flush=True)
+        out[job] = results
+    return out
+
+
 def stage_table(runs: list[dict], fused: bool) -> str:
     from common import table
 
@@ -184,9 +220,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=300, help="frames of the rendered video (--make-inputs)")
     parser.add_argument("--inputs", type=Path, help="the folder --make-inputs wrote")
     parser.add_argument("--devices", nargs="+", default=["cpu", "cuda"])
+    parser.add_argument("--pose-devices", nargs="+", help="devices of the poses part (default: --devices)")
     parser.add_argument("--cpu-threads", type=int, default=2, help="torch threads of the CPU runs (default 2)")
-    parts = ["prior", "agreement", "speed"]
-    parser.add_argument("--parts", nargs="+", default=parts, choices=parts)
+    parts = ["prior", "agreement", "speed", "poses"]
+    parser.add_argument("--parts", nargs="+", default=parts[:3], choices=parts)
     parser.add_argument("--medea-eps", type=float, help="Adam epsilon of MEDeA's Stage I (default: the preset's)")
     parser.add_argument("--json", type=Path, help="where to write the results (default benchmarks/results/device.json)")
     args = parser.parse_args()
@@ -216,8 +253,11 @@ def main() -> None:
                 camera = np.asarray(json.loads((kitchen / "camera.json").read_text())["intrinsics"])
                 paths = sorted((kitchen / "frames").glob("*.jpg"))[:64]
                 frames = np.stack([cv2.imread(str(p))[..., ::-1] for p in paths])
-                payload["prior"] = prior_variants(frames, camera, args.devices,
-                                                  args.cpu_threads)
+                payload["prior"] = prior_variants(frames, camera, args.devices, args.cpu_threads)
+            elif part == "poses":
+                payload["poses"] = pose_devices(args.inputs / "kitchen", args.pose_devices or args.devices,
+                                                args.cpu_threads)
+                save()
             elif part == "agreement":
                 kitchen = args.inputs / "kitchen"
                 camera = json.loads((kitchen / "camera.json").read_text())["intrinsics"]
@@ -241,6 +281,7 @@ def main() -> None:
                     print(f"median depth difference {runs[0]['label']} vs {runs[1]['label']}: "
                           f"{record['median_difference']}", flush=True)
                 payload["agreement"] = record
+                save()
                 print(stage_table(runs, fused), flush=True)
             else:
                 video = args.inputs / "synthetic" / "input" / "synthetic.mp4"

@@ -185,7 +185,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         seq = seq.with_(intrinsics=tuple(float(v) for v in seq.intrinsics))
         if not pose_plan.estimated and config.refine != "none" and config.polish:
             say("polishing the given poses against the frames")
-            pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress)
+            pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress, config.device)
             seq = seq.with_(poses=pose_stage.poses)
 
     undistorted = worth_undistorting(seq.intrinsics, seq.size, pose_stage.lens_k1)

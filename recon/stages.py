@@ -291,12 +291,12 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
             for k, (i, state) in enumerate(zip(seq.indices, status))]
 
 
-def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True) -> PoseStage:
+def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:
     """The given poses polished against the frames (recon.poses.polish, ``config`` its
-    PolishConfig), the lens with them."""
+    PolishConfig; its bundle adjustment on ``device``), the lens with them."""
     from .poses.polish import polish_poses
 
-    result = polish_poses(seq.rgb, seq.prior_depth, stage.poses, seq.intrinsics, config, progress)
+    result = polish_poses(seq.rgb, seq.prior_depth, stage.poses, seq.intrinsics, config, progress, device)
     info = {**stage.info, "polish": result.info}
     source = f"{stage.source}, polished against the frames" if result.info.get("polished") else stage.source
     return replace(stage, poses=result.poses, source=source, info=info, lens_k1=result.lens_k1)

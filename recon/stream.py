@@ -332,7 +332,8 @@ class _Poser:
 
             if config.pose_method == "sfm":
                 raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
-            self.frontend = StreamingFrontend(intrinsics, self._prior, _frontend_config(config.pose_options))
+            self.frontend = StreamingFrontend(intrinsics, self._prior,
+                                              _frontend_config(config.pose_options, config.device))
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,
@@ -391,7 +392,7 @@ class _Poser:
                        "estimated (streamed front end)", info, float(result.diagnostics.get("lens_k1", 0.0)), note)
 
 
-def _frontend_config(options: dict):
+def _frontend_config(options: dict, device: str = "cpu"):
     from dataclasses import replace
 
     from .poses.frontend import FrontendConfig
@@ -403,7 +404,7 @@ def _frontend_config(options: dict):
         raise ReconInputError(f"streamed runs use the front end, which has no option {', '.join(unknown)}")
     config = replace(FrontendConfig(), **options)
     check_pose_config(config)
-    return config
+    return replace(config, ba=replace(config.ba, device=device))
 
 
 # --------------------------------------------------------------------------- pass 2: depth

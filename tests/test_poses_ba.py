@@ -64,3 +64,33 @@ def test_dense_ba_recovers_poses_and_depth_from_exact_flow(pose_room):
     assert float(err.max()) < 2e-3  # metres; the perturbation was ~1 cm
     assert report.costs[-1] < 1e-3 * report.costs[0]
     assert float(((1 / D - depth).abs() / depth).median()) < 0.01
+
+
+def _devices() -> list[str]:
+    # "cpu:0" is another torch.device than "cpu", so on a CPU-only machine it still runs
+    # the path that moves the problem to the solver's device and the result back.
+    return ["cpu:0"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def test_dense_ba_on_another_device_gives_the_same_answer(pose_room):
+    """BAOptions.device: the solver runs there (lens estimated, pose tie on), inputs and
+    results stay on the caller's device, and the answer is the CPU's up to round-off."""
+    torch.set_num_threads(1)
+    seq, _ = pose_room
+    intr, depth, T_gt, edges = _exact_edges(seq, [0, 4, 8, 12], 30, 40, k1=-0.05)
+    noise = lie.se3_exp(torch.randn(4, 6, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 0.01)
+    disp = 1.0 / depth
+    tie = ba.PosePrior(T_gt.clone(), torch.full((4, 6), 10.0, dtype=torch.float64))
+    free = torch.zeros(4, dtype=torch.bool)
+
+    def solve(device: str):
+        opts = ba.BAOptions(iters=8, calibrate_k1=True, device=device)
+        return ba.bundle_adjust(noise @ T_gt, disp.clone(), intr, edges, disp, torch.full_like(depth, 0.01), free,
+                                opts, pose_prior=tie)
+
+    T_cpu, D_cpu, report_cpu = solve("cpu")
+    for device in _devices():
+        T, D, report = solve(device)
+        assert T.device == T_gt.device and D.device == T_gt.device
+        assert torch.allclose(T, T_cpu, atol=1e-9) and torch.allclose(D, D_cpu, rtol=1e-6)
+        assert abs(report.k1 - report_cpu.k1) < 1e-9 and len(report.costs) == len(report_cpu.costs)

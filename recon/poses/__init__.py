@@ -39,8 +39,9 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     matrix), or None to estimate the focal length (principal point at the centre; reported
     in ``PoseResult.intrinsics`` and ``diagnostics["focal_search"]``). method: "frontend"
     (dense flow + BA), "sfm" (pycolmap) or "auto" (front end, then SfM when tracking is
-    lost, with a logged warning and ``diagnostics["fallback"]``). device: accepted for
-    symmetry with the pipeline; both estimators run on the CPU (the BA problems are small).
+    lost, with a logged warning and ``diagnostics["fallback"]``). device: where the front
+    end's dense bundle adjustment runs (``ba.BAOptions.device``); DIS flow, the tracking
+    bookkeeping and SfM stay on the CPU.
     options: ``FrontendConfig`` fields for the front end (``config=`` for a whole config),
     ``SfMConfig`` fields for SfM (``sfm_config=``); a field name that belongs to neither
     raises ReconInputError.
@@ -58,6 +59,7 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     check_pose_options(options)
     fe_fields, sfm_fields = set(FrontendConfig.__dataclass_fields__), set(SfMConfig.__dataclass_fields__)
     fe_cfg = replace(fe_cfg, **{k: v for k, v in options.items() if k in fe_fields})
+    fe_cfg = replace(fe_cfg, ba=replace(fe_cfg.ba, device=device))
     sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in sfm_fields})
     check_pose_config(fe_cfg)
     check_pose_config(sfm_cfg)

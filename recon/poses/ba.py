@@ -73,7 +73,11 @@ class Edges:
         if self.source is not None:
             return self.source.reshape(-1, 2).to(dtype)
         height, width = self.target.shape[1:3]
-        return pj.pixel_grid(height, width, dtype=dtype).reshape(-1, 2)
+        return pj.pixel_grid(height, width, dtype=dtype, device=self.target.device).reshape(-1, 2)
+
+    def to(self, device: torch.device | str) -> "Edges":
+        source = None if self.source is None else self.source.to(device)
+        return Edges(self.ii.to(device), self.jj.to(device), self.target.to(device), self.weight.to(device), source)
 
     def select(self, mask: torch.Tensor) -> "Edges":
         return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask], self.source)
@@ -92,7 +96,7 @@ class Edges:
                 "these edges are already in a pinhole image; undistorting them again would bend them twice"
             )
         height, width = self.target.shape[1:3]
-        grid = pj.pixel_grid(height, width, dtype=self.target.dtype)
+        grid = pj.pixel_grid(height, width, dtype=self.target.dtype, device=self.target.device)
         intr = intr.to(self.target.dtype)
         return Edges(self.ii, self.jj, pj.undistort(self.target, intr, k1)[0], self.weight,
                      pj.undistort(grid, intr, k1)[0])
@@ -124,6 +128,9 @@ class BAOptions:
         the problem): 1e-3 makes k1 = 0.1 cost as much as every pixel being off by 0.003 px,
         nothing against what a lens does to the flow, but it holds k1 where the motion says
         nothing about the lens.
+    device: where the solver runs ("cpu", "cuda", "cuda:N"); inputs and results stay where
+        the caller keeps them. Most of a BA is per-pixel Jacobian products, which a GPU
+        runs in far fewer steps than two CPU cores.
     """
 
     iters: int = 6
@@ -136,6 +143,7 @@ class BAOptions:
     pixel_dtype: torch.dtype = torch.float32
     calibrate_k1: bool = False
     k1_prior_weight: float = 1e-3
+    device: str = "cpu"
 
 
 @dataclass
@@ -192,7 +200,7 @@ class _Residuals:
     @classmethod
     def of(cls, T_cw, disps, intr, edges: Edges, dtype: torch.dtype, k1: float = 0.0) -> "_Residuals":
         if not len(edges):
-            empty = torch.zeros(0, disps[0].numel(), dtype=dtype)
+            empty = torch.zeros(0, disps[0].numel(), dtype=dtype, device=disps.device)
             return cls(empty, empty.bool())
         r, valid = edge_residuals(T_cw, disps, intr, edges, dtype, k1)
         return cls(torch.hypot(r[..., 0], r[..., 1]), valid)
@@ -239,6 +247,9 @@ class PosePrior:
 
     T0: torch.Tensor
     weight: torch.Tensor
+
+    def to(self, device: torch.device | str) -> "PosePrior":
+        return PosePrior(self.T0.to(device), self.weight.to(device))
 
     def residual(self, T_cw: torch.Tensor) -> torch.Tensor:
         """(K, 6) log(T_k T0_k^-1)."""
@@ -324,16 +335,17 @@ def _normal_equations(
     else:
         uv = edges.source_pixels(px)
     uv = uv[None]
+    on = {"device": T_cw.device}
     out = {
-        "Hjj": torch.empty(E, 6, 6, dtype=dt),
-        "vj": torch.empty(E, 6, dtype=dt),
-        "Ej": torch.empty(E, 6, P, dtype=px),
-        "C": torch.zeros(num_kf, P, dtype=dt),
-        "w": torch.zeros(num_kf, P, dtype=dt),
+        "Hjj": torch.empty(E, 6, 6, dtype=dt, **on),
+        "vj": torch.empty(E, 6, dtype=dt, **on),
+        "Ej": torch.empty(E, 6, P, dtype=px, **on),
+        "C": torch.zeros(num_kf, P, dtype=dt, **on),
+        "w": torch.zeros(num_kf, P, dtype=dt, **on),
     }
     if calibrate:
-        out.update(Hkk=torch.zeros((), dtype=dt), vk=torch.zeros((), dtype=dt), Hkj=torch.empty(E, 6, dtype=dt),
-                   Ek=torch.zeros(num_kf, P, dtype=dt))
+        out.update(Hkk=torch.zeros((), dtype=dt, **on), vk=torch.zeros((), dtype=dt, **on),
+                   Hkj=torch.empty(E, 6, dtype=dt, **on), Ek=torch.zeros(num_kf, P, dtype=dt, **on))
     flat_disp = disps.reshape(num_kf, P).to(px)
     for sl in _chunks(E, P):
         ii = edges.ii[sl]
@@ -397,8 +409,9 @@ class _Couplings:
 def _couplings(sys: dict, edges: Edges, num_kf: int, rows: torch.Tensor) -> _Couplings:
     K = num_kf
     L = rows.numel()
-    local = torch.full((K,), -1, dtype=torch.int64)
-    local[rows] = torch.arange(L)
+    on = {"device": rows.device}
+    local = torch.full((K,), -1, dtype=torch.int64, **on)
+    local[rows] = torch.arange(L, **on)
     keep = local[edges.ii] >= 0
     Ej, T_ij = sys["Ej"], sys["Tij"]
     if not bool(keep.all()):  # the window BA: edges leaving held depths couple to nothing
@@ -408,15 +421,15 @@ def _couplings(sys: dict, edges: Edges, num_kf: int, rows: torch.Tensor) -> _Cou
     order = torch.argsort(ii, stable=True)
     counts = torch.bincount(ii, minlength=L)
     first = torch.cumsum(counts, 0) - counts
-    slot = torch.empty(E, dtype=torch.int64)
-    slot[order] = torch.arange(E) - first[ii[order]] + 1
+    slot = torch.empty(E, dtype=torch.int64, **on)
+    slot[order] = torch.arange(E, **on) - first[ii[order]] + 1
     n = int(counts.max()) if E else 0
     m = n + 1 + ("Ek" in sys)
-    B = torch.zeros(L, m, 6, P, dtype=Ej.dtype)
+    B = torch.zeros(L, m, 6, P, dtype=Ej.dtype, **on)
     B[ii, slot] = Ej
     # Pose k enters each edge only through T_kj: its coupling is -Ad(T_kj)^T times the
     # edge's, summed over k's edges as one product over the slots.
-    A = torch.zeros(L, m, 6, 6, dtype=Ej.dtype)
+    A = torch.zeros(L, m, 6, 6, dtype=Ej.dtype, **on)
     A[ii, slot] = -lie.adjoint(T_ij).transpose(1, 2).to(Ej.dtype)
     B[:, 0] = A.permute(0, 2, 1, 3).reshape(L, 6, 6 * m) @ B.reshape(L, 6 * m, P)
     pose = rows[:, None].repeat(1, m)
@@ -443,17 +456,17 @@ def _reduced_system(
     dt = Q.dtype
     K = num_kf
     N = K + ("Hkk" in sys)
-    S = torch.zeros(N * N, 6, 6, dtype=dt)
+    S = torch.zeros(N * N, 6, 6, dtype=dt, device=Q.device)
     S.index_add_(0, ii * N + ii, sys["Hii"])
     S.index_add_(0, ii * N + jj, sys["Hij"])
     S.index_add_(0, jj * N + ii, sys["Hij"].transpose(1, 2))
     S.index_add_(0, jj * N + jj, sys["Hjj"])
-    g = torch.zeros(N, 6, dtype=dt)
+    g = torch.zeros(N, 6, dtype=dt, device=Q.device)
     g.index_add_(0, ii, sys["vi"])
     g.index_add_(0, jj, sys["vj"])
     if N > K:
         for pose, H in ((ii, sys["Hki"]), (jj, sys["Hkj"])):
-            row = torch.zeros(len(edges), 6, 6, dtype=dt)
+            row = torch.zeros(len(edges), 6, 6, dtype=dt, device=Q.device)
             row[:, 0] = H
             S.index_add_(0, K * N + pose, row)
             S.index_add_(0, pose * N + K, row.transpose(1, 2))
@@ -510,11 +523,11 @@ def ba_step(
     C = C * (1.0 + lm) + opts.eps
     Q = 1.0 / C
     # A held depth has infinite stiffness: it drops out of the Schur complement.
-    free_disp = torch.ones(K, dtype=torch.bool) if fixed_disp is None else ~fixed_disp
+    free_disp = torch.ones(K, dtype=torch.bool, device=disps.device) if fixed_disp is None else ~fixed_disp
     S, g, cpl = _reduced_system(sys, edges, Q, wz, K, free_disp)
     if pose_prior is not None:
         # r(dx) = log(exp(dx) T T0^-1) ~ r + dx for the left update.
-        k = torch.arange(K)
+        k = torch.arange(K, device=S.device)
         S[k, k] += torch.diag_embed(pose_prior.weight.to(S.dtype))
         g[:K] -= pose_prior.weight * pose_prior.residual(T_cw)
     if k1 is not None:
@@ -524,7 +537,7 @@ def ba_step(
         fixed = torch.cat([fixed, fixed.new_zeros(1)])
 
     free = (~fixed).nonzero(as_tuple=True)[0]
-    dx = torch.zeros(S.shape[0], 6, dtype=T_cw.dtype)
+    dx = torch.zeros(S.shape[0], 6, dtype=T_cw.dtype, device=S.device)
     if free.numel():
         Sf = S[free][:, free].permute(0, 2, 1, 3).reshape(6 * free.numel(), 6 * free.numel())
         Sf = 0.5 * (Sf + Sf.T)
@@ -570,6 +583,12 @@ def bundle_adjust(
     if fixed is None:
         fixed = torch.zeros(K, dtype=torch.bool)
         fixed[0] = True
+    home, device = T_cw.device, torch.device(opts.device)
+    if device != home:
+        T_cw, disps, intr, edges, fixed = T_cw.to(device), disps.to(device), intr.to(device), edges.to(device), \
+            fixed.to(device)
+        prior, prior_w, fixed_disp = (None if t is None else t.to(device) for t in (prior, prior_w, fixed_disp))
+        pose_prior = None if pose_prior is None else pose_prior.to(device)
     calibrate = opts.calibrate_k1
     k1_tie = (k1, opts.k1_prior_weight * float(edges.weight.sum()) if calibrate else 0.0)
     if not calibrate:
@@ -619,7 +638,7 @@ def bundle_adjust(
     report.rmse, report.inlier_fraction = res.stats(edges, max(huber, 0.5))
     report.huber = huber
     report.k1 = k1
-    return T_cw, disps, report
+    return T_cw.to(home), disps.to(home), report
 
 
 def align_frames(
@@ -655,15 +674,16 @@ def align_frames(
     tgt_planes = tgt.transpose(1, 2)
     w0 = weight.reshape(L, P)
     T = T_init.clone()
-    eye = torch.eye(6, dtype=T.dtype)
+    on = {"dtype": T.dtype, "device": T.device}
+    eye = torch.eye(6, **on)
     for _ in range(iters):
         Tkf_to_f = T[frame] @ lie.inv(T_kf)
         proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk_planes, intr)
         r = tgt_planes - proj
         wgt = w0 * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), huber)
         JtJ, Jtr = _pixel_sums(Jf, wgt, r)
-        H = torch.zeros(M, 6, 6, dtype=T.dtype).index_add_(0, frame, JtJ)
-        g = torch.zeros(M, 6, dtype=T.dtype).index_add_(0, frame, Jtr)
+        H = torch.zeros(M, 6, 6, **on).index_add_(0, frame, JtJ)
+        g = torch.zeros(M, 6, **on).index_add_(0, frame, Jtr)
         H = H + eye * (1e-4 * H.diagonal(dim1=1, dim2=2).mean(-1, keepdim=True)[..., None] + 1e-9)
         dx = torch.linalg.solve(H, g[..., None])[..., 0]
         T = lie.se3_exp(dx) @ T
@@ -672,8 +692,8 @@ def align_frames(
     proj, valid = pj.project(pj.transform(T[frame] @ lie.inv(T_kf), Xk), intr)
     rn = (tgt - proj).norm(dim=-1)
     wv = w0 * valid
-    num = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, (wv * rn.clamp(max=10 * huber) ** 2).sum(1))
-    den = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, wv.sum(1))
-    inl = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, (wv * (rn < huber)).sum(1))
-    tot = torch.zeros(M, dtype=T.dtype).index_add_(0, frame, w0.sum(1))
+    num = torch.zeros(M, **on).index_add_(0, frame, (wv * rn.clamp(max=10 * huber) ** 2).sum(1))
+    den = torch.zeros(M, **on).index_add_(0, frame, wv.sum(1))
+    inl = torch.zeros(M, **on).index_add_(0, frame, (wv * (rn < huber)).sum(1))
+    tot = torch.zeros(M, **on).index_add_(0, frame, w0.sum(1))
     return T, (num / den.clamp(min=1e-9)).sqrt(), inl / tot.clamp(min=1e-9)

@@ -107,7 +107,7 @@ def pose_tie(T_cw: torch.Tensor, edges: ba.Edges, depth: np.ndarray, focal: floa
 
 
 def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray, intrinsics,
-                 config: PolishConfig | None = None, progress: bool = True) -> PolishResult:
+                 config: PolishConfig | None = None, progress: bool = True, device: str = "cpu") -> PolishResult:
     """Polish given poses (N, 4, 4) camera-to-world against the frames (N, H, W, 3) uint8.
 
     prior_depth: (N, h, w) metres (0 invalid), for pairing and for the BA's depth; intrinsics:
@@ -138,7 +138,8 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     prior_w = torch.stack([p[1] for p in priors])
     T_cw = lie.inv(c2w)
     tie = pose_tie(T_cw, edges, pooled, float(intr[0]), cfg.pose_weight)
-    opts = replace(ba.BAOptions(), iters=cfg.iters, prior_weight=cfg.prior_weight, calibrate_k1=cfg.calibrate_lens)
+    opts = replace(ba.BAOptions(), iters=cfg.iters, prior_weight=cfg.prior_weight, calibrate_k1=cfg.calibrate_lens,
+                   device=device)
     # What the given poses explain of the flow: the depth alone fitted under them.
     held = torch.ones(len(good), dtype=torch.bool)
     depth_only = replace(opts, iters=cfg.depth_iters, calibrate_k1=False)
