@@ -70,8 +70,13 @@ class MedeaConfig:
     feature_weight: float = 1.0
     seed: int = 0
     device: str = "cpu"
-    # Guards the S-form ratio where both features are zero (ReLU outputs).
-    feature_eps: float = 1e-6
+    # Added to the S-form's denominator |Fi + Fj->i| (the paper has none). The features are
+    # ReLU outputs, often 0: where both sides are near 0 the bare ratio jumps between 0 and
+    # 1 and its gradient eps / (F + eps)^2 explodes, so last-bit noise (another device,
+    # 1e-6 in the prior) moved 7-Scenes depth by 10 % (median); at 0.01 (activations reach
+    # 6) runs agree within 0.3 % and abs rel is lower. docs/benchmarks.md, "MEDeA on CPU
+    # and CUDA".
+    feature_eps: float = 0.01
     # A warped pixel counts only if its bilinear footprint lies on valid depth in frame j.
     min_sample_validity: float = 0.999
 

@@ -27,8 +27,9 @@ def depth_loss(depth_i: torch.Tensor, depth_j_in_i: torch.Tensor, mask: torch.Te
     return masked_mean((depth_i - depth_j_in_i).abs(), mask)
 
 
-def feature_loss_s(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / |Fi + Fj->i|."""
+def feature_loss_s(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor, eps: float = 0.01) -> torch.Tensor:
+    """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / (|Fi + Fj->i| + eps);
+    eps keeps the ratio smooth where both features are near zero (MedeaConfig.feature_eps)."""
     ratio = (feat_i - warped_j).abs() / ((feat_i + warped_j).abs() + eps)
     return masked_mean(ratio.mean(dim=1), mask)
 

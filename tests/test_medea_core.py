@@ -97,8 +97,13 @@ def test_loss_values_on_known_inputs():
     assert float(photometric_loss(image, image + 0.1, mask)) == pytest.approx(0.1, abs=1e-6)
     feat_i = torch.ones(1, 2, 4, 5)
     feat_j = 3 * torch.ones(1, 2, 4, 5)
-    assert float(feature_loss_s(feat_i, feat_j, mask)) == pytest.approx(0.5, abs=1e-5)
+    assert float(feature_loss_s(feat_i, feat_j, mask, eps=0.0)) == pytest.approx(0.5, abs=1e-6)
+    assert float(feature_loss_s(feat_i, feat_j, mask)) == pytest.approx(2 / 4.01, abs=1e-6)
     assert float(feature_loss_s(feat_i, feat_i, mask)) == 0.0
+    # ReLU features that are both (nearly) off: the bare ratio would say "maximally
+    # different" (1) for 0 against 1e-4; with the default eps it says "alike".
+    off, barely = torch.zeros(1, 2, 4, 5), torch.full((1, 2, 4, 5), 1e-4)
+    assert float(feature_loss_s(off, barely, mask)) < 0.02
     assert float(feature_loss_m(feat_i, feat_j, mask)) == pytest.approx(-6.0)
 
 
