@@ -1,13 +1,17 @@
 """The pipeline on CPU and on CUDA: seconds per stage, and whether both devices give the
 same depth (issue 23).
 
-Two measurements, each a `recon run` (``run_pipeline``) per device in one process:
+Parts (``--parts``; the first three by default), each per device in one process:
 
-* ``speed``: a rendered 640x480 video (default 300 frames) with estimated poses, the main
-  job (``recon run video.mp4``), and with the ground-truth poses given;
-* ``agreement``: 7-Scenes redkitchen, every 4th frame of 0-399 (100 frames, colour focal
-  525 px), ground-truth poses given: the median relative difference between the CPU's and
-  CUDA's depth (MEDeA's and the refined), and each device's abs rel against the sensor.
+* ``prior``: FastDepth with features by batch size and memory layout, after a warm-up;
+* ``agreement``: ``recon run`` (``run_pipeline``) on 7-Scenes redkitchen, every 4th frame
+  of 0-399 (100 frames, colour focal 525 px), ground-truth poses given: the median
+  relative difference between the devices' depth (MEDeA's and the refined), and each
+  device's abs rel against the sensor;
+* ``speed``: ``recon run`` on a rendered 640x480 video (default 300 frames) with
+  estimated poses (the main job) and with the ground-truth poses given;
+* ``poses``: the front end and the polish of given poses with their bundle adjustment on
+  each of ``--pose-devices``: seconds, and how far the cameras end from the first's.
 
 The inputs need neither open3d nor ``../shared`` at run time, so they travel to a GPU
 machine as one folder (frames as JPEG, quality 95: both devices decode the same pixels):
