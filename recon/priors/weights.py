@@ -80,11 +80,9 @@ def find_weights(name: str, filename: str, explicit: str | os.PathLike | None = 
         raise ReconInputError(
             f"{name} weights not found at --weights {explicit} (tried: {', '.join(map(str, tried))})"
         )
-    tried = []
-    env = os.environ.get(ENV_VAR)
-    if env:
-        tried += _candidates(Path(env).expanduser(), name, filename)
-    tried.append(packaged_weights(name))
+    # weight_roots() is the one statement of the order; the packaged folder holds only <name>.npz.
+    tried = [path for root in weight_roots()
+             for path in ([packaged_weights(name)] if root == PACKAGED_MODELS else _candidates(root, name, filename))]
     for path in tried:
         if path.is_file():
             return path
