@@ -404,7 +404,7 @@ def _frontend_config(options: dict, device: str = "cpu"):
         raise ReconInputError(f"streamed runs use the front end, which has no option {', '.join(unknown)}")
     config = replace(FrontendConfig(), **options)
     check_pose_config(config)
-    return replace(config, ba=replace(config.ba, device=device))
+    return config.on_device(device)
 
 
 # --------------------------------------------------------------------------- pass 2: depth

@@ -10,7 +10,7 @@ BA's inverse depth.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -121,6 +121,10 @@ class FrontendConfig:
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
     features: ft.FeatureConfig = field(default_factory=ft.FeatureConfig)
     ba: ba.BAOptions = field(default_factory=ba.BAOptions)
+
+    def on_device(self, device: str) -> "FrontendConfig":
+        """The same settings with the bundle adjustment on ``device`` (the rest runs on the CPU)."""
+        return replace(self, ba=replace(self.ba, device=device))
 
 
 @dataclass
