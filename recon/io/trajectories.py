@@ -271,24 +271,29 @@ def write_nerfstudio(path, poses: np.ndarray, names: Sequence[str] | None = None
 
 def detect_pose_format(path) -> str:
     """Format name of a pose file or folder (one of FORMATS); one-line error when unknown."""
-    path = Path(path)
+    return _detect(Path(path))[0]
+
+
+def _detect(path: Path) -> tuple[str, str | None]:
+    """(format, why): why is the evidence for a text file's format (None for formats told by
+    name or layout), so that a file which then does not parse can say what was assumed."""
     if not path.exists():
         raise input_error(path, "no such file or folder")
     if path.is_dir():
         if colmap_model_dir(path) is not None:
-            return "colmap"
+            return "colmap", None
         if (path / "transforms.json").is_file():
-            return "nerfstudio"
+            return "nerfstudio", None
         if _matrix_files(path):
-            return "matrices"
+            return "matrices", None
         raise input_error(path, "folder holds no recognised poses (COLMAP model, transforms.json, *.txt 4x4 files)")
     if path.suffix == ".json":
-        return "nerfstudio"
+        return "nerfstudio", None
     if path.suffix == ".log":
-        return "log"
+        return "log", None
     if path.name in ("cameras.bin", "images.bin", "points3D.bin", "cameras.txt", "images.txt", "points3D.txt"):
-        return "colmap"
-    return _text_format(path)[0]
+        return "colmap", None
+    return _text_format(path)
 
 
 def _text_format(path: Path) -> tuple[str, str]:
@@ -315,9 +320,7 @@ def read_poses(path, fmt: str | None = None) -> PoseData:
     path = Path(path)
     why = None
     if fmt is None:
-        fmt = detect_pose_format(path)
-        if path.is_file() and path.suffix not in (".json", ".log") and fmt != "colmap":
-            why = _text_format(path)[1]
+        fmt, why = _detect(path)
     readers = {
         "tum": read_tum,
         "colmap": read_colmap,
