@@ -97,7 +97,7 @@ def test_recording_has_frames_cameras_mesh_losses(demo):
     out, report = demo
     entities, components, frames, _ = read_recording(out / "recording.rrd")
     for entity in ("/world/camera", "/world/camera/rgb", "/world/camera/prior_depth", "/world/camera/adjusted_depth",
-                   "/world/trajectory", "/world/mesh", "/medea/stage1/total"):
+                   "/world/trajectory/00000", "/world/mesh", "/medea/stage1/total"):
         assert entity in entities, entity
     indices = report["frames"]["indices"]
     assert sorted(frames["/world/camera/rgb"]) == indices

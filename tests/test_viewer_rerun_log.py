@@ -70,7 +70,7 @@ def test_save_roundtrip(tmp_path):
         "/world/camera/adjusted_depth",
         "/world/camera/refined_depth",
         "/world/camera/confidence",
-        "/world/trajectory",
+        "/world/trajectory/00000",
         "/world/mesh",
         "/world/points",
     ] + [f"/medea/{stage}/{term}" for stage in ("stage1", "stage2")
@@ -85,7 +85,7 @@ def test_save_roundtrip(tmp_path):
     assert "Image:buffer" in components["/world/camera/rgb"]
     assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/prior_depth"]
     assert {"DepthImage:buffer", "DepthImage:meter"} <= components["/world/camera/adjusted_depth"]
-    assert "LineStrips3D:strips" in components["/world/trajectory"]
+    assert "LineStrips3D:strips" in components["/world/trajectory/00000"]
     assert {"Mesh3D:vertex_positions", "Mesh3D:triangle_indices", "Mesh3D:vertex_colors"} <= components["/world/mesh"]
     assert "Scalars:scalars" in components["/medea/stage1/total"]
 
@@ -203,7 +203,7 @@ def test_live_logging_roundtrip_with_layout(tmp_path):
     assert values["/world/camera/prior_depth"]["DepthImage:format"][0][0]["width"] == W // 2
     # the trajectory holds one centre per frame; tracking lines on the frame timeline
     assert sorted(frames["/tracking"]) == list(range(N_FRAMES))
-    assert len(values["/world/trajectory"]["LineStrips3D:strips"][0][0]) == 1
+    assert len(values["/world/trajectory/00000"]["LineStrips3D:strips"][0][0]) == 1
 
     # the mesh: two updates on the frame timeline, none static
     assert sorted(frames["/world/mesh"]) == [1, 3]
@@ -253,3 +253,36 @@ def test_default_blueprint_is_pure_and_complete():
     assert isinstance(scene, rrb.Spatial3DView) and scene.origin == "/world"
     assert [view.origin for view in losses.contents] == ["/medea/stage1", "/medea/stage2"]
     assert [view.origin for view in default_blueprint(["only"]).root_container.contents[1].contents] == ["/medea/only"]
+
+
+def test_trajectory_is_logged_in_pieces_that_join(tmp_path, monkeypatch):
+    """Each camera re-logs only its piece of the trajectory (a recording grows linearly with
+    the frames, not with their square), and the pieces join into one line."""
+    monkeypatch.setattr(rerun_log, "TRAJECTORY_PIECE", 4)
+    path = tmp_path / "long.rrd"
+    centres = np.stack([np.arange(11.0), np.zeros(11), np.zeros(11)], axis=1)
+    with RerunLogger("save", path, max_width=None) as logger:
+        for k, c in enumerate(centres):
+            pose = np.eye(4)
+            pose[:3, 3] = c
+            logger.log_frame(k, None, pose=pose)
+    _, _, frames, _ = read_recording(path)
+    pieces = sorted(e for e in frames if e.startswith("/world/trajectory/") and "#" not in e)
+    assert pieces == ["/world/trajectory/00000", "/world/trajectory/00001", "/world/trajectory/00002"]
+    assert sorted(frames["/world/trajectory/00001"]) == [4, 5, 6, 7]
+    last = _last_strips(path)
+    assert [len(last[p]) for p in pieces] == [4, 5, 4]  # pieces after the first start at the one before
+    joined = np.concatenate([last[pieces[0]]] + [last[p][1:] for p in pieces[1:]])
+    assert np.allclose(joined, centres)
+
+
+def _last_strips(path) -> dict[str, np.ndarray]:
+    """The last logged strip of each trajectory piece of an .rrd."""
+    import rerun.chunk as rr_chunk
+
+    last = {}
+    for chunk in rr_chunk.RrdReader(path).stream():
+        if chunk.entity_path.startswith("/world/trajectory/"):
+            strips = chunk.to_record_batch().column("LineStrips3D:strips").to_pylist()
+            last[chunk.entity_path] = np.asarray(strips[-1][0], dtype=np.float64)
+    return last

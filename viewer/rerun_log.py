@@ -14,7 +14,8 @@ Entity layout::
     world/camera/adjusted_depth   DepthImage (meter=1)
     world/camera/refined_depth    DepthImage (meter=1)
     world/camera/confidence       Image (8-bit grey, 255 = every view agrees)
-    world/trajectory              LineStrips3D of the camera centres so far (in frame order)
+    world/trajectory/<piece>      LineStrips3D of the camera centres so far (in frame order),
+                                  in pieces of TRAJECTORY_PIECE frames (see trajectory_piece)
     world/dropped                 Points3D: centres of frames the quality gate dropped (red)
     tracking                      TextLog: each frame's tracking state (keyframe, tracked,
                                   relocalised, recovered, interpolated, dropped)
@@ -67,6 +68,9 @@ ADJUSTED_DEPTH = f"{CAMERA}/adjusted_depth"
 REFINED_DEPTH = f"{CAMERA}/refined_depth"
 CONFIDENCE = f"{CAMERA}/confidence"
 TRAJECTORY = "world/trajectory"
+# Frames per trajectory piece. Each new camera re-logs only its own piece: logging the whole
+# trajectory with every frame would make a recording grow with the square of its length.
+TRAJECTORY_PIECE = 256
 DROPPED = "world/dropped"
 TRACKING = "tracking"
 # Tracking states that mean trouble are logged as warnings (rerun's TextLog level).
@@ -74,6 +78,11 @@ _TROUBLE = ("interpolated", "dropped", "lost")
 MESH = "world/mesh"
 POINTS = "world/points"
 LOSSES = "medea"
+
+
+def trajectory_piece(index: int) -> str:
+    """Entity path of the trajectory piece that holds frame ``index``."""
+    return f"{TRAJECTORY}/{int(index) // TRAJECTORY_PIECE:05d}"
 
 
 def default_mode() -> str:
@@ -194,7 +203,7 @@ class RerunLogger:
         self.url: str | None = None  # gRPC URL in "serve" mode
         # Per frame index, so that frames may be logged in pieces and out of order: camera
         # centres (the trajectory), timestamps, logged image size (height, width).
-        self._centres: dict[int, np.ndarray] = {}
+        self._centres: dict[int, dict[int, np.ndarray]] = {}  # per trajectory piece
         self._timestamps: dict[int, float] = {}
         self._sizes: dict[int, tuple[int, int]] = {}
         self._dropped: list[np.ndarray] = []
@@ -314,9 +323,19 @@ class RerunLogger:
             if t.shape != (4, 4):
                 raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {t.shape}")
             rec.log(CAMERA, rr.Transform3D(translation=t[:3, 3], mat3x3=t[:3, :3]))
-            self._centres[index] = t[:3, 3].copy()
-            centres = np.stack([self._centres[k] for k in sorted(self._centres)])
-            rec.log(TRAJECTORY, rr.LineStrips3D([centres], colors=[[255, 128, 0]]))
+            piece = index // TRAJECTORY_PIECE
+            self._centres.setdefault(piece, {})[index] = t[:3, 3].copy()
+            rec.log(trajectory_piece(index), rr.LineStrips3D([self._piece_centres(piece)], colors=[[255, 128, 0]]))
+
+    def _piece_centres(self, piece: int) -> np.ndarray:
+        """(M, 3) centres of one trajectory piece in frame order, led by the last centre of the
+        piece before it so that the pieces join into one line."""
+        own = self._centres[piece]
+        centres = [own[k] for k in sorted(own)]
+        before = self._centres.get(piece - 1)
+        if before:
+            centres.insert(0, before[max(before)])
+        return np.stack(centres)
 
     def log_depth(
         self,
