@@ -72,7 +72,8 @@ def run(video: Path, out: Path, frames: int, mode: str, extra: list[str], weight
     return {"wall_s": wall, "s_per_frame": wall / frames_run, "frames": frames_run,
             "depth_frames": report["frames"].get("depth_frames", report["frames"]["count"]),
             "peak_rss_mb": report["memory"]["peak_rss_mb"], "seconds": report["seconds"],
-            "triangles": report["fusion"]["triangles"]}
+            "triangles": report["fusion"]["triangles"], "blocks": report["fusion"]["blocks_used"],
+            "anchors": [w.get("anchored_to") for w in report.get("windows", {}).get("each", [])]}
 
 
 def main() -> None:
@@ -107,10 +108,11 @@ def main() -> None:
         results.append(result)
         print(json.dumps({k: v for k, v in result.items() if k != "seconds"}), flush=True)
         rows.append([label, n, result.get("depth_frames", "-"), f"{result.get('peak_rss_mb', float('nan')):.0f}",
-                     f"{result.get('s_per_frame', float('nan')):.3f}", result.get("error", "")])
+                     f"{result.get('s_per_frame', float('nan')):.3f}", result.get("blocks", "-"),
+                     result.get("triangles", "-"), result.get("error", "")])
         # Written after every run: a long series stopped part-way keeps what it measured.
         write_json(args.json, {"machine": machine(), "video": str(video), "extra": args.extra, "results": results})
-    print(table(["run", "frames", "depth frames", "peak RSS MB", "s/frame", "error"], rows))
+    print(table(["run", "frames", "depth frames", "peak RSS MB", "s/frame", "TSDF blocks", "triangles", "error"], rows))
 
 
 if __name__ == "__main__":

@@ -49,6 +49,9 @@ from .stream_plan import MotionSelector, anchor_factor, parse_depth_frames, plan
 
 log = logging.getLogger(__name__)
 
+# Share of a window's pixels the fused surface must cover to anchor the window's scale.
+SURFACE_ANCHOR_MIN_COVER = 0.02
+
 # Frames given their prior at once (FastDepth runs faster on a batch than frame by frame).
 PRIOR_BATCH = 8
 # Depth values kept per depth frame (a pixel lattice) to size the TSDF volume, and in all.
@@ -415,6 +418,7 @@ class _WindowRecord:
     frames: int
     new: int
     anchor: float
+    anchored_to: str
     medea_epochs: dict
     refined_share: float | None
 
@@ -448,10 +452,8 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
             else:
                 adjusted, medea = seq.prior_depth, None
-        factor = 1.0
-        if window.shared:
-            factor = anchor_factor(np.stack([finished[p] for p in pos[:window.shared]]), adjusted[:window.shared])
-            adjusted = adjusted * np.float32(factor)
+        factor, anchored_to = _anchor(volume, seq, adjusted, [finished[p] for p in pos[:window.shared]])
+        adjusted = adjusted * np.float32(factor)
         refined, final, confidence = None, adjusted, None
         if config.refine == "mvs":
             with clock.stage("refine"):
@@ -477,10 +479,31 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
             bar.update(1)
         if logger is not None and medea is not None and not records:
             logger.log_losses(medea.history)
-        records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, _epochs(medea),
+        records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean())))
     bar.close()
     return (volume, options), records
+
+
+def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:
+    """(scale factor for a window's adjusted depth (N, H, W), what it was fitted to).
+
+    Where the volume already holds surfaces in view, the factor brings the window to the
+    fused surface rendered into all its frames: a camera that comes back to a place is put at
+    the scale of what is already fused there (as a dense SLAM system tracks against its
+    model), so revisits average into the same voxels instead of adding a second, shifted
+    surface. Otherwise, the previous window's finished depth on the shared frames `shared`.
+    Rendering at half resolution (every other pixel) is enough for a median."""
+    if volume is not None and volume.blocks_used:
+        current = adjusted[:, ::2, ::2]
+        half = np.asarray(seq.intrinsics, np.float64) / 2.0
+        rendered = np.stack([volume.render_depth(pose, half, current.shape[1:]) for pose in seq.poses])
+        min_pixels = max(100, int(SURFACE_ANCHOR_MIN_COVER * current.size))
+        if int(((rendered > 0) & (current > 0)).sum()) >= min_pixels:
+            return anchor_factor(rendered, current, min_pixels), "fused surface"
+    if shared:
+        return anchor_factor(np.stack(shared), adjusted[:len(shared)]), "shared frames"
+    return 1.0, "none"
 
 
 def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, undistort: bool) -> Sequence:

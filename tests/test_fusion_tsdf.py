@@ -170,3 +170,20 @@ def test_cuda_without_open3d_cuda_falls_back_to_the_cpu(monkeypatch, caplog):
     assert fusion_device("cpu") == o3c.Device("CPU:0")
     with pytest.raises(ReconInputError):
         fusion_device("tpu")
+
+
+def test_rendered_depth_is_the_fused_surface(fusion_room):
+    from recon.fusion.volume import TsdfVolume
+
+    room = fusion_room
+    h, w = room.depth.shape[1:]
+    volume = TsdfVolume(0.02, 0.08, 8.0, 4096, colored=False)
+    assert not volume.render_depth(room.poses[0], room.intrinsics, (h, w)).any()  # nothing fused: no surface
+    for k in range(10):
+        volume.integrate(room.depth[k], room.poses[k], room.intrinsics)
+    for k in (5, 14):  # a fused frame, and one the fused frames only partly saw
+        rendered = volume.render_depth(room.poses[k], room.intrinsics, (h, w))
+        both = (rendered > 0) & (room.depth[k] > 0)
+        assert both.mean() > 0.4
+        error = np.abs(rendered[both] - room.depth[k][both]) / room.depth[k][both]
+        assert np.median(error) < 0.01 and np.percentile(error, 90) < 0.03

@@ -80,3 +80,24 @@ def test_streamed_recording_grows_and_opens_on_the_reconstruction(both_runs):
     layout = recording_blueprint(path)
     assert layout["timeline"] == "frame"
     assert any(view["class"] == "3D" for view in layout["views"])
+
+
+def test_a_window_is_anchored_to_the_fused_surface_it_revisits(room_video):
+    """A revisit whose adjusted depth came out 10 % too far is brought back to the surface
+    already fused there; with nothing fused in view, to the previous window's shared frames."""
+    from types import SimpleNamespace
+
+    from recon.fusion.volume import TsdfVolume
+    from recon.stream import _anchor
+
+    seq, _ = room_video
+    volume = TsdfVolume(0.02, 0.08, 8.0, 4096, colored=False)
+    for k in range(12):
+        volume.integrate(seq.depth[k], seq.poses[k], seq.intrinsics)
+    revisit = SimpleNamespace(poses=seq.poses[4:10], intrinsics=seq.intrinsics)
+    factor, anchored_to = _anchor(volume, revisit, seq.depth[4:10] * 1.1, shared=[seq.depth[4] * 1.3])
+    assert anchored_to == "fused surface" and factor == pytest.approx(1 / 1.1, rel=0.01)
+    empty = TsdfVolume(0.02, 0.08, 8.0, 64, colored=False)
+    factor, anchored_to = _anchor(empty, revisit, seq.depth[4:10] * 1.1, shared=[seq.depth[4] * 1.3])
+    assert anchored_to == "shared frames" and factor == pytest.approx(1.3 / 1.1, rel=0.01)
+    assert _anchor(None, revisit, seq.depth[4:10], shared=[]) == (1.0, "none")

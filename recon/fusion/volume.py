@@ -137,6 +137,27 @@ class TsdfVolume:
         self.frames_fused += 1
         return True
 
+    def render_depth(self, pose, intrinsics, size: tuple[int, int], min_weight: float = 2.0) -> np.ndarray:
+        """(H, W) float32 depth in metres of the fused surface seen from a camera (0 where a ray
+        meets no surface observed at least `min_weight` times); pose (4, 4) camera-to-world,
+        intrinsics (fx, fy, cx, cy) of an image of size (H, W). Ray casting through the
+        volume's active blocks (Open3D's VoxelBlockGrid.ray_cast)."""
+        h, w = (int(v) for v in size)
+        if self.blocks_used == 0:
+            return np.zeros((h, w), np.float32)
+        fx, fy, cx, cy = (float(v) for v in intrinsics)
+        K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
+        E = o3c.Tensor(np.linalg.inv(np.asarray(pose, np.float64)), o3c.float64)
+        hashmap = self.grid.hashmap()
+        blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
+        # Open3D reports how it sized its range map on stdout; that is not the user's business.
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            result = self.grid.ray_cast(blocks, K, E, w, h, ["depth"], 1.0, 0.05, self.max_depth,
+                                        float(min_weight), self.trunc / self.voxel, 8)
+        depth = result["depth"].cpu().numpy().reshape(h, w).astype(np.float32, copy=False)
+        depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+        return depth
+
     @property
     def blocks_used(self) -> int:
         return int(self.grid.hashmap().size())
