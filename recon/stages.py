@@ -246,36 +246,50 @@ def camera_poses(plan: PosePlan, source: FrameSource, seq: Sequence, *, method: 
     """Poses of the sequence's frames from the planned source; method and options: the
     estimator's (recon.poses.estimate_poses) when the plan is to estimate."""
     if plan.kind == "gt":
-        valid = np.isfinite(source.poses).all(axis=(1, 2))
-        if valid.sum() < 2:
-            raise ReconInputError(f"{source.path}: fewer than 2 selected frames have a ground-truth pose")
+        valid, note = ground_truth_kept(source)
         keep = None if valid.all() else np.flatnonzero(valid)
-        return PoseStage(source.poses, None, "dataset ground truth", keep=keep,
-                         dropped_note=f"{len(valid) - valid.sum()} frames have no ground-truth pose and are left out")
+        return PoseStage(source.poses, None, "dataset ground truth", keep=keep, dropped_note=note)
     if plan.kind == "estimate":
         return estimated_poses(seq, method=method, options=options or {}, device=device, progress=progress)
     poses, file_intrinsics = match_pose_file(plan.data, source, seq.indices, seq.timestamps)
     return PoseStage(poses, file_intrinsics, f"file {plan.data.path}")
 
 
-def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, progress: bool) -> PoseStage:
-    """Poses estimated from the frames, through the quality gate (recon.poses.quality):
-    frames whose pose the images do not back are left out, named in report.json."""
+def ground_truth_kept(source: FrameSource) -> tuple[np.ndarray, str]:
+    """(N,) bool: the selected frames with a ground-truth pose, and the note naming how many
+    are left out; ReconInputError when fewer than two have one."""
+    valid = np.isfinite(source.poses).all(axis=(1, 2))
+    if valid.sum() < 2:
+        raise ReconInputError(f"{source.path}: fewer than 2 selected frames have a ground-truth pose")
+    return valid, f"{len(valid) - valid.sum()} frames have no ground-truth pose and are left out"
+
+
+def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
+    """An estimate (a recon.poses PoseResult of the frames `frame_indices`, their video frame
+    numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what
+    report.json says of it, and the note naming the frames left out ("" when none)."""
     from .poses.quality import gate_trajectory
 
-    result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
-                               progress=progress, **options)
     gate = gate_trajectory(result)
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
-            "frame_status": list(result.diagnostics.get("frame_status", [])),
-            "quality": gate.summary([int(i) for i in seq.indices])}
-    keep, note = None, ""
+            "quality": gate.summary([int(i) for i in frame_indices])}
+    note = ""
     if gate.dropped:
-        keep = np.flatnonzero(gate.keep)
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
-        note = (f"{len(gate.dropped)} of {len(seq)} frames have no pose the images back "
+        note = (f"{len(gate.dropped)} of {len(gate.keep)} frames have no pose the images back "
                 f"(video frames {spans}) and are left out of depth and fusion (report.json: poses.quality)")
+    return gate.keep, info, note
+
+
+def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, progress: bool) -> PoseStage:
+    """Poses estimated from the frames, through the quality gate (recon.poses.quality):
+    frames whose pose the images do not back are left out, named in report.json."""
+    result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
+                               progress=progress, **options)
+    kept, info, note = gate_estimate(result, seq.indices)
+    info["frame_status"] = list(result.diagnostics.get("frame_status", []))
+    keep = None if kept.all() else np.flatnonzero(kept)
     return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info, keep=keep,
                      lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
 

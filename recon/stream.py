@@ -44,7 +44,7 @@ from .io.pose_matching import frame_names, match_pose_file
 from .io.source import FrameSource
 from .lens import worth_undistorting
 from .sequence import Sequence
-from .stages import PosePlan, default_intrinsics, prior_function
+from .stages import PosePlan, default_intrinsics, gate_estimate, ground_truth_kept, prior_function
 from .stream_plan import MotionSelector, anchor_factor, parse_depth_frames, plan_windows
 
 log = logging.getLogger(__name__)
@@ -366,48 +366,31 @@ class _Poser:
     def close(self, store: FrameStore, indices, timestamps, live: np.ndarray) -> _Closed:
         """Final poses of every frame (NaN for frames left out) and what the report says."""
         if self.plan.kind == "gt":
-            valid = np.isfinite(live).all(axis=(1, 2))
-            if valid.sum() < 2:
-                raise ReconInputError(f"{self.source.path}: fewer than 2 selected frames have a ground-truth pose")
-            note = "" if valid.all() else f"{len(valid) - valid.sum()} frames have no ground-truth pose; left out"
-            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {}, dropped_note=note)
+            valid, note = ground_truth_kept(self.source)
+            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {},
+                           dropped_note="" if valid.all() else note)
         if self.plan.kind == "file":
             intr = self.intrinsics or self.file_intrinsics
             return _Closed(live, intr, "poses (file)", f"file {self.plan.data.path}", {})
-        return self._close_estimate(store)
+        return self._close_estimate(store, indices)
 
-    def _close_estimate(self, store: FrameStore) -> _Closed:
-        from .poses.quality import gate_trajectory
-
+    def _close_estimate(self, store: FrameStore, indices) -> _Closed:
         result = self.frontend.finish(lambda position: store.get(position, "rgb"), self.config.progress)
-        gate = gate_trajectory(result)
+        kept, info, note = gate_estimate(result, indices)
         poses = np.asarray(result.poses, np.float64).copy()
-        poses[~gate.keep] = np.nan
-        n = len(poses)
-        info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
-                "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
-                "quality": gate.summary(list(range(n)))}
-        note = ""
-        if gate.dropped:
-            note = (f"{len(gate.dropped)} of {n} frames have no pose the images back and are left out of depth and "
-                    "fusion (report.json: poses.quality)")
+        poses[~kept] = np.nan
         return _Closed(poses, tuple(result.intrinsics), "poses (estimated)",
                        "estimated (streamed front end)", info, float(result.diagnostics.get("lens_k1", 0.0)), note)
 
 
 def _frontend_config(options: dict, device: str = "cpu"):
-    from dataclasses import replace
-
     from .poses.frontend import FrontendConfig
-    from .poses.options import check_pose_config
+    from .poses.options import configure_frontend
 
-    fields = set(FrontendConfig.__dataclass_fields__)
-    unknown = sorted(set(options) - fields)
+    unknown = sorted(set(options) - set(FrontendConfig.__dataclass_fields__))
     if unknown:
         raise ReconInputError(f"streamed runs use the front end, which has no option {', '.join(unknown)}")
-    config = replace(FrontendConfig(), **options)
-    check_pose_config(config)
-    return config.on_device(device)
+    return configure_frontend(options, device)
 
 
 # --------------------------------------------------------------------------- pass 2: depth

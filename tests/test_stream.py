@@ -101,3 +101,21 @@ def test_a_window_is_anchored_to_the_fused_surface_it_revisits(room_video):
     factor, anchored_to = _anchor(empty, revisit, seq.depth[4:10] * 1.1, shared=[seq.depth[4] * 1.3])
     assert anchored_to == "shared frames" and factor == pytest.approx(1.3 / 1.1, rel=0.01)
     assert _anchor(None, revisit, seq.depth[4:10], shared=[]) == (1.0, "none")
+
+
+def test_streamed_run_with_estimated_poses(room_video, tmp_path):
+    """The streaming front end tracks the room, closes the trajectory (global BA, gate) and
+    every frame that moved enough gets metric depth at those poses."""
+    from recon.eval.trajectory import ate_rmse
+
+    seq, _ = room_video
+    result = run_pipeline(replace(_config(room_video, tmp_path / "est", "on", rerun="off"), poses="estimate"))
+    report = result.report
+    assert report["poses"]["source"] == "estimated (streamed front end)", report["poses"]
+    assert report["poses"]["keyframes"] >= 3
+    written = load_output(tmp_path / "est")
+    kept = np.isfinite(result.poses).all(axis=(1, 2))
+    assert kept.mean() > 0.9
+    ate = ate_rmse(result.poses[kept], seq.poses[kept], "sim3")
+    assert ate["rmse"] < 0.03 and abs(np.log(ate["scale"])) < 0.2, ate  # metric scale: from the simulated prior
+    assert depth_metrics(written.depth, seq.depth[written.indices])["abs_rel"] < 0.06

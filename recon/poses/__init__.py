@@ -17,6 +17,7 @@ from recon.errors import ReconInputError
 from recon.poses.options import (
     check_pose_config,
     check_pose_options,
+    configure_frontend,
     format_pose_option,
     parse_pose_option,
     pose_option_table,
@@ -48,19 +49,17 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
 
     Raises TrackingLostError (front end, or auto when SfM also fails) or ReconInputError.
     """
-    from recon.poses.frontend import FrontendConfig, estimate_poses_frontend
+    from recon.poses.frontend import estimate_poses_frontend
     from recon.poses.sfm import SfMConfig, estimate_poses_sfm
 
     if method not in POSE_METHODS:
         raise ReconInputError(f"pose method must be one of {', '.join(POSE_METHODS)}, got {method!r}")
     intrinsics = parse_intrinsics(intrinsics)
-    fe_cfg = options.pop("config", None) or FrontendConfig()
+    fe_cfg = options.pop("config", None)
     sfm_cfg = options.pop("sfm_config", None) or SfMConfig()
     check_pose_options(options)
-    fe_fields, sfm_fields = set(FrontendConfig.__dataclass_fields__), set(SfMConfig.__dataclass_fields__)
-    fe_cfg = replace(fe_cfg, **{k: v for k, v in options.items() if k in fe_fields}).on_device(device)
-    sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in sfm_fields})
-    check_pose_config(fe_cfg)
+    fe_cfg = configure_frontend(options, device, fe_cfg)
+    sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in SfMConfig.__dataclass_fields__})
     check_pose_config(sfm_cfg)
     if method == "sfm":
         return estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)

@@ -12,7 +12,7 @@ which ``import recon.poses`` should not.
 from __future__ import annotations
 
 import math
-from dataclasses import fields
+from dataclasses import fields, replace
 from functools import cache
 
 from recon.errors import ReconInputError
@@ -98,6 +98,17 @@ def check_pose_config(config) -> None:
             check_pose_config(value)
         else:  # flow and BA settings (nested configs) are set in Python and not checked here
             _check_value(f.name, value)
+
+
+def configure_frontend(options: dict, device: str = "cpu", base=None):
+    """The FrontendConfig of `base` (the defaults when None) with those of `options` that are
+    its fields (others are SfM's), checked, and with its bundle adjustment on `device`."""
+    from recon.poses.frontend_config import FrontendConfig
+
+    own = {k: v for k, v in options.items() if k in FrontendConfig.__dataclass_fields__}
+    config = replace(base or FrontendConfig(), **own)
+    check_pose_config(config)
+    return config.on_device(device)
 
 
 def check_pose_options(options: dict) -> None:
