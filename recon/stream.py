@@ -14,8 +14,9 @@ before the dense map is trusted):
            the quality gate, exactly as in the one-shot run.
 ``depth``  the depth frames, in overlapping windows (:func:`recon.stream_plan.plan_windows`),
            each window a :class:`~recon.sequence.Sequence` read back from the store: MEDeA
-           (the paper's pairs inside the window), anchored to the scale of the frames the
-           previous window finished, then the refinement; each finished frame's depth is
+           (the paper's pairs inside the window), anchored to the scale of the surface
+           already fused where the window's cameras see it (else to the frames the previous
+           window finished: :func:`_anchor`), then the refinement; each finished frame's depth is
            written to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`)
            and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
 
