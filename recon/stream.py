@@ -226,13 +226,14 @@ class _TrackLoop:
             out = self._prior(batch.take(rows), positions[rows]) if len(rows) else None
             if out is not None:
                 self.select.depth = _median_depth(out.depth[-1]) or self.select.depth
-        for k, position in enumerate(positions):
-            self.store.put(position, rgb=batch.rgb[k])
-        for row, k in enumerate(rows):
-            if take[k]:
-                self.store.put(positions[k], prior=out.depth[row],
-                               features=None if out.features is None else out.features[row])
-                self.sample.append(out.depth[row][::_SAMPLE_STEP, ::_SAMPLE_STEP].ravel())
+        with self.clock.stage("store"):
+            for k, position in enumerate(positions):
+                self.store.put(position, rgb=batch.rgb[k])
+            for row, k in enumerate(rows):
+                if take[k]:
+                    self.store.put(positions[k], prior=out.depth[row],
+                                   features=None if out.features is None else out.features[row])
+                    self.sample.append(out.depth[row][::_SAMPLE_STEP, ::_SAMPLE_STEP].ravel())
         self.indices += [int(i) for i in batch.indices]
         self.stamps += [float(t) for t in batch.timestamps]
         self.names += list(batch.names)
@@ -430,13 +431,15 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
     for window in windows:
         pos = positions[window.start:window.stop]
-        seq = _window_sequence(video, store, pos, undistort)
+        with clock.stage("store"):
+            seq = _window_sequence(video, store, pos, undistort)
         with clock.stage("medea"):
             if config.adjust:
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
             else:
                 adjusted, medea = seq.prior_depth, None
-        factor, anchored_to = _anchor(volume, seq, adjusted, [finished[p] for p in pos[:window.shared]])
+        with clock.stage("fusion"):  # the fused surface is rendered into the window
+            factor, anchored_to = _anchor(volume, seq, adjusted, [finished[p] for p in pos[:window.shared]])
         adjusted = adjusted * np.float32(factor)
         refined, final, confidence = None, adjusted, None
         if config.refine == "mvs":
