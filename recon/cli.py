@@ -20,7 +20,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from .cli_args import (
@@ -207,14 +209,32 @@ def _log_warnings_to_stderr() -> None:
         logger.addHandler(handler)
 
 
+class _Terminated(BaseException):
+    """SIGTERM (a scheduler or `kill` stopping the run), raised where the run is so that its
+    clean-up runs as on Ctrl-C: the frame store's temporary files and the half-written output
+    folder go; by default Python would die on the spot and leave them."""
+
+
+def _raise_terminated(signum, frame):
+    raise _Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         return _main(argv)
+    except _Terminated:
+        print("recon: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except BrokenPipeError:
         # Whoever read our output stopped early (`recon run --pose-option list | head`): not
         # an error. Point stdout at /dev/null so the interpreter's final flush stays quiet.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def _main(argv: list[str] | None) -> int:

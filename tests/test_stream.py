@@ -119,3 +119,33 @@ def test_streamed_run_with_estimated_poses(room_video, tmp_path):
     ate = ate_rmse(result.poses[kept], seq.poses[kept], "sim3")
     assert ate["rmse"] < 0.03 and abs(np.log(ate["scale"])) < 0.2, ate  # metric scale: from the simulated prior
     assert depth_metrics(written.depth, seq.depth[written.indices])["abs_rel"] < 0.06
+
+
+def test_sigterm_stops_a_run_and_removes_its_temporary_frames(room_video, tmp_path):
+    """A run stopped by SIGTERM (a scheduler, `kill`) cleans up as on Ctrl-C: one line, exit
+    143, no frame store left in the temporary folder and no half-written output folder."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    seq, inputs = room_video
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    out = tmp_path / "out"
+    fx, fy, cx, cy = seq.intrinsics
+    cmd = [sys.executable, "-m", "recon.cli", "run", str(inputs["video"]), "-o", str(out), "--stream", "on",
+           "--poses", str(inputs["poses"]), "--prior", "folder", "--prior-path", str(inputs["prior"]),
+           "--intrinsics", f"{fx},{fy},{cx},{cy}", "--rerun", "off", "--quiet"]
+    run = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "TMPDIR": str(temp)})
+    deadline = time.monotonic() + 120
+    while not any(temp.glob("recon-frames-*/*")) and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert run.poll() is None, "the run ended before it could be stopped"
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 128 + signal.SIGTERM
+    assert err.strip().splitlines()[-1] == "recon: terminated" and "Traceback" not in err
+    assert not list(temp.glob("recon-frames-*")) and not out.exists()
