@@ -257,11 +257,12 @@ def camera_poses(plan: PosePlan, source: FrameSource, seq: Sequence, *, method: 
 
 def ground_truth_kept(source: FrameSource) -> tuple[np.ndarray, str]:
     """(N,) bool: the selected frames with a ground-truth pose, and the note naming how many
-    are left out; ReconInputError when fewer than two have one."""
+    are left out ("" when none); ReconInputError when fewer than two have one."""
     valid = np.isfinite(source.poses).all(axis=(1, 2))
     if valid.sum() < 2:
         raise ReconInputError(f"{source.path}: fewer than 2 selected frames have a ground-truth pose")
-    return valid, f"{len(valid) - valid.sum()} frames have no ground-truth pose and are left out"
+    missing = len(valid) - int(valid.sum())
+    return valid, f"{missing} frames have no ground-truth pose and are left out" if missing else ""
 
 
 def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:

@@ -46,7 +46,7 @@ from .io.source import FrameSource
 from .lens import worth_undistorting
 from .sequence import Sequence
 from .stages import PosePlan, default_intrinsics, gate_estimate, ground_truth_kept, prior_function
-from .stream_plan import MotionSelector, anchor_factor, parse_depth_frames, plan_windows
+from .stream_plan import MotionSelector, anchor_factor, anchor_pixels, parse_depth_frames, plan_windows
 
 log = logging.getLogger(__name__)
 
@@ -368,9 +368,8 @@ class _Poser:
     def close(self, store: FrameStore, indices, timestamps, live: np.ndarray) -> _Closed:
         """Final poses of every frame (NaN for frames left out) and what the report says."""
         if self.plan.kind == "gt":
-            valid, note = ground_truth_kept(self.source)
-            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {},
-                           dropped_note="" if valid.all() else note)
+            _, note = ground_truth_kept(self.source)
+            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {}, dropped_note=note)
         if self.plan.kind == "file":
             intr = self.intrinsics or self.file_intrinsics
             return _Closed(live, intr, "poses (file)", f"file {self.plan.data.path}", {})
@@ -486,7 +485,7 @@ def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray
         half = np.asarray(seq.intrinsics, np.float64) / 2.0
         rendered = np.stack([volume.render_depth(pose, half, current.shape[1:]) for pose in seq.poses])
         min_pixels = max(100, int(SURFACE_ANCHOR_MIN_COVER * current.size))
-        if int(((rendered > 0) & (current > 0)).sum()) >= min_pixels:
+        if int(anchor_pixels(rendered, current).sum()) >= min_pixels:
             return anchor_factor(rendered, current, min_pixels), "fused surface"
     if shared:
         return anchor_factor(np.stack(shared), adjusted[:len(shared)]), "shared frames"

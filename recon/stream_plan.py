@@ -106,14 +106,20 @@ def plan_windows(count: int, window: int, overlap: int) -> list[Window]:
     return out
 
 
+def anchor_pixels(finished: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Pixels where both depths ((M, H, W) each) are valid: what an anchor is fitted on."""
+    return (finished > 0) & (current > 0) & np.isfinite(finished) & np.isfinite(current)
+
+
 def anchor_factor(finished: np.ndarray, current: np.ndarray, min_pixels: int = 100) -> float:
     """exp(median log ratio) of finished to current depth over pixels valid in both
     ((M, H, W) each, the shared frames); 1 when too few pixels are valid."""
     finished, current = np.asarray(finished, np.float32), np.asarray(current, np.float32)
-    valid = (finished > 0) & (current > 0) & np.isfinite(finished) & np.isfinite(current)
+    valid = anchor_pixels(finished, current)
     if int(valid.sum()) < min_pixels:
         return 1.0
     return float(np.exp(np.median(np.log(finished[valid] / current[valid]))))
 
 
-__all__ = ["MotionSelector", "Window", "anchor_factor", "parse_depth_frames", "plan_windows", "rotation_angle"]
+__all__ = ["MotionSelector", "Window", "anchor_factor", "anchor_pixels", "parse_depth_frames", "plan_windows",
+           "rotation_angle"]
