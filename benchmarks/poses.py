@@ -56,19 +56,37 @@ def undistort_radial(rgb: np.ndarray, prior: np.ndarray, intrinsics, k1: float) 
     return undistort_images(rgb, intrinsics, k1), undistort_images(prior, intrinsics, k1, nearest=True)
 
 
-def parse_case(name: str) -> tuple[str, int, int]:
-    """'7scenes/12@100' -> ('7scenes', 12, 100): base case, frame stride, first frame."""
+def parse_case(name: str) -> tuple[str, int, int, int]:
+    """'7scenes/12@100~3' -> ('7scenes', 12, 100, 3): base case, frame stride, first frame,
+    passes."""
+    name, _, passes = name.partition("~")
     base, _, start = name.partition("@")
     base, _, stride = base.partition("/")
-    return base, int(stride or 1), int(start or 0)
+    return base, int(stride or 1), int(start or 0), int(passes or 1)
+
+
+def ping_pong(count: int, passes: int) -> np.ndarray:
+    """Frame order of `passes` passes over `count` frames, forwards then backwards, the
+    turning frames not repeated."""
+    order = [np.arange(count)]
+    for p in range(1, passes):
+        order.append(np.arange(count)[::-1][1:] if p % 2 else np.arange(count)[1:])
+    return np.concatenate(order)
 
 
 def load_case(name: str, k1: float = 0.0):
     """rgb (N, H, W, 3), prior (N, h, w), intrinsics or None, gt poses (N, 4, 4), prior seconds.
 
-    name: a base case, optionally with a frame stride and a first frame ('tum/3',
-    '7scenes/12@100'): fast motion made from the recordings (issue 20)."""
-    base, stride, start = parse_case(name)
+    name: a base case, optionally with a frame stride, a first frame and passes ('tum/3',
+    '7scenes/12@100', '7scenes/4~3'): fast motion made from the recordings (issue 20),
+    revisits."""
+    rgb, prior, intr, poses, secs = _load_frames(name, k1)
+    order = ping_pong(len(rgb), parse_case(name)[3])
+    return rgb[order], prior[order], intr, poses[order], secs
+
+
+def _load_frames(name: str, k1: float):
+    base, stride, start, _ = parse_case(name)
     if base in ("7scenes", "7scenes-nok", "tum"):
         ds = open_dataset(DATA / ("tum-fr1-rpy" if base == "tum" else "7scenes-redkitchen"))
         if stride > 1 or start:
@@ -104,6 +122,7 @@ def evaluate(res, gt: np.ndarray, true_intr) -> dict:
         "seconds": res.seconds,
         "s_per_frame": res.seconds / len(res.poses),
         "keyframes": len(res.keyframes),
+        "revisits": res.diagnostics.get("revisits", 0),
         "lost_frames": len(res.diagnostics.get("lost_frames", [])),
         "focal": res.intrinsics[0],
         "lens_k1": res.diagnostics.get("lens_k1"),
@@ -123,15 +142,20 @@ def main() -> None:
                         help="diagnostic: undistort the 7-Scenes frames with this radial coefficient first (the "
                              "dataset publishes no colour calibration); rows are named 7scenes-k1=<value> and "
                              "kept apart from the plain rows")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a front-end setting (FrontendConfig field) for every case, e.g. revisit_flow=0")
+    parser.add_argument("--json", default="poses", help="results file name (benchmarks/results/NAME.json)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    settings = {k: float(v) for k, v in (item.split("=", 1) for item in args.set)}
+    tag = "".join(f" [{k}={v:g}]" for k, v in settings.items())
     results, rows = [], []
     for case in args.cases:
         if parse_case(case)[0] in ("7scenes", "7scenes-nok", "tum") and not DATA.is_dir():
             print(f"skipping {case}: {DATA} not found")
             continue
         rgb, prior, intr, gt, prior_s = load_case(case, args.k1)
-        label = f"{case}-k1={args.k1:g}" if args.k1 and case.startswith("7scenes") else case
+        label = (f"{case}-k1={args.k1:g}" if args.k1 and case.startswith("7scenes") else case) + tag
         true_intr = None
         if case == "synthetic-nok":
             from recon.synthetic import intrinsics_for
@@ -141,7 +165,8 @@ def main() -> None:
             if parse_case(case)[0].endswith("-nok") and method == "sfm":
                 continue
             try:
-                res = estimate_poses(rgb, prior, intr, method=method, progress=False)
+                res = estimate_poses(rgb, prior, intr, method=method, progress=False,
+                                     **(settings if method == "frontend" else {}))
                 if args.save:
                     args.save.mkdir(parents=True, exist_ok=True)
                     np.savez(args.save / f"{label.replace('/', '-s')}-{method}.npz", poses=res.poses, gt=gt,
@@ -153,22 +178,24 @@ def main() -> None:
             results.append(entry)
             print(entry, flush=True)
             if "error" in entry:
-                rows.append([label, method, len(rgb), "failed: " + entry["error"][:60], "", "", "", "", ""])
+                rows.append([label, method, len(rgb), "failed: " + entry["error"][:60], "", "", "", "", "", ""])
                 continue
             rows.append([
                 label, method, len(rgb), f"{100 * entry['ate_sim3_m']:.2f}", f"{100 * entry['ate_metric_m']:.2f}",
-                f"{100 * entry['scale_error']:.1f}", f"{entry['s_per_frame']:.3f}", entry["lost_frames"],
+                f"{100 * entry['scale_error']:.1f}", f"{entry['s_per_frame']:.3f}", entry["keyframes"],
+                entry["lost_frames"],
                 f"{entry.get('focal_error_pct', float('nan')):+.2f}",
             ])
-    print(table(["case", "method", "frames", "ATE Sim(3) cm", "ATE metric cm", "scale err %", "s/frame", "lost",
+    print(table(["case", "method", "frames", "ATE Sim(3) cm", "ATE metric cm", "scale err %", "s/frame", "keyframes",
+                 "lost",
                  "focal err %"], rows))
     # Merge with earlier runs of other cases/methods (one JSON for the whole table).
-    previous = RESULTS / "poses.json"
+    previous = RESULTS / f"{args.json}.json"
     if previous.is_file():
         done = {(r["case"], r["method"]) for r in results}
         kept = [r for r in json.loads(previous.read_text()).get("results", []) if (r["case"], r["method"]) not in done]
         results = kept + results
-    path = write_json("poses", {"machine": machine(), "results": results})
+    path = write_json(args.json, {"machine": machine(), "results": results})
     print(f"wrote {path}")
 
 

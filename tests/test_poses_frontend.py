@@ -57,6 +57,28 @@ def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
 
 
+def test_a_revisited_room_adds_no_keyframes(pose_room):
+    """The room walked forwards, backwards and forwards again (three passes): the later
+    passes go on from the keyframes of the first instead of adding their own, so the map
+    stays the size of the room, and the poses stay as good as one pass's. With the reuse
+    off (DROID-SLAM's behaviour) every pass adds keyframes."""
+    seq, prior = pose_room
+    order = np.concatenate([np.arange(36), np.arange(34, -1, -1), np.arange(1, 36)])
+    one = estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
+    again = estimate_poses(seq.rgb[order], prior[order], seq.intrinsics, method="frontend", progress=False)
+    off = estimate_poses(seq.rgb[order], prior[order], seq.intrinsics, method="frontend", progress=False,
+                         revisit_flow=0)
+    assert again.diagnostics["revisits"] > 0 and off.diagnostics["revisits"] == 0
+    assert len(again.keyframes) <= len(one.keyframes) + 3, (len(again.keyframes), len(one.keyframes))
+    assert len(off.keyframes) >= 2 * len(one.keyframes), (len(off.keyframes), len(one.keyframes))
+    length = path_length(seq.poses)
+    ate = ate_rmse(again.poses, seq.poses[order], "sim3")["rmse"]
+    assert ate <= 0.01 * length, f"Sim(3) ATE {ate:.4f} m > 1% of the {length:.2f} m path"
+    # A frame walked past twice gets (nearly) the same pose both times.
+    first, second = again.poses[10], again.poses[len(order) - 26]  # frame 10 on passes 1 and 3
+    assert np.linalg.norm(first[:3, 3] - second[:3, 3]) <= 0.015 * length
+
+
 def test_tracking_loss_names_the_frame(pose_room):
     seq, prior = pose_room
     rng = np.random.default_rng(0)

@@ -71,7 +71,9 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     frames tracking aligned to keyframe k, with DIS seeded or not: that flow is made again
     and used without the correlation checks, which it passed while tracking (unseeded, it
     is the same flow; seeded, the seed now comes from the initial pose and the final
-    keyframe depth: with every frame seeded, poses moved by at most 1.4 mm). prior_of(i):
+    keyframe depth: with every frame seeded, poses moved by at most 1.4 mm); the keyframes
+    before and after such a frame are left out when, by its tracked pose, they do not see
+    its view (a revisit: they were made elsewhere in the room). prior_of(i):
     (prior inverse depth, tie weight) on the BA grid, for the per-frame metric ratio
     (``frame_depth_ratios``); k1: the lens' radial term.
     Returns {i: (T_cw (4, 4), ok, ratio, inlier)}: inlier is the share of the flow confidence
@@ -102,6 +104,10 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             for k in (prev, nxt):
                 if k < 0 or k >= K or (i in known and known[i][0] == k):
                     continue
+                if i in known and not _sees(T_kf[k], disp_kf[k], intr, T_init[-1], cfg):
+                    # Tracked against an older keyframe on a revisit: the keyframes next to it
+                    # in time were made elsewhere in the room.
+                    continue
                 gray = gray_of(i) if gray is None else gray
                 fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow)
                 if (fl.match_correlation(kf_gray[k], gray, fwd, cf) < cfg.min_match_correlation
@@ -126,6 +132,16 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             ok = float(inl[m]) >= cfg.lost_inlier
             results[i] = (T[m] if ok else T_init[m], ok, float(ratio[m]), float(inl[m]))
     return results
+
+
+def _sees(T_kf: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor, T: torch.Tensor,
+          cfg: FrontendConfig) -> bool:
+    """Whether a keyframe (pose (4, 4), BA depth (H, W)) sees a camera at pose T (4, 4) as a
+    proximity edge would: overlap at least ``proximity_min_overlap``, induced flow within
+    ``proximity_max_flow`` (640-px working pixels; BA pixels are 8 of them)."""
+    _, motion, frac = gr.parallax_into(T_kf[None], disp_kf[None], intr, T)
+    width = disp_kf.shape[-1]
+    return bool(frac[0] >= cfg.proximity_min_overlap and motion[0] * 640.0 / width <= cfg.proximity_max_flow)
 
 
 def frame_depth_ratios(T: torch.Tensor, T_kf: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor,

@@ -35,6 +35,15 @@ class FrontendConfig:
         rotation adds cost but no depth information.
     keyframe_max_flow: ... or when the mean flow itself exceeds this, so that a rotating
         camera still gets keyframes before the overlap runs out.
+    revisit_flow: when a frame is due to become a keyframe, an older keyframe whose pixels
+        would move by less than this much parallax into it (by the current poses and
+        depths; overlap at least ``revisit_overlap``) is tried first: the frame is aligned to
+        it and, when the measured flow confirms it, tracking goes on from that keyframe
+        instead of adding one (ORB-SLAM keeps its map from growing on revisits the same
+        way, by culling redundant keyframes). A camera that walks the same room again then
+        adds no keyframes, so the map, the global BA and their memory stay the size of the
+        place rather than of the video. 0 turns it off (DROID-SLAM's behaviour).
+    revisit_overlap: ... see above.
     temporal_radius: each new keyframe is linked (both directions) to this many previous
         keyframes; at or above ``window`` it also ties the window to held keyframes, which
         holds the drift.
@@ -89,6 +98,8 @@ class FrontendConfig:
     ba_stride: int = 8
     keyframe_flow: float = 16.0
     keyframe_max_flow: float = 48.0
+    revisit_flow: float = 8.0
+    revisit_overlap: float = 0.7
     temporal_radius: int = 6
     proximity_edges: int = 2
     proximity_max_flow: float = 96.0

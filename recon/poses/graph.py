@@ -11,6 +11,8 @@ This module owns:
   the current poses and depths (DROID's frame distance), used to find proximity edges;
 * :func:`select_proximity`: the nearest keyframes by that distance, with temporal
   non-maximum suppression so that one revisit does not take all the edges;
+* :func:`parallax_into`: how far pixels of keyframes would move, beyond what the rotation
+  explains, in a camera at a given pose (is a revisited place already a keyframe?);
 * :func:`predicted_flow`: the flow the geometry predicts, used to seed DIS on long edges;
   :func:`seed_flows`: both ways between a keyframe and a frame at a given pose.
 """
@@ -147,6 +149,36 @@ def induced_flow(
     dist = torch.where(inside, move, torch.zeros_like(move)).sum(1) / inside.sum(1).clamp(min=1)
     dist = torch.where(frac > 0, dist, torch.full_like(dist, float("inf")))
     return dist, frac
+
+
+def parallax_into(
+    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, T: torch.Tensor, stride: int = 4
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mean parallax (C,) and mean induced flow (C,) in BA pixels from each of C keyframes
+    (T_cw (C, 4, 4), disps (C, H, W)) into a camera at world-to-camera pose T (4, 4), and the
+    fraction (C,) of their (subsampled) pixels that land inside it, in front.
+
+    Parallax is the induced flow minus the flow of points at infinity (the rotation's part),
+    the keyframe policy's measure (``motion_filter``) predicted from the map instead of
+    measured. Pixels are taken every `stride` on the BA grid.
+    """
+    height, width = disps.shape[-2:]
+    uv = pj.pixel_grid(height, width, dtype=T_cw.dtype)[::stride, ::stride]
+    sub = disps[:, ::stride, ::stride].double()
+    X = pj.backproject(uv[None], sub, intr).reshape(len(T_cw), -1, 4)
+    rel = T[None] @ lie.inv(T_cw)
+    proj, valid = pj.project(pj.transform(rel, X), intr)
+    at_infinity = X.clone()
+    at_infinity[..., 3] = 0.0
+    rotated, _ = pj.project(pj.transform(rel, at_infinity), intr)
+    inside = (valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5)
+              & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5))
+    count = inside.sum(1).clamp(min=1)
+    move = torch.where(inside, (proj - uv.reshape(1, -1, 2)).norm(dim=-1), 0.0).sum(1) / count
+    parallax = torch.where(inside, (proj - rotated).norm(dim=-1), 0.0).sum(1) / count
+    frac = inside.double().mean(1)
+    far = torch.full_like(move, float("inf"))
+    return torch.where(frac > 0, parallax, far), torch.where(frac > 0, move, far), frac
 
 
 def select_proximity(

@@ -61,19 +61,56 @@ class Tracker:
                 return
             s.ref_kf = found[0]
             status = "relocalised"
-        kf, T, fwd, bwd, cf, cb, seeded = found
         s.lost_run = []
+        flows, motion, parallax = self._record(index, found, status)
+        if motion_filter.is_keyframe(motion, parallax, s.cfg):
+            revisit = self._revisit(gray, s.frame_T[index])
+            if revisit is None:
+                self._add_keyframe(index, frame, gray, s.frame_T[index], found[0], flows)
+                s.previous = None
+                return
+            s.ref_kf = revisit[0]
+            s.revisits.append({"frame": index, "keyframe": int(s.graph.frames[revisit[0]])})
+            flows, _, _ = self._record(index, revisit, status)
+        s.previous = (index, frame, gray, s.frame_T[index], s.refs[index][0], flows)
+
+    def _record(self, index: int, found: tuple, status: str) -> tuple[tuple, float, float]:
+        """Keep a frame's alignment (``_against``'s tuple) to its keyframe; returns its flows
+        and the motion and parallax they measure from that keyframe."""
+        s = self.state
+        kf, T, fwd, bwd, cf, cb, seeded = found
         s.frame_T[index] = T
         s.refs[index] = (kf, seeded)
         s.rel[index] = T @ lie.inv(s.graph.poses([kf])[0])
         s.status[index] = status
         s.inlier[index] = s.last_inlier
         motion, parallax = motion_filter.motion_and_parallax(fwd, cf, s.rel[index], s.intrinsics, s.geo)
-        if motion_filter.is_keyframe(motion, parallax, s.cfg):
-            self._add_keyframe(index, frame, gray, T, kf, (fwd, bwd, cf, cb))
-            s.previous = None
-        else:
-            s.previous = (index, frame, gray, T, kf, (fwd, bwd, cf, cb))
+        return (fwd, bwd, cf, cb), motion, parallax
+
+    def _revisit(self, gray: np.ndarray, T: torch.Tensor):
+        """An older keyframe that already sees what a frame due to become a keyframe sees
+        (``FrontendConfig.revisit_flow``), judged at the frame's tracked pose T (4, 4): the
+        frame's alignment to it (``_against``'s tuple) when the map predicts little parallax
+        and the measured flow confirms that the frame is no keyframe from there; else None."""
+        s = self.state
+        cfg = s.cfg
+        candidates = [k for k in range(len(s.graph)) if k != s.ref_kf]
+        if cfg.revisit_flow <= 0 or not candidates:
+            return None
+        parallax, motion, frac = gr.parallax_into(s.graph.poses(candidates), s.graph.disps(candidates), s.intr, T)
+        to_ba = s.geo.px_scale * s.geo.flow_factor  # 640-px working pixels per BA pixel
+        near = (parallax * to_ba <= cfg.revisit_flow) & (motion * to_ba <= 2 * cfg.revisit_flow)
+        near &= frac >= cfg.revisit_overlap
+        for n in [int(n) for n in torch.argsort(parallax) if near[n]][:2]:
+            k = candidates[n]
+            found = self._against(k, gray, T)
+            if found is None:
+                continue
+            rel = found[1] @ lie.inv(s.graph.poses([k])[0])
+            if not motion_filter.is_keyframe(*motion_filter.motion_and_parallax(found[2], found[4], rel,
+                                                                                 s.intrinsics, s.geo), cfg):
+                return found
+        return None
 
     def _predict(self, index: int) -> torch.Tensor:
         """Where the frame starts: the previous frame's pose as tracked (else the reference
