@@ -51,6 +51,14 @@ def write_json(name: str, payload: dict) -> Path:
     return path
 
 
+def ping_pong(count: int, length: int):
+    """Indices (length,) of `count` frames played forwards, backwards, forwards, ... (a camera
+    walking the same room again), the turning frames not repeated."""
+    import numpy as np
+
+    return np.resize(np.concatenate([np.arange(count), np.arange(count - 2, 0, -1)]), length)
+
+
 def best_ms_per_item(run, count: int, rounds: int = 3) -> float:
     """Milliseconds per item of ``run()`` (which handles ``count`` items): one warm-up call,
     then the best of ``rounds`` timed calls (on a shared machine the minimum is the least

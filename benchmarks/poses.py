@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, table, write_json  # noqa: E402
+from common import RESULTS, machine, ping_pong, table, write_json  # noqa: E402
 
 from recon.errors import ReconInputError  # noqa: E402
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error  # noqa: E402
@@ -65,15 +65,6 @@ def parse_case(name: str) -> tuple[str, int, int, int]:
     return base, int(stride or 1), int(start or 0), int(passes or 1)
 
 
-def ping_pong(count: int, passes: int) -> np.ndarray:
-    """Frame order of `passes` passes over `count` frames, forwards then backwards, the
-    turning frames not repeated."""
-    order = [np.arange(count)]
-    for p in range(1, passes):
-        order.append(np.arange(count)[::-1][1:] if p % 2 else np.arange(count)[1:])
-    return np.concatenate(order)
-
-
 def load_case(name: str, k1: float = 0.0):
     """rgb (N, H, W, 3), prior (N, h, w), intrinsics or None, gt poses (N, 4, 4), prior seconds.
 
@@ -81,7 +72,7 @@ def load_case(name: str, k1: float = 0.0):
     '7scenes/12@100', '7scenes/4~3'): fast motion made from the recordings (issue 20),
     revisits."""
     rgb, prior, intr, poses, secs = _load_frames(name, k1)
-    order = ping_pong(len(rgb), parse_case(name)[3])
+    order = ping_pong(len(rgb), parse_case(name)[3] * (len(rgb) - 1) + 1)
     return rgb[order], prior[order], intr, poses[order], secs
 
 

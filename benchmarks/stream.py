@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import machine, table, write_json  # noqa: E402
+from benchmarks.common import machine, ping_pong, table, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -52,8 +52,7 @@ def ping_pong_video(path: Path, frames: int, dataset: Path) -> tuple[Path, Path]
         return path, poses_path
     source = open_source(dataset, width=640)
     clip = np.stack([f.rgb for f in source])
-    order = np.concatenate([np.arange(len(clip)), np.arange(len(clip) - 2, 0, -1)])
-    picks = np.resize(order, frames)
+    picks = ping_pong(len(clip), frames)
     write_video(clip[picks], path, fps=30.0)
     write_poses(poses_path, source.poses[picks], "tum", timestamps=np.arange(frames) / 30.0)
     return path, poses_path

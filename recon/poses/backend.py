@@ -16,7 +16,7 @@ import torch
 from recon.poses import ba
 from recon.poses import flow as fl
 from recon.poses import graph as gr
-from recon.poses.frontend_config import scaled_pixels
+from recon.poses.frontend_config import ba_pixels
 from recon.poses.result import robust_log_mean
 from recon.poses.track_state import TrackState
 
@@ -59,8 +59,7 @@ def link_proximity(state: TrackState, k: int, max_edges: int | None = None) -> N
     if not candidates:
         return
     dist, frac = gr.induced_flow(state.graph.poses(), state.graph.disps(), state.intr, k, torch.tensor(candidates))
-    # induced_flow is in BA pixels; thresholds are in 640-wide working pixels.
-    max_dist = scaled_pixels(cfg.proximity_max_flow, state.geo) / state.geo.flow_factor
+    max_dist = ba_pixels(cfg.proximity_max_flow, state.geo.ba_shape[1])
     chosen = gr.select_proximity(candidates, dist.numpy(), frac.numpy(), max_edges, max_dist,
                                  cfg.proximity_min_overlap, cfg.proximity_nms)
     for c in chosen:

@@ -18,7 +18,7 @@ from recon.poses import ba, lie
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses import projective as pj
-from recon.poses.frontend_config import FrontendConfig
+from recon.poses.frontend_config import FrontendConfig, ba_pixels
 from recon.poses.track_state import TrackState
 
 
@@ -138,10 +138,10 @@ def _sees(T_kf: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor, T: torc
           cfg: FrontendConfig) -> bool:
     """Whether a keyframe (pose (4, 4), BA depth (H, W)) sees a camera at pose T (4, 4) as a
     proximity edge would: overlap at least ``proximity_min_overlap``, induced flow within
-    ``proximity_max_flow`` (640-px working pixels; BA pixels are 8 of them)."""
+    ``proximity_max_flow``."""
     _, motion, frac = gr.parallax_into(T_kf[None], disp_kf[None], intr, T)
-    width = disp_kf.shape[-1]
-    return bool(frac[0] >= cfg.proximity_min_overlap and motion[0] * 640.0 / width <= cfg.proximity_max_flow)
+    max_flow = ba_pixels(cfg.proximity_max_flow, disp_kf.shape[-1])
+    return bool(frac[0] >= cfg.proximity_min_overlap and motion[0] <= max_flow)
 
 
 def frame_depth_ratios(T: torch.Tensor, T_kf: torch.Tensor, disp_kf: torch.Tensor, intr: torch.Tensor,

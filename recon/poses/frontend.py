@@ -218,7 +218,7 @@ class StreamingFrontend:
             feature_starts=s.feature_starts,
             lost_frames=[i for i, st in enumerate(status) if st in ("recovered", "interpolated")],
             relocalisations=s.reloc_events,
-            revisits=len(s.revisits),
+            revisits=s.revisits,
             ba_rmse_px=last.rmse,
             ba_inlier_fraction=last.inlier_fraction,
             ba_grid=s.geo.ba_shape[::-1],  # reported (w, h), as the run reports always had it

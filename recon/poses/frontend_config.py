@@ -177,6 +177,7 @@ def disp_from_depth(depth: np.ndarray, prior_weight: float) -> tuple[torch.Tenso
     return disp, valid.double() * prior_weight
 
 
-def scaled_pixels(cfg_value: float, geo: Geometry) -> float:
-    """A threshold given in 640-px-wide working pixels, in flow pixels."""
-    return cfg_value / geo.px_scale
+def ba_pixels(cfg_value: float, ba_width: int) -> float:
+    """A threshold given in 640-px-wide working pixels, in pixels of a BA grid ba_width wide
+    (what ``graph.induced_flow`` and ``graph.parallax_into`` measure)."""
+    return cfg_value * ba_width / 640.0

@@ -128,6 +128,22 @@ class FrameGraph:
         return out
 
 
+def _landing(X: torch.Tensor, rel: torch.Tensor, intr: torch.Tensor, height: int, width: int
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixels (C, M, 2) where homogeneous points X (C, M, 4) land under transforms rel
+    (C, 4, 4), and whether they land inside a (height, width) image, in front (C, M)."""
+    proj, valid = pj.project(pj.transform(rel, X), intr)
+    inside = (valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5)
+              & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5))
+    return proj, inside
+
+
+def _mean_inside(values: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Mean (C,) of values (C, M) over the pixels inside; inf where none is."""
+    mean = torch.where(inside, values, torch.zeros_like(values)).sum(1) / inside.sum(1).clamp(min=1)
+    return torch.where(inside.any(1), mean, torch.full_like(mean, float("inf")))
+
+
 def induced_flow(
     T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, k: int, others: torch.Tensor, stride: int = 4
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,15 +156,9 @@ def induced_flow(
     sub = disps[k, ::stride, ::stride]
     uv = pj.pixel_grid(height, width, dtype=T_cw.dtype)[::stride, ::stride]
     X = pj.backproject(uv, sub.double(), intr).reshape(1, -1, 4).expand(len(others), -1, -1)
-    Tij = T_cw[others] @ lie.inv(T_cw[k : k + 1])
-    proj, valid = pj.project(pj.transform(Tij, X), intr)
-    inside = (valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5)
-              & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5))
+    proj, inside = _landing(X, T_cw[others] @ lie.inv(T_cw[k : k + 1]), intr, height, width)
     move = (proj - uv.reshape(1, -1, 2)).norm(dim=-1)
-    frac = inside.double().mean(1)
-    dist = torch.where(inside, move, torch.zeros_like(move)).sum(1) / inside.sum(1).clamp(min=1)
-    dist = torch.where(frac > 0, dist, torch.full_like(dist, float("inf")))
-    return dist, frac
+    return _mean_inside(move, inside), inside.double().mean(1)
 
 
 def parallax_into(
@@ -164,21 +174,15 @@ def parallax_into(
     """
     height, width = disps.shape[-2:]
     uv = pj.pixel_grid(height, width, dtype=T_cw.dtype)[::stride, ::stride]
-    sub = disps[:, ::stride, ::stride].double()
-    X = pj.backproject(uv[None], sub, intr).reshape(len(T_cw), -1, 4)
+    X = pj.backproject(uv[None], disps[:, ::stride, ::stride].double(), intr).reshape(len(T_cw), -1, 4)
     rel = T[None] @ lie.inv(T_cw)
-    proj, valid = pj.project(pj.transform(rel, X), intr)
+    proj, inside = _landing(X, rel, intr, height, width)
     at_infinity = X.clone()
     at_infinity[..., 3] = 0.0
     rotated, _ = pj.project(pj.transform(rel, at_infinity), intr)
-    inside = (valid & (proj[..., 0] > -0.5) & (proj[..., 0] < width - 0.5)
-              & (proj[..., 1] > -0.5) & (proj[..., 1] < height - 0.5))
-    count = inside.sum(1).clamp(min=1)
-    move = torch.where(inside, (proj - uv.reshape(1, -1, 2)).norm(dim=-1), 0.0).sum(1) / count
-    parallax = torch.where(inside, (proj - rotated).norm(dim=-1), 0.0).sum(1) / count
-    frac = inside.double().mean(1)
-    far = torch.full_like(move, float("inf"))
-    return torch.where(frac > 0, parallax, far), torch.where(frac > 0, move, far), frac
+    move = (proj - uv.reshape(1, -1, 2)).norm(dim=-1)
+    parallax = (proj - rotated).norm(dim=-1)
+    return _mean_inside(parallax, inside), _mean_inside(move, inside), inside.double().mean(1)
 
 
 def select_proximity(

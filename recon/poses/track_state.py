@@ -48,8 +48,8 @@ class TrackState:
     kf_detail, kf_keypoints: half-size grey images and ORB keypoints (the feature start)
         of the keyframes it can still use (the tracker drops older ones); feature_starts
         counts the frames it started.
-    reloc_events, revisits, ba_reports: what happened, for the diagnostics (revisits: the
-        frames that went on from an older keyframe instead of becoming one).
+    reloc_events, revisits, ba_reports: what happened, for the diagnostics (revisits: how
+        many frames went on from an older keyframe instead of becoming one).
     """
 
     def __init__(self, intrinsics, geo: Geometry, prior: PriorSource, cfg: FrontendConfig):
@@ -67,7 +67,7 @@ class TrackState:
         self.ref_kf = 0
         self.lost_run: list[int] = []
         self.reloc_events: list[dict] = []
-        self.revisits: list[dict] = []
+        self.revisits = 0
         self.ba_reports: list[ba.BAReport] = []
         self.previous: tuple | None = None
         self.last_failure = ""

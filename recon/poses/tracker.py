@@ -18,6 +18,7 @@ import torch
 from recon.poses import ba, backend, features, lie, motion_filter
 from recon.poses import flow as fl
 from recon.poses import graph as gr
+from recon.poses.frontend_config import ba_pixels
 from recon.poses.result import TrackingLostError
 from recon.poses.track_state import TrackState
 
@@ -70,7 +71,7 @@ class Tracker:
                 s.previous = None
                 return
             s.ref_kf = revisit[0]
-            s.revisits.append({"frame": index, "keyframe": int(s.graph.frames[revisit[0]])})
+            s.revisits += 1
             flows, _, _ = self._record(index, revisit, status)
         s.previous = (index, frame, gray, s.frame_T[index], s.refs[index][0], flows)
 
@@ -98,8 +99,8 @@ class Tracker:
         if cfg.revisit_flow <= 0 or not candidates:
             return None
         parallax, motion, frac = gr.parallax_into(s.graph.poses(candidates), s.graph.disps(candidates), s.intr, T)
-        to_ba = s.geo.px_scale * s.geo.flow_factor  # 640-px working pixels per BA pixel
-        near = (parallax * to_ba <= cfg.revisit_flow) & (motion * to_ba <= 2 * cfg.revisit_flow)
+        limit = ba_pixels(cfg.revisit_flow, s.geo.ba_shape[1])
+        near = (parallax <= limit) & (motion <= 2 * limit)
         near &= frac >= cfg.revisit_overlap
         for n in [int(n) for n in torch.argsort(parallax) if near[n]][:2]:
             k = candidates[n]
