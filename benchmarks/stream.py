@@ -17,8 +17,11 @@ Rows:
 * ``stream, estimated poses``: the streaming front end instead of the pose file.
 
 Usage: python benchmarks/stream.py [--lengths 300 1200 3600] [--batch-lengths 300 1200]
-Prints a table, writes benchmarks/results/stream.json. Run it alone on the machine
-(timings on a shared CPU are not comparable).
+[--rounds N]. Prints a table, writes benchmarks/results/stream.json. Run it alone on the
+machine (timings on a shared CPU are not comparable). With ``--rounds N`` the whole plan
+runs N times in turn (interleaved, so that the machine's drifts hit every row alike) and the
+table gives each row's median, and the ratio of every streamed row's s/frame to the batch
+row's of the same length.
 """
 
 from __future__ import annotations
@@ -83,6 +86,7 @@ def main() -> None:
     parser.add_argument("--estimate-lengths", type=int, nargs="*", default=[300])
     parser.add_argument("--extra", default="", help="more `recon run` options for every run, e.g. \"--refine none "
                         "--depth-frames 12\" for a quick memory-growth series (say so with the figures)")
+    parser.add_argument("--rounds", type=int, default=1, help="run the plan this many times, interleaved")
     parser.add_argument("--json", default="stream", help="results file name under benchmarks/results/")
     parser.add_argument("--work", type=Path, default=Path("/tmp/recon-stream-bench"))
     parser.add_argument("--weights", type=Path, default=SHARED / "weights" / "fastdepth")
@@ -100,18 +104,44 @@ def main() -> None:
                                                    *args.extra.split()])
              for n in args.estimate_lengths]
     plan += [("stream, all frames", n, "on", [*given, "--depth-frames", "all"]) for n in args.all_frames_lengths]
-    rows, results = [], []
-    for label, n, mode, extra in plan:
-        folder = args.work / f"out_{args.json}_{label.replace(' ', '').replace(',', '_')}_{n}"
-        result = {"run": label, "length": n, **run(video, folder, n, mode, extra, args.weights)}
-        results.append(result)
-        print(json.dumps({k: v for k, v in result.items() if k != "seconds"}), flush=True)
-        rows.append([label, n, result.get("depth_frames", "-"), f"{result.get('peak_rss_mb', float('nan')):.0f}",
-                     f"{result.get('s_per_frame', float('nan')):.3f}", result.get("blocks", "-"),
-                     result.get("triangles", "-"), result.get("error", "")])
-        # Written after every run: a long series stopped part-way keeps what it measured.
-        write_json(args.json, {"machine": machine(), "video": str(video), "extra": args.extra, "results": results})
-    print(table(["run", "frames", "depth frames", "peak RSS MB", "s/frame", "TSDF blocks", "triangles", "error"], rows))
+    results = []
+    for round_ in range(args.rounds):
+        for label, n, mode, extra in plan:
+            folder = args.work / f"out_{args.json}_{label.replace(' ', '').replace(',', '_')}_{n}"
+            result = {"run": label, "length": n, "round": round_, **run(video, folder, n, mode, extra, args.weights)}
+            results.append(result)
+            print(json.dumps({k: v for k, v in result.items() if k != "seconds"}), flush=True)
+            # Written after every run: a long series stopped part-way keeps what it measured.
+            write_json(args.json, {"machine": machine(), "video": str(video), "extra": args.extra,
+                                   "rounds": args.rounds, "results": results, "summary": summarise(results)})
+    rows = [[r["run"], r["length"], r["depth_frames"], f"{r['peak_rss_mb']:.0f}", f"{r['s_per_frame']:.3f}",
+             "-" if r["vs_batch"] is None else f"{r['vs_batch']:.3f}", r["blocks"], r["triangles"], r["error"]]
+            for r in summarise(results)]
+    print(table(["run", "frames", "depth frames", "peak RSS MB", "s/frame (median)", "vs batch", "TSDF blocks",
+                 "triangles", "error"], rows))
+
+
+def summarise(results: list[dict]) -> list[dict]:
+    """One row per (run, length): medians over the rounds, and the median over rounds of the
+    ratio of its s/frame to the batch row's of the same length and round (None without one)."""
+    def median(values):
+        values = [v for v in values if v is not None]
+        return float(np.median(values)) if values else None
+
+    batch = {(r["length"], r["round"]): r.get("s_per_frame") for r in results if r["run"] == "batch"}
+    out = []
+    for key in dict.fromkeys((r["run"], r["length"]) for r in results):
+        runs = [r for r in results if (r["run"], r["length"]) == key]
+        ratios = [r["s_per_frame"] / batch[(r["length"], r["round"])] for r in runs
+                  if r.get("s_per_frame") and batch.get((r["length"], r["round"])) and r["run"] != "batch"]
+        out.append({"run": key[0], "length": key[1], "rounds": len(runs),
+                    "depth_frames": runs[-1].get("depth_frames", "-"),
+                    "peak_rss_mb": median([r.get("peak_rss_mb") for r in runs]) or float("nan"),
+                    "s_per_frame": median([r.get("s_per_frame") for r in runs]) or float("nan"),
+                    "vs_batch": median(ratios), "blocks": runs[-1].get("blocks", "-"),
+                    "triangles": runs[-1].get("triangles", "-"),
+                    "error": "; ".join(r["error"] for r in runs if "error" in r)})
+    return out
 
 
 if __name__ == "__main__":

@@ -30,21 +30,24 @@ def consistent_views(
     sources: torch.Tensor,
     rel_depth: float = 0.02,
     pixels: float = 1.0,
+    targets: range | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Agreeing sources per pixel and the depth averaged over them.
 
     depth: (N, H, W) metres (0 invalid); poses: (N, 4, 4) camera-to-world; intrinsics: (4,)
-    at depth's resolution; sources: (N, S) the views to check each frame against.
-    Returns count (N, H, W) of agreeing sources and mean (N, H, W): the pixel's own depth
+    at depth's resolution; sources: (N, S) the views to check each frame against;
+    targets: the frames to check (default all N; T of them).
+    Returns count (T, H, W) of agreeing sources and mean (T, H, W): the pixel's own depth
     averaged with the agreeing sources' depths expressed in frame i (0 where invalid).
     """
     num, height, width = depth.shape
     poses = poses.double().to(depth.device)
     intr = intrinsics.to(depth.dtype)
     uv_i = pixel_grid(height, width, dtype=depth.dtype, device=depth.device)
-    count = torch.zeros_like(depth)
-    mean = torch.zeros_like(depth)
-    for i in range(num):
+    targets = range(num) if targets is None else targets
+    count = depth.new_zeros(len(targets), height, width)
+    mean = torch.zeros_like(count)
+    for row, i in enumerate(targets):
         src = sources[i]
         ref_to_src = torch.linalg.solve(poses[src], poses[i].expand(len(src), 4, 4))
         d_i = depth[i]
@@ -60,6 +63,6 @@ def consistent_views(
         error = (uv_back - uv_i).norm(dim=-1)
         agree = (d_i > 0) & (d_j > 0) & seen & (z_back > 1e-3) & (error < pixels) \
             & ((z_back - d_i).abs() < rel_depth * d_i)
-        count[i] = agree.sum(0).to(depth.dtype)
-        mean[i] = torch.where(d_i > 0, (d_i + (z_back * agree).sum(0)) / (1.0 + count[i]), torch.zeros_like(d_i))
+        count[row] = agree.sum(0).to(depth.dtype)
+        mean[row] = torch.where(d_i > 0, (d_i + (z_back * agree).sum(0)) / (1.0 + count[row]), torch.zeros_like(d_i))
     return count, mean

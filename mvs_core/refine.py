@@ -45,7 +45,11 @@ class RefineResult:
     unsupported: (N,) bool, frames whose reconstructed share is below min_frame_share.
     stats: per-frame summaries (reconstructed share, median |log correction|).
     support: (N, H, W) the Gaussian-weighted share of reconstructed pixels around each
-        pixel (fill_sigma): how much evidence its filled depth leans on."""
+        pixel (fill_sigma): how much evidence its filled depth leans on.
+    swept: (N, h, w) the plane sweep's depth at the working resolution (0: no match), what
+        a later call over overlapping frames can pass as ``known``.
+    With ``known`` depth for the first K frames, every field covers frames K.. only (N - K
+    of them); ``sources`` still index the whole input."""
 
     depth: torch.Tensor
     confidence: torch.Tensor
@@ -55,19 +59,21 @@ class RefineResult:
     unsupported: torch.Tensor
     stats: dict = field(default_factory=dict)
     support: torch.Tensor | None = None
+    swept: torch.Tensor | None = None
 
 
 def sweep_frames(
     grey: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor, intrinsics: torch.Tensor, sources: torch.Tensor,
-    config: MvsConfig, progress: Callable[[int], None] | None = None,
+    config: MvsConfig, progress: Callable[[int], None] | None = None, frames: range | None = None,
 ) -> torch.Tensor:
-    """Step 2 for every frame: multi-view depth (N, h, w), 0 where no hypothesis matched
-    (best cost above max_cost, or the winner on the band's edge, or the input invalid).
-    All inputs at the working resolution."""
+    """Step 2 for the frames in ``frames`` (default all N): multi-view depth (F, h, w), 0
+    where no hypothesis matched (best cost above max_cost, or the winner on the band's edge,
+    or the input invalid). All inputs at the working resolution; sources: (N, S)."""
     offsets = torch.linspace(-config.band, config.band, config.hypotheses, device=grey.device, dtype=grey.dtype)
     poses = poses.double()
-    out = torch.zeros_like(depth)
-    for i in range(depth.shape[0]):
+    frames = range(depth.shape[0]) if frames is None else frames
+    out = depth.new_zeros(len(frames), *depth.shape[1:])
+    for row, i in enumerate(frames):
         src = sources[i]
         ref_to_src = torch.linalg.solve(poses[src], poses[i].expand(len(src), 4, 4))
         d_i = depth[i]
@@ -75,7 +81,7 @@ def sweep_frames(
                           intrinsics, ref_to_src, offsets, config.radius, config.keep_best, config.texture_floor)
         offset, best, _, at_edge = select_winner(cost, offsets)
         matched = (d_i > 0) & ~at_edge & (best <= config.max_cost)
-        out[i] = torch.where(matched, d_i * torch.exp(offset), torch.zeros_like(d_i))
+        out[row] = torch.where(matched, d_i * torch.exp(offset), torch.zeros_like(d_i))
         if progress is not None:
             progress(1)
     return out
@@ -88,6 +94,7 @@ def refine_depth(
     intrinsics: torch.Tensor,
     config: MvsConfig | None = None,
     progress: Callable[[int], None] | None = None,
+    known: torch.Tensor | None = None,
 ) -> RefineResult:
     """Refine depth maps (N, H, W) by multi-view stereo around them.
 
@@ -95,7 +102,10 @@ def refine_depth(
     the depth's size; resizing is the caller's, so that it happens once, from the frames);
     depth: (N, H, W) metres, 0 invalid (MEDeA's output); poses: (N, 4, 4) camera-to-world;
     intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution. progress: called with
-    1 after each frame's sweep.
+    1 after each frame's sweep. known: (K, h, w) swept depth of the first K frames from an
+    earlier call (its ``RefineResult.swept``; a streamed window's frames shared with the
+    window before): they serve as sources as they were matched then, and are neither swept
+    nor refined again; the result covers frames K.. only.
     """
     config = config or MvsConfig()
     config.validate()
@@ -107,6 +117,10 @@ def refine_depth(
     small_h, small_w = grey.shape[-2:]
     intr = scale_intrinsics(intrinsics.to(device=device, dtype=torch.float32), small_w / width, small_h / height)
     small, _ = resize_depth(depth, (small_h, small_w))
+    first = 0 if known is None else len(known)
+    if first and (first >= num or tuple(known.shape[1:]) != (small_h, small_w)):
+        raise ValueError(f"known swept depth {tuple(known.shape)} must cover fewer than the {num} frames at the "
+                         f"working size {(small_h, small_w)}")
     if num < 2:
         zeros = torch.zeros_like(depth)
         empty = torch.zeros(num, 0, dtype=torch.long)
@@ -114,8 +128,13 @@ def refine_depth(
 
     sources, scores = select_sources(small, poses, intr, config.num_sources, config.min_angle, config.max_angle,
                                      config.chunk)
-    swept = sweep_frames(grey, small, poses, intr, sources, config, progress)
-    count, mean = consistent_views(swept, poses, intr, sources, config.consistency_depth, config.consistency_pixels)
+    targets = range(first, num)
+    swept = sweep_frames(grey, small, poses, intr, sources, config, progress, targets)
+    if first:
+        swept = torch.cat([known.to(swept), swept])
+    count, mean = consistent_views(swept, poses, intr, sources, config.consistency_depth, config.consistency_pixels,
+                                   targets)
+    depth, small, sources, scores = depth[first:], small[first:], sources[first:], scores[first:]
     reconstructed = (count >= config.min_consistent) & (mean > 0) & (small > 0)
     log_ratio = torch.where(reconstructed, torch.log(mean.clamp(min=1e-6) / small.clamp(min=1e-6)),
                             torch.zeros_like(small))
@@ -130,4 +149,5 @@ def refine_depth(
     stats = {"reconstructed": share.cpu(), "median_abs_log_correction": moved.nanmedian(1).values.cpu()}
     unsupported = (share < config.min_frame_share).cpu()
     support = F.interpolate(support[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
-    return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats, support)
+    return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats, support,
+                        swept[first:])

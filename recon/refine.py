@@ -48,25 +48,32 @@ def grey_at(rgb, size: tuple[int, int], device: str = "cpu") -> torch.Tensor:
 
 
 def refine_sequence(
-    rgb, depth, poses, intrinsics, config: MvsConfig | None = None, progress: bool = True
+    rgb, depth, poses, intrinsics, config: MvsConfig | None = None, progress: bool = True,
+    known: torch.Tensor | None = None,
 ) -> RefineResult:
     """Multi-view stereo refinement of a sequence's depth.
 
     rgb: (N, H', W', 3) uint8 frames (any size with the depth's aspect); depth: (N, H, W)
     metres (MEDeA's output; 0 invalid); poses: (N, 4, 4) camera-to-world; intrinsics:
-    (fx, fy, cx, cy) in pixels of the depth. Returns mvs_core.RefineResult (tensors on the CPU).
+    (fx, fy, cx, cy) in pixels of the depth; known: swept depth of the first K frames from
+    an earlier call, which are then only sources (mvs_core.refine_depth). Returns
+    mvs_core.RefineResult (tensors on the CPU).
     """
     config = config or MvsConfig()
     depth_t = torch.as_tensor(np.asarray(depth, np.float32))
     size = working_size(*depth_t.shape[-2:], config.image_scale)
     grey = grey_at(rgb, size, config.device)
-    with tqdm(total=len(depth_t), desc="MVS refinement", unit="frame", disable=not progress, leave=False) as bar:
+    to_sweep = len(depth_t) - (0 if known is None else len(known))
+    with tqdm(total=to_sweep, desc="MVS refinement", unit="frame", disable=not progress, leave=False) as bar:
         result = refine_depth(grey, depth_t, torch.as_tensor(np.asarray(poses, np.float64)),
-                              torch.as_tensor(intrinsics, dtype=torch.float32), config, progress=bar.update)
+                              torch.as_tensor(intrinsics, dtype=torch.float32), config, progress=bar.update,
+                              known=known)
     result.depth, result.confidence = result.depth.cpu(), result.confidence.cpu()
     result.reconstructed = result.reconstructed.cpu()
     if result.support is not None:
         result.support = result.support.cpu()
+    if result.swept is not None:
+        result.swept = result.swept.cpu()
     return result
 
 

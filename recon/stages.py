@@ -330,9 +330,11 @@ def adjust_with_medea(seq: Sequence, config, use_features: bool = True, progress
     return result.depth.numpy().astype(np.float32, copy=False), result
 
 
-def refine_depth(seq: Sequence, depth: np.ndarray, config, device: str = "cpu", progress: bool = True):
+def refine_depth(seq: Sequence, depth: np.ndarray, config, device: str = "cpu", progress: bool = True, known=None):
     """Multi-view stereo refinement (``config`` its mvs_core.MvsConfig) of ``depth`` (N, H, W),
-    the adjusted depth of the sequence's frames: mvs_core.RefineResult."""
+    the adjusted depth of the sequence's frames: mvs_core.RefineResult. known: the swept
+    depth of the first K frames from an earlier call (they are then sources only)."""
     from .refine import refine_sequence
 
-    return refine_sequence(seq.rgb, depth, seq.poses, seq.intrinsics, replace(config, device=device), progress)
+    return refine_sequence(seq.rgb, depth, seq.poses, seq.intrinsics, replace(config, device=device), progress,
+                           known)

@@ -16,9 +16,11 @@ before the dense map is trusted):
            each window a :class:`~recon.sequence.Sequence` read back from the store: MEDeA
            (the paper's pairs inside the window), anchored to the scale of the surface
            already fused where the window's cameras see it (else to the frames the previous
-           window finished: :func:`_anchor`), then the refinement; each finished frame's depth is
-           written to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`)
-           and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
+           window finished: :func:`_anchor`), then the refinement of its new frames (the
+           shared ones are source views only, with the sweep the window before left them);
+           each finished frame's depth is written to disk, integrated into one TSDF volume
+           (:class:`~recon.fusion.TsdfVolume`) and logged, and the mesh is re-extracted for
+           the viewer every ``mesh_every`` frames.
 
 What stays in memory: poses and a few numbers per frame, the front end's keyframes, one
 window of frames, the TSDF volume (the size of the scene, not of the video). Depth waits
@@ -52,6 +54,10 @@ log = logging.getLogger(__name__)
 
 # Share of a window's pixels the fused surface must cover to anchor the window's scale.
 SURFACE_ANCHOR_MIN_COVER = 0.02
+# Frames of a window, spread over it, into which the fused surface is rendered for the
+# anchor: a median over ~8 frames at half size is as steady as over all 48, and each
+# ray-cast costs ~0.1 s on 2 cores (rendering every frame made fusion 3x slower).
+SURFACE_ANCHOR_VIEWS = 8
 
 # Frames given their prior at once (FastDepth runs faster on a batch than frame by frame).
 PRIOR_BATCH = 8
@@ -405,11 +411,13 @@ class _WindowRecord:
     anchored_to: str
     medea_epochs: dict
     refined_share: float | None
+    refined_frames: int = 0
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
                   out: OutputFolder, logger, clock: StageClock):
     """MEDeA, refinement, depth files and fusion window by window: (volume, window records)."""
+    import torch
     from tqdm.auto import tqdm
 
     from .export import write_depth_frame
@@ -426,7 +434,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
-    volume, records, finished, fused = None, [], {}, 0
+    volume, records, finished, swept, fused = None, [], {}, {}, 0
     bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
     for window in windows:
         pos = positions[window.start:window.stop]
@@ -440,33 +448,43 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         with clock.stage("fusion"):  # the fused surface is rendered into the window
             factor, anchored_to = _anchor(volume, seq, adjusted, [finished[p] for p in pos[:window.shared]])
         adjusted = adjusted * np.float32(factor)
-        refined, final, confidence = None, adjusted, None
+        # first: the window's first row that `final` and `confidence` hold (the shared frames,
+        # already fused, are matched against but not refined again).
+        refined, final, confidence, first = None, adjusted, None, 0
         if config.refine == "mvs":
             with clock.stage("refine"):
-                refined = refine_depth(seq, adjusted, config.mvs, config.device, progress=False)
+                known = [swept.get(int(p)) for p in pos[:window.shared]]
+                first = window.shared if known and all(k is not None for k in known) else 0
+                refined = refine_depth(seq, adjusted, config.mvs, config.device, progress=False,
+                                       known=torch.stack(known) if first else None)
                 final, confidence = refined.depth.numpy(), fusion_confidence(refined)
+                swept = {int(p): refined.swept[k - first] for k, p in enumerate(pos)
+                         if k >= max(first, len(pos) - config.window_overlap)}
         finished = {int(p): adjusted[k] for k, p in enumerate(pos) if k >= len(pos) - config.window_overlap}
         with clock.stage("fusion"):
             if volume is None:
                 volume = _open_volume(video, final, adjusted, seq, options)
         for k in range(window.shared, len(pos)):
+            depth_k = final[k - first]
             with clock.stage("export"):
-                write_depth_frame(out, seq.names[k], final[k], config.depth_npy)
+                write_depth_frame(out, seq.names[k], depth_k, config.depth_npy)
             with clock.stage("fusion"):
-                d = final[k] if confidence is None else np.where(confidence[k] >= options.min_confidence, final[k], 0)
+                d = depth_k if confidence is None else np.where(confidence[k - first] >= options.min_confidence,
+                                                                depth_k, 0)
                 fused += volume.integrate(d, seq.poses[k], seq.intrinsics, seq.rgb[k])
             if logger is not None:
                 with clock.stage("logging"):
                     logger.log_depth(int(seq.indices[k]), seq.prior_depth[k], adjusted[k],
-                                     None if refined is None else final[k],
-                                     None if refined is None else refined.confidence[k].numpy())
+                                     None if refined is None else depth_k,
+                                     None if refined is None else refined.confidence[k - first].numpy())
                     if config.mesh_every and fused and fused % int(config.mesh_every) == 0:
                         _log_mesh(logger, volume, options, int(seq.indices[k]))
             bar.update(1)
         if logger is not None and medea is not None and not records:
             logger.log_losses(medea.history)
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
-                                     None if refined is None else float(refined.reconstructed.float().mean())))
+                                     None if refined is None else float(refined.reconstructed.float().mean()),
+                                     0 if refined is None else len(pos) - first))
     bar.close()
     return (volume, options), records
 
@@ -479,11 +497,14 @@ def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray
     the scale of what is already fused there (as a dense SLAM system tracks against its
     model), so revisits average into the same voxels instead of adding a second, shifted
     surface. Otherwise, the previous window's finished depth on the shared frames `shared`.
-    Rendering at half resolution (every other pixel) is enough for a median."""
+    Rendering SURFACE_ANCHOR_VIEWS frames spread over the window (the first one included) at
+    half resolution (every other pixel) is enough for a median."""
     if volume is not None and volume.blocks_used:
-        current = adjusted[:, ::2, ::2]
+        views = np.unique(np.linspace(0, len(adjusted) - 1, min(len(adjusted), SURFACE_ANCHOR_VIEWS)).round()
+                          .astype(np.int64))
+        current = adjusted[views, ::2, ::2]
         half = np.asarray(seq.intrinsics, np.float64) / 2.0
-        rendered = np.stack([volume.render_depth(pose, half, current.shape[1:]) for pose in seq.poses])
+        rendered = np.stack([volume.render_depth(seq.poses[k], half, current.shape[1:]) for k in views])
         min_pixels = max(100, int(SURFACE_ANCHOR_MIN_COVER * current.size))
         if int(anchor_pixels(rendered, current).sum()) >= min_pixels:
             return anchor_factor(rendered, current, min_pixels), "fused surface"

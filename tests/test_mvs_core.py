@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from mvs_core import (
@@ -137,3 +138,24 @@ def test_one_frame_is_returned_unchanged():
                           torch.tensor(INTR))
     assert torch.equal(result.depth, torch.as_tensor(depth))
     assert not result.reconstructed.any() and bool(result.unsupported.all())
+
+
+def test_frames_swept_before_are_sources_only_and_give_the_same_answer():
+    # A streamed window shares its first frames with the window before: their sweep is
+    # passed as `known`, and the frames after them come out as a full call gives them.
+    poses = _sideways(8, step=0.08)
+    grey, truth = render_wall(poses, INTR, H, W)
+    prior = _bumpy(truth, amplitude=0.15)
+    config = replace(MvsConfig(), image_scale=1.0, num_sources=4, keep_best=2, min_angle=1.0, max_angle=10.0)
+    args = torch.as_tensor(grey), torch.as_tensor(prior), torch.as_tensor(poses), torch.tensor(INTR), config
+    full = refine_depth(*args)
+    swept_frames = []
+    tail = refine_depth(*args, progress=swept_frames.append, known=full.swept[:3])
+    assert len(swept_frames) == 5, "the known frames are not swept again"
+    assert tail.depth.shape == (5, H, W) and tail.swept.shape == (5, H, W)
+    assert torch.equal(tail.sources, full.sources[3:])
+    assert torch.equal(tail.depth, full.depth[3:]) and torch.equal(tail.confidence, full.confidence[3:])
+    assert torch.equal(tail.reconstructed, full.reconstructed[3:])
+    assert float(tail.reconstructed.float().mean()) > 0.3
+    with pytest.raises(ValueError, match="known swept depth"):
+        refine_depth(*args, known=full.swept)

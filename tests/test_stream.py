@@ -54,6 +54,9 @@ def test_streamed_run_matches_the_one_shot_run(room_video, both_runs):
     seq, _ = room_video
     batch, streamed, folder = both_runs
     assert streamed.report["streamed"] and streamed.report["windows"]["count"] == 3
+    # Frames a window shares with the one before are refined once, in the window before.
+    each = streamed.report["windows"]["each"]
+    assert [w["refined_frames"] for w in each] == [w["new"] for w in each] and sum(w["new"] for w in each) == FRAMES
     written = load_output(folder)
     assert np.array_equal(written.indices, np.arange(FRAMES))  # every frame got depth, in order
     assert np.allclose(written.poses, seq.poses, atol=1e-4)
