@@ -99,10 +99,11 @@ def peak_memory_mb() -> float | None:
     return None
 
 
-def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict) -> dict:
+def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
+                  store_bytes: int = 0) -> dict:
     """report.json of a streamed run (recon.stream): the one-shot report's sections, with
-    the tracked frames, the depth frames, and per window MEDeA's epochs, the scale anchor
-    and the refinement's share."""
+    the tracked frames, the depth frames, per window MEDeA's epochs, the scale anchor and
+    the refinement's share, and the bytes the frame store parked on disk (store_bytes)."""
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     depth_idx = video.indices[video.depth_frame]
     anchors = [w["anchor"] for w in windows[1:]]
@@ -121,7 +122,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                     "each": windows},
         "refine": {"method": config.refine},
         "fusion": fusion_summary(fusion, min_confidence),
-        "memory": {"peak_rss_mb": peak_memory_mb()},
+        "memory": {"peak_rss_mb": peak_memory_mb(), "frame_store_mb": store_bytes / 1e6},
         "options": config.to_dict(),
         "versions": versions(),
         "seconds": dict(seconds),

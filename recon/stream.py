@@ -140,7 +140,7 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         say(f"depth: {int(video.depth_frame.sum())} of {len(video.indices)} frames in windows of {config.window}")
         volume, windows = depth_windows(config, video, pose_plan, store, out, logger, clock)
         say("export")
-        result = _finish(config, source, out, video, volume, windows, clock, logger, pose_plan)
+        result = _finish(config, source, out, video, volume, windows, clock, logger, store.bytes_written)
         url = logger.url if logger is not None else None
     if rec_path is not None:
         result.files["recording"] = rec_path
@@ -233,8 +233,13 @@ class _TrackLoop:
             if out is not None:
                 self.select.depth = _median_depth(out.depth[-1]) or self.select.depth
         with self.clock.stage("store"):
+            # A frame's colour is read again only if it gets depth; the front end's finish
+            # needs the others' grey image at its flow size, 1/48 of the bytes.
             for k, position in enumerate(positions):
-                self.store.put(position, rgb=batch.rgb[k])
+                if take[k]:
+                    self.store.put(position, rgb=batch.rgb[k])
+                elif self.poser.estimating:
+                    self.store.put(position, grey=self.poser.frontend.finish_image(batch.rgb[k]))
             for row, k in enumerate(rows):
                 if take[k]:
                     self.store.put(positions[k], prior=out.depth[row],
@@ -382,7 +387,9 @@ class _Poser:
         return self._close_estimate(store, indices)
 
     def _close_estimate(self, store: FrameStore, indices) -> _Closed:
-        result = self.frontend.finish(lambda position: store.get(position, "rgb"), self.config.progress)
+        result = self.frontend.finish(
+            lambda position: store.get(position, "rgb" if store.has(position, "rgb") else "grey"),
+            self.config.progress)
         kept, info, note = gate_estimate(result, indices)
         poses = np.asarray(result.poses, np.float64).copy()
         poses[~kept] = np.nan
@@ -556,7 +563,8 @@ def _epochs(medea) -> dict:
 # --------------------------------------------------------------------------- export and report
 
 
-def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state, windows, clock, logger, plan):
+def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state, windows, clock, logger,
+            store_bytes: int):
     from .export import export_reconstruction
     from .fusion import FusionResult
     from .report import stream_report
@@ -586,7 +594,7 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
                                 np.asarray(mesh.vertex_colors), index=last)
     report = stream_report(config=config, source=source, video=video, windows=[asdict(w) for w in windows],
                            fusion=fusion, min_confidence=options.min_confidence if config.refine != "none" else None,
-                           seconds=clock.seconds)
+                           seconds=clock.seconds, store_bytes=store_bytes)
     return StreamResult(output=out.path, frames_tracked=len(video.indices), depth_frames=int(video.depth_frame.sum()),
                         poses=video.poses, intrinsics=video.intrinsics, fusion=fusion, seconds=dict(clock.seconds),
                         files=files, report=report)

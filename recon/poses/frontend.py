@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from recon.errors import ReconInputError
 from recon.poses import ba, backend, filler
+from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.frontend_config import FrontendConfig, make_geometry
 from recon.poses.result import (
@@ -121,11 +122,17 @@ class StreamingFrontend:
         T = s.frame_T.get(index)
         return s.status[index], None if T is None else invert_poses(T.numpy())
 
+    def finish_image(self, frame: np.ndarray) -> np.ndarray:
+        """What ``finish`` needs of a frame (H, W, 3) uint8: its grey image at the flow
+        resolution, uint8 (1/48 of the frame's bytes at 640x480). A caller that parks frames
+        on disk until ``finish`` can keep this instead of the frame."""
+        return fl.prepare_gray(frame, make_geometry(frame.shape[:2], self.cfg.ba_stride).flow_shape)
+
     def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False) -> PoseResult:
         """Poses of every frame added, metric: the lost-at-the-end check, global BA, the
         non-keyframes aligned to their final keyframes (frames read back through
-        ``frame_lookup(i)`` -> (H, W, 3) uint8, the frame given to ``add(i, ...)``), the metric
-        rescale. seconds: the time spent in ``add`` and ``finish``. The diagnostics are
+        ``frame_lookup(i)`` -> the frame given to ``add(i, ...)`` or its ``finish_image``), the
+        metric rescale. seconds: the time spent in ``add`` and ``finish``. The diagnostics are
         those of :func:`estimate_poses_frontend`. Raises TrackingLostError."""
         if self._finished:
             raise RuntimeError("StreamingFrontend.finish called twice")
