@@ -74,6 +74,7 @@ def run(video: Path, out: Path, frames: int, mode: str, extra: list[str], weight
     return {"wall_s": wall, "s_per_frame": wall / frames_run, "frames": frames_run,
             "depth_frames": report["frames"].get("depth_frames", report["frames"]["count"]),
             "peak_rss_mb": report["memory"]["peak_rss_mb"], "seconds": report["seconds"],
+            "frame_store_mb": report["memory"].get("frame_store_mb"),
             "triangles": report["fusion"]["triangles"], "blocks": report["fusion"]["blocks_used"],
             "anchors": [w.get("anchored_to") for w in report.get("windows", {}).get("each", [])]}
 
