@@ -100,7 +100,7 @@ def peak_memory_mb() -> float | None:
 
 
 def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
-                  store_bytes: int = 0) -> dict:
+                  store_bytes: int) -> dict:
     """report.json of a streamed run (recon.stream): the one-shot report's sections, with
     the tracked frames, the depth frames, per window MEDeA's epochs, the scale anchor and
     the refinement's share, and the bytes the frame store parked on disk (store_bytes)."""

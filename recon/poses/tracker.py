@@ -70,29 +70,41 @@ class Tracker:
                 self._add_keyframe(index, frame, gray, s.frame_T[index], found[0], flows)
                 s.previous = None
                 return
-            s.ref_kf = revisit[0]
+            found, measured = revisit
+            s.ref_kf = found[0]
             s.revisits += 1
-            flows, _, _ = self._record(index, revisit, status)
+            flows, _, _ = self._record(index, found, status, measured)
         s.previous = (index, frame, gray, s.frame_T[index], s.refs[index][0], flows)
 
-    def _record(self, index: int, found: tuple, status: str) -> tuple[tuple, float, float]:
+    def _measure(self, found: tuple) -> tuple[torch.Tensor, float, float]:
+        """(pose relative to its keyframe (4, 4), motion, parallax) of an alignment
+        (``_against``'s tuple): what the keyframe policy judges."""
+        s = self.state
+        kf, T, fwd, _, cf, _, _ = found
+        rel = T @ lie.inv(s.graph.poses([kf])[0])
+        return (rel, *motion_filter.motion_and_parallax(fwd, cf, rel, s.intrinsics, s.geo))
+
+    def _record(self, index: int, found: tuple, status: str, measured: tuple | None = None
+                ) -> tuple[tuple, float, float]:
         """Keep a frame's alignment (``_against``'s tuple) to its keyframe; returns its flows
-        and the motion and parallax they measure from that keyframe."""
+        and the motion and parallax they measure from that keyframe (``measured``: what
+        ``_measure`` already said of it)."""
         s = self.state
         kf, T, fwd, bwd, cf, cb, seeded = found
+        rel, motion, parallax = measured or self._measure(found)
         s.frame_T[index] = T
         s.refs[index] = (kf, seeded)
-        s.rel[index] = T @ lie.inv(s.graph.poses([kf])[0])
+        s.rel[index] = rel
         s.status[index] = status
         s.inlier[index] = s.last_inlier
-        motion, parallax = motion_filter.motion_and_parallax(fwd, cf, s.rel[index], s.intrinsics, s.geo)
         return (fwd, bwd, cf, cb), motion, parallax
 
     def _revisit(self, gray: np.ndarray, T: torch.Tensor):
         """An older keyframe that already sees what a frame due to become a keyframe sees
         (``FrontendConfig.revisit_flow``), judged at the frame's tracked pose T (4, 4): the
-        frame's alignment to it (``_against``'s tuple) when the map predicts little parallax
-        and the measured flow confirms that the frame is no keyframe from there; else None."""
+        frame's alignment to it (``_against``'s tuple) and ``_measure``'s figures for it, when
+        the map predicts little parallax and the measured flow confirms that the frame is no
+        keyframe from there; else None."""
         s = self.state
         cfg = s.cfg
         candidates = [k for k in range(len(s.graph)) if k != s.ref_kf]
@@ -107,10 +119,9 @@ class Tracker:
             found = self._against(k, gray, T)
             if found is None:
                 continue
-            rel = found[1] @ lie.inv(s.graph.poses([k])[0])
-            if not motion_filter.is_keyframe(*motion_filter.motion_and_parallax(found[2], found[4], rel,
-                                                                                 s.intrinsics, s.geo), cfg):
-                return found
+            measured = self._measure(found)
+            if not motion_filter.is_keyframe(*measured[1:], cfg):
+                return found, measured
         return None
 
     def _predict(self, index: int) -> torch.Tensor:
