@@ -215,23 +215,33 @@ class _Terminated(BaseException):
     folder go; by default Python would die on the spot and leave them."""
 
 
+# Set once SIGTERM arrives. The exception the handler raises can come out as another one: a
+# C function that is interrupted (numpy.fromfile inside np.load) may replace it with its own
+# TypeError. Whatever propagates after the signal, the run was terminated.
+_TERMINATION = threading.Event()
+
+
 def _raise_terminated(signum, frame):
+    _TERMINATION.set()
     raise _Terminated
 
 
 def main(argv: list[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
+    _TERMINATION.clear()
     try:
         return _main(argv)
-    except _Terminated:
-        print("recon: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
     except BrokenPipeError:
         # Whoever read our output stopped early (`recon run --pose-option list | head`): not
         # an error. Point stdout at /dev/null so the interpreter's final flush stays quiet.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except BaseException as error:
+        if not (isinstance(error, _Terminated) or _TERMINATION.is_set()):
+            raise
+        print("recon: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     finally:
         if in_main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
@@ -244,6 +254,8 @@ def _main(argv: list[str] | None) -> int:
     try:
         return _COMMANDS[args.command](args)
     except ReconInputError as error:
+        if _TERMINATION.is_set():
+            raise  # a read cut short by SIGTERM, not bad input
         print(f"recon: error: {error}", file=sys.stderr)
         return ReconInputError.exit_code
     except KeyboardInterrupt:

@@ -649,3 +649,36 @@ def test_hf_model_that_cannot_load_fails_before_decoding(tmp_path, capsys, monke
     capsys.readouterr()
     _run_fails(capsys, [*run[:-1], str(model), "--prior-align", "sensor"], "--prior-align sensor", "RGB-D")
     assert not Path(out).exists()
+
+
+@pytest.mark.parametrize("masked_as", [TypeError, None])
+def test_sigterm_is_reported_as_such_even_when_a_library_masks_it(monkeypatch, capsys, masked_as):
+    """A C function interrupted by SIGTERM (numpy.fromfile inside np.load) can replace the
+    handler's exception with its own TypeError; the run was still terminated, and says so."""
+    import signal
+
+    from recon import cli
+
+    def stopped_mid_read(args):
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except BaseException:
+            if masked_as is None:
+                raise
+            raise masked_as("expected str, bytes or os.PathLike object, not BufferedReader") from None
+
+    monkeypatch.setitem(cli._COMMANDS, "eval", stopped_mid_read)
+    assert main(["eval", "somewhere", "--gt", "elsewhere"]) == 128 + signal.SIGTERM
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "recon: terminated"
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is put back
+
+
+def test_an_ordinary_error_after_a_finished_run_is_not_taken_for_a_sigterm(monkeypatch):
+    from recon import cli
+
+    def broken(args):
+        raise TypeError("a bug")
+
+    monkeypatch.setitem(cli._COMMANDS, "eval", broken)
+    with pytest.raises(TypeError, match="a bug"):
+        main(["eval", "somewhere", "--gt", "elsewhere"])
