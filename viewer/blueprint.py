@@ -30,18 +30,19 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.blueprint.encodings import TextLogColumn, TimelineColumn
 
-from .rerun_log import (
+from .entities import (
     ADJUSTED_DEPTH,
     CONFIDENCE,
+    EPOCH_TIMELINE,
+    FRAME_TIMELINE,
     LOSSES,
     PRIOR_DEPTH,
     REFINED_DEPTH,
     RGB,
+    TIME_TIMELINE,
     TRACKING,
 )
 
-FRAME_TIMELINE = "frame"
-EPOCH_TIMELINE = "epoch"
 RECONSTRUCTION_TAB = "reconstruction"
 LOSSES_TAB = "MEDeA losses (epoch timeline)"
 SCENE_VIEW = "3D scene"
@@ -85,7 +86,8 @@ def default_blueprint(loss_stages: Sequence[str] = LOSS_STAGES) -> rrb.Blueprint
             name="tracking",
             origin=f"/{TRACKING}",
             columns=rrb.TextLogColumns(
-                timeline_columns=[TimelineColumn(FRAME_TIMELINE, visible=False), TimelineColumn("time", visible=False)],
+                timeline_columns=[TimelineColumn(FRAME_TIMELINE, visible=False),
+                                  TimelineColumn(TIME_TIMELINE, visible=False)],
                 text_log_columns=[TextLogColumn("entitypath", visible=False), TextLogColumn("loglevel"),
                                   TextLogColumn("body")],
             ),

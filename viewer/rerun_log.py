@@ -5,27 +5,7 @@ Written against rerun-sdk 0.41. Every call goes to a dedicated ``rr.RecordingStr
 save, serve) first sends the layout of :mod:`viewer.blueprint` as the active and default
 blueprint, so a saved .rrd opens on the 3D scene and the "frame" timeline.
 
-Entity layout::
-
-    world                         ViewCoordinates RIGHT_HAND_Y_DOWN (static)
-    world/camera                  Transform3D (camera-to-world) + Pinhole (camera_xyz RDF)
-    world/camera/rgb              Image
-    world/camera/prior_depth      DepthImage (meter=1)
-    world/camera/adjusted_depth   DepthImage (meter=1)
-    world/camera/refined_depth    DepthImage (meter=1)
-    world/camera/confidence       Image (8-bit grey, 255 = every view agrees)
-    world/trajectory/<piece>      LineStrips3D of the camera centres so far (in frame order),
-                                  in pieces of TRAJECTORY_PIECE frames (see trajectory_piece)
-    world/dropped                 Points3D: centres of frames the quality gate dropped (red)
-    tracking                      TextLog: each frame's tracking state (keyframe, tracked,
-                                  relocalised, recovered, interpolated, dropped)
-    world/mesh                    Mesh3D: static, or one update per ``index`` on "frame"
-    world/points                  Points3D (static)
-    medea/<stage>/<term>          Scalars on the "epoch" timeline
-
-Frames are on the "frame" sequence timeline (and "time", a duration in seconds, when a
-timestamp is given; the logger remembers each frame's timestamp, so everything logged
-later for that frame carries it too).
+Entity paths and timelines: :mod:`viewer.entities`.
 
 Live (streamed) logging, in any order per frame::
 
@@ -59,25 +39,32 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from .blueprint import default_blueprint
+from .entities import (
+    ADJUSTED_DEPTH,
+    CAMERA,
+    CONFIDENCE,
+    DROPPED,
+    EPOCH_TIMELINE,
+    FRAME_TIMELINE,
+    LOSSES,
+    MESH,
+    POINTS,
+    PRIOR_DEPTH,
+    REFINED_DEPTH,
+    RGB,
+    TIME_TIMELINE,
+    TRACKING,
+    TRAJECTORY,
+)
+
 MODES = ("spawn", "save", "serve", "off")
 
-CAMERA = "world/camera"
-RGB = f"{CAMERA}/rgb"
-PRIOR_DEPTH = f"{CAMERA}/prior_depth"
-ADJUSTED_DEPTH = f"{CAMERA}/adjusted_depth"
-REFINED_DEPTH = f"{CAMERA}/refined_depth"
-CONFIDENCE = f"{CAMERA}/confidence"
-TRAJECTORY = "world/trajectory"
 # Frames per trajectory piece. Each new camera re-logs only its own piece: logging the whole
 # trajectory with every frame would make a recording grow with the square of its length.
 TRAJECTORY_PIECE = 256
-DROPPED = "world/dropped"
-TRACKING = "tracking"
 # Tracking states that mean trouble are logged as warnings (rerun's TextLog level).
 _TROUBLE = ("interpolated", "dropped", "lost")
-MESH = "world/mesh"
-POINTS = "world/points"
-LOSSES = "medea"
 
 
 def trajectory_piece(index: int) -> str:
@@ -211,9 +198,6 @@ class RerunLogger:
         if mode == "off":
             return
 
-        # blueprint imports this module's entity paths, so it is imported here, not on top
-        from .blueprint import default_blueprint
-
         rec = rr.RecordingStream(app_id)
         if mode == "spawn":
             rec.spawn()
@@ -238,10 +222,10 @@ class RerunLogger:
         """Set the time to frame ``index`` (and its timestamp when known) and nothing else,
         so no other timeline's value (another frame's "time", an "epoch") leaks in."""
         rec.reset_time()
-        rec.set_time("frame", sequence=index)
+        rec.set_time(FRAME_TIMELINE, sequence=index)
         timestamp = self._timestamps.get(index)
         if timestamp is not None:
-            rec.set_time("time", duration=timestamp)
+            rec.set_time(TIME_TIMELINE, duration=timestamp)
 
     # ------------------------------------------------------------------ frames
 
@@ -425,7 +409,7 @@ class RerunLogger:
                     continue
                 rec.send_columns(
                     f"{LOSSES}/{stage}/{term}",
-                    indexes=[rr.TimeColumn("epoch", sequence=np.arange(values.size))],
+                    indexes=[rr.TimeColumn(EPOCH_TIMELINE, sequence=np.arange(values.size))],
                     columns=rr.Scalars.columns(scalars=values),
                 )
 
