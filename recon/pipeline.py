@@ -46,6 +46,7 @@ from typing import Callable
 
 import numpy as np
 
+from .clock import StageClock
 from .config import PipelineConfig
 from .export import export_reconstruction
 from .fusion import FusionOptions
@@ -67,7 +68,6 @@ from .stages import (
     select_frames,
     tracking_states,
 )
-from .stream import StageClock
 
 log = logging.getLogger(__name__)
 

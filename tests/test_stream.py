@@ -91,7 +91,7 @@ def test_a_window_is_anchored_to_the_fused_surface_it_revisits(room_video):
     from types import SimpleNamespace
 
     from recon.fusion.volume import TsdfVolume
-    from recon.stream import _anchor
+    from recon.stream_depth import _anchor
 
     seq, _ = room_video
     volume = TsdfVolume(0.02, 0.08, 8.0, 4096, colored=False)

@@ -1,0 +1,188 @@
+"""The streamed pipeline's second pass (:mod:`recon.stream`): depth in windows, fused as it
+is finished.
+
+The depth frames, in overlapping windows (:func:`recon.stream_plan.plan_windows`), each
+window a :class:`~recon.sequence.Sequence` read back from the frame store: MEDeA (the
+paper's pairs inside the window), anchored to the scale of the surface already fused where
+the window's cameras see it (else to the frames the previous window finished:
+:func:`_anchor`), then the refinement of its new frames (the shared ones are source views
+only, with the sweep the window before left them). Each finished frame's depth is written
+to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`) and logged,
+and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .clock import StageClock
+from .config import PipelineConfig
+from .errors import ReconInputError
+from .io.frame_store import FrameStore
+from .io.output_folder import OutputFolder
+from .lens import worth_undistorting
+from .sequence import Sequence
+from .stages import PosePlan
+from .stream_plan import anchor_factor, anchor_pixels, plan_windows
+from .stream_track import TrackedVideo
+
+# Share of a window's pixels the fused surface must cover to anchor the window's scale.
+SURFACE_ANCHOR_MIN_COVER = 0.02
+# Frames of a window, spread over it, into which the fused surface is rendered for the
+# anchor: 8 at half size gave the factors of all 48 within 0.003 on 7-Scenes, and each ray
+# cast costs ~0.1 s on 2 cores (rendering every frame made fusion 2x slower).
+SURFACE_ANCHOR_VIEWS = 8
+
+@dataclass
+class _WindowRecord:
+    frames: int
+    new: int
+    anchor: float
+    anchored_to: str
+    medea_epochs: dict
+    refined_share: float | None
+    refined_frames: int = 0
+
+
+def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
+                  out: OutputFolder, logger, clock: StageClock):
+    """MEDeA, refinement, depth files and fusion window by window: (volume, window records)."""
+    import torch
+    from tqdm.auto import tqdm
+
+    from .export import write_depth_frame
+    from .fusion import FusionOptions
+    from .refine import default_min_confidence, fusion_confidence
+    from .stages import adjust_with_medea, refine_depth
+
+    positions = np.flatnonzero(video.depth_frame)
+    if len(positions) < 2:
+        raise ReconInputError(f"only {len(positions)} frames have a pose and moved enough to get depth; "
+                              "lower --depth-frames or check the poses")
+    windows = plan_windows(len(positions), int(config.window), int(config.window_overlap))
+    options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": False})
+    if options.min_confidence is None:
+        options.min_confidence = default_min_confidence(plan.estimated)
+    undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
+    volume, records, finished, swept, fused = None, [], {}, {}, 0
+    bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
+    for window in windows:
+        pos = positions[window.start:window.stop]
+        with clock.stage("store"):
+            seq = _window_sequence(video, store, pos, undistort)
+        with clock.stage("medea"):
+            if config.adjust:
+                adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
+            else:
+                adjusted, medea = seq.prior_depth, None
+        with clock.stage("fusion"):  # the fused surface is rendered into the window
+            factor, anchored_to = _anchor(volume, seq, adjusted, [finished[p] for p in pos[:window.shared]])
+        adjusted = adjusted * np.float32(factor)
+        # first: the window's first row that `final` and `confidence` hold (the shared frames,
+        # already fused, are matched against but not refined again).
+        refined, final, confidence, first = None, adjusted, None, 0
+        if config.refine == "mvs":
+            with clock.stage("refine"):
+                known = [swept.get(int(p)) for p in pos[:window.shared]]
+                first = window.shared if known and all(k is not None for k in known) else 0
+                refined = refine_depth(seq, adjusted, config.mvs, config.device, progress=False,
+                                       known=torch.stack(known) if first else None)
+                final, confidence = refined.depth.numpy(), fusion_confidence(refined)
+                swept = {int(p): refined.swept[k - first] for k, p in enumerate(pos)
+                         if k >= max(first, len(pos) - config.window_overlap)}
+        finished = {int(p): adjusted[k] for k, p in enumerate(pos) if k >= len(pos) - config.window_overlap}
+        with clock.stage("fusion"):
+            if volume is None:
+                volume = _open_volume(video, final, adjusted, seq, options)
+        for k in range(window.shared, len(pos)):
+            depth_k = final[k - first]
+            with clock.stage("export"):
+                write_depth_frame(out, seq.names[k], depth_k, config.depth_npy)
+            with clock.stage("fusion"):
+                d = depth_k if confidence is None else np.where(confidence[k - first] >= options.min_confidence,
+                                                                depth_k, 0)
+                fused += volume.integrate(d, seq.poses[k], seq.intrinsics, seq.rgb[k])
+            if logger is not None:
+                with clock.stage("logging"):
+                    logger.log_depth(int(seq.indices[k]), seq.prior_depth[k], adjusted[k],
+                                     None if refined is None else depth_k,
+                                     None if refined is None else refined.confidence[k - first].numpy())
+                    if config.mesh_every and fused and fused % int(config.mesh_every) == 0:
+                        _log_mesh(logger, volume, options, int(seq.indices[k]))
+            bar.update(1)
+        if logger is not None and medea is not None and not records:
+            logger.log_losses(medea.history)
+        records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
+                                     None if refined is None else float(refined.reconstructed.float().mean()),
+                                     0 if refined is None else len(pos) - first))
+    bar.close()
+    return (volume, options), records
+
+
+def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:
+    """(scale factor for a window's adjusted depth (N, H, W), what it was fitted to).
+
+    Where the volume already holds surfaces in view, the factor brings the window to the
+    fused surface rendered into all its frames: a camera that comes back to a place is put at
+    the scale of what is already fused there (as a dense SLAM system tracks against its
+    model), so revisits average into the same voxels instead of adding a second, shifted
+    surface. Otherwise, the previous window's finished depth on the shared frames `shared`.
+    Rendering SURFACE_ANCHOR_VIEWS frames spread over the window (the first one included) at
+    half resolution (every other pixel) is enough for a median."""
+    if volume is not None and volume.blocks_used:
+        views = np.unique(np.linspace(0, len(adjusted) - 1, min(len(adjusted), SURFACE_ANCHOR_VIEWS)).round()
+                          .astype(np.int64))
+        current = adjusted[views, ::2, ::2]
+        half = np.asarray(seq.intrinsics, np.float64) / 2.0
+        rendered = np.stack([volume.render_depth(seq.poses[k], half, current.shape[1:]) for k in views])
+        min_pixels = max(100, int(SURFACE_ANCHOR_MIN_COVER * current.size))
+        if int(anchor_pixels(rendered, current).sum()) >= min_pixels:
+            return anchor_factor(rendered, current, min_pixels), "fused surface"
+    if shared:
+        return anchor_factor(np.stack(shared), adjusted[:len(shared)]), "shared frames"
+    return 1.0, "none"
+
+
+def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, undistort: bool) -> Sequence:
+    features = [store.get(p, "features") for p in pos] if store.has(int(pos[0]), "features") else None
+    seq = Sequence(video.indices[pos], video.timestamps[pos], store.stack(pos, "rgb"), [video.names[p] for p in pos],
+                   video.intrinsics, store.stack(pos, "prior"), None if features is None else np.stack(features),
+                   video.poses[pos])
+    return seq.undistort(video.lens_k1) if undistort else seq
+
+
+def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, seq: Sequence, options):
+    """The TSDF volume sized from the prior depth of all depth frames, brought to the scale
+    of the first window's adjusted depth (the only adjusted depth known when it opens)."""
+    from .fusion import TsdfVolume, estimate_block_count, fusion_device, volume_size
+
+    prior, valid = seq.prior_depth, (seq.prior_depth > 0) & (adjusted > 0)
+    ratio = float(np.median(adjusted[valid] / prior[valid])) if valid.any() else 1.0
+    values = video.depth_sample * ratio
+    if values.size == 0:
+        raise ReconInputError("TSDF fusion: no frame has valid depth and a valid pose")
+    voxel, trunc, max_depth = volume_size(values, options)
+    estimate = estimate_block_count(final, seq.poses, seq.intrinsics, voxel, trunc, max_depth,
+                                    options.block_resolution)
+    # The first window sees part of the scene; the hash map grows past this when needed.
+    capacity = int(min(options.block_count, max(4096, 2 * estimate)))
+    return TsdfVolume(voxel, trunc, max_depth, capacity, colored=True, block_resolution=options.block_resolution,
+                      device=fusion_device(options.device))
+
+
+def _log_mesh(logger, volume, options, index: int) -> None:
+    mesh, _ = volume.mesh(options)
+    if len(mesh.triangles):
+        logger.log_mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors),
+                        index=index)
+
+
+def _epochs(medea) -> dict:
+    if medea is None:
+        return {}
+    return {name: int(history.epochs) for name, history in medea.history.items()}
+
+
+__all__ = ["SURFACE_ANCHOR_MIN_COVER", "SURFACE_ANCHOR_VIEWS", "depth_windows"]
