@@ -20,8 +20,9 @@ This module owns the least-squares problem of the front end and its solvers:
   recorded images, and both ends of every correspondence are undistorted with the lens'
   radial term k1 (``projective.undistort``) before the residual is taken; k1 can be one
   more unknown, node K of the reduced system (padded to a pose's six rows).
-* **motion-only alignment** (:func:`align_frames`): Gauss-Newton on one pose per frame
-  against fixed keyframes (their pose and BA depth), batched over frames.
+
+Motion-only alignment of frames against fixed keyframes, on the same residuals, is
+:mod:`recon.poses.motion_only`.
 
 Shapes: K keyframes (poses (K, 4, 4), inverse depths (K, H, W)), E directed edges
 (ii, jj (E,), targets (E, H, W, 2) = where pixel p of ii lands in jj, weights (E, H, W)).
@@ -292,7 +293,7 @@ def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lstsq(S, g[:, None]).solution[:, 0]
 
 
-def _pixel_sums(J: torch.Tensor, wgt: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_sums(J: torch.Tensor, wgt: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """J^T W J (E, 6, 6) and J^T W r (E, 6) summed over pixels, of Jacobian planes J
     (E, 2, 6, P), weights (E, P) and residuals r (E, 2, P): one matrix product per residual
     row (u, v)."""
@@ -358,7 +359,7 @@ def _normal_equations(
             dtarget = dtarget.transpose(1, 2)
         r = target.transpose(1, 2) - proj  # (n, 2, P)
         wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), opts.huber)
-        JtJ, Jtr = _pixel_sums(Jj, wgt, r)
+        JtJ, Jtr = pixel_sums(Jj, wgt, r)
         out["Hjj"][sl], out["vj"][sl] = JtJ.to(dt), Jtr.to(dt)
         wJz = Jz * wgt[:, None]  # (n, 2, P)
         out["Ej"][sl] = Jj[:, 0] * wJz[:, None, 0] + Jj[:, 1] * wJz[:, None, 1]
@@ -639,61 +640,3 @@ def bundle_adjust(
     report.huber = huber
     report.k1 = k1
     return T_cw.to(home), disps.to(home), report
-
-
-def align_frames(
-    T_init: torch.Tensor,
-    T_kf: torch.Tensor,
-    disp_kf: torch.Tensor,
-    intr: torch.Tensor,
-    frame: torch.Tensor,
-    target: torch.Tensor,
-    weight: torch.Tensor,
-    iters: int = 8,
-    huber: float = 1.0,
-    k1: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Motion-only Gauss-Newton: world-to-camera poses of M frames against fixed keyframes.
-
-    T_init: (M, 4, 4) initial poses of the frames; for each of L measurements:
-    T_kf (L, 4, 4) the keyframe's pose, disp_kf (L, H, W) its inverse depth, frame (L,)
-    which of the M frames it observes, target (L, H, W, 2) where the keyframe's pixels
-    land in that frame (recorded pixels), weight (L, H, W); k1 the lens' radial term.
-    Returns poses (M, 4, 4), the weighted RMS
-    residual (M,) in BA pixels and the fraction (M,) of confidence weight within `huber`.
-    """
-    M = T_init.shape[0]
-    L = T_kf.shape[0]
-    height, width = disp_kf.shape[-2:]
-    P = height * width
-    pinhole = Edges(frame, frame, target, weight).undistorted(intr, k1)
-    uv = pinhole.source_pixels(T_init.dtype).reshape(1, P, 2)
-    Xk = pj.backproject(uv, disp_kf.reshape(L, P), intr)
-    Xk_planes = Xk.transpose(1, 2)
-    tgt = pinhole.target.reshape(L, P, 2)
-    tgt_planes = tgt.transpose(1, 2)
-    w0 = weight.reshape(L, P)
-    T = T_init.clone()
-    on = {"dtype": T.dtype, "device": T.device}
-    eye = torch.eye(6, **on)
-    for _ in range(iters):
-        Tkf_to_f = T[frame] @ lie.inv(T_kf)
-        proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk_planes, intr)
-        r = tgt_planes - proj
-        wgt = w0 * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), huber)
-        JtJ, Jtr = _pixel_sums(Jf, wgt, r)
-        H = torch.zeros(M, 6, 6, **on).index_add_(0, frame, JtJ)
-        g = torch.zeros(M, 6, **on).index_add_(0, frame, Jtr)
-        H = H + eye * (1e-4 * H.diagonal(dim1=1, dim2=2).mean(-1, keepdim=True)[..., None] + 1e-9)
-        dx = torch.linalg.solve(H, g[..., None])[..., 0]
-        T = lie.se3_exp(dx) @ T
-        if float(dx.abs().max()) < 1e-7:
-            break
-    proj, valid = pj.project(pj.transform(T[frame] @ lie.inv(T_kf), Xk), intr)
-    rn = (tgt - proj).norm(dim=-1)
-    wv = w0 * valid
-    num = torch.zeros(M, **on).index_add_(0, frame, (wv * rn.clamp(max=10 * huber) ** 2).sum(1))
-    den = torch.zeros(M, **on).index_add_(0, frame, wv.sum(1))
-    inl = torch.zeros(M, **on).index_add_(0, frame, (wv * (rn < huber)).sum(1))
-    tot = torch.zeros(M, **on).index_add_(0, frame, w0.sum(1))
-    return T, (num / den.clamp(min=1e-9)).sqrt(), inl / tot.clamp(min=1e-9)

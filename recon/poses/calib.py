@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from recon.poses import ba
+from recon.poses import ba, motion_only
 from recon.poses import flow as fl
 from recon.poses.frontend_config import FrontendConfig, disp_from_depth, make_geometry
 from recon.poses.result import PriorSource, TrackingLostError, pool_depth
@@ -133,7 +133,7 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
         for k in range(1, len(kfs)):
             sel = (edges.ii == k - 1) & (edges.jj == k)
             e = edges.select(sel)
-            Tk, _, _ = ba.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
+            Tk, _, _ = motion_only.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
                                        torch.zeros(1, dtype=torch.int64), e.target, e.weight)
             T[k] = Tk[0]
         T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from recon.poses import ba, lie
+from recon.poses import lie, motion_only
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses import projective as pj
@@ -120,7 +120,7 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             continue
         kt, ft = torch.tensor(kfs), torch.tensor(frame_idx)
         wt = torch.stack(weights).double()
-        T, _, inl = ba.align_frames(torch.stack(T_init), T_kf[kt], disp_kf[kt], intr, ft,
+        T, _, inl = motion_only.align_frames(torch.stack(T_init), T_kf[kt], disp_kf[kt], intr, ft,
                                     torch.stack(targets).double(), wt, huber=1.0, k1=k1)
         ratio = np.full(len(chunk), np.nan)
         if prior_of is not None:

@@ -15,7 +15,7 @@ import logging
 import numpy as np
 import torch
 
-from recon.poses import ba, backend, features, lie, motion_filter
+from recon.poses import backend, features, lie, motion_filter, motion_only
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses.frontend_config import ba_pixels
@@ -183,7 +183,7 @@ class Tracker:
     def _align(self, T_init: torch.Tensor, kf: int, target: torch.Tensor, weight: torch.Tensor):
         """Pose (4, 4) of one frame against keyframe kf, and its inlier fraction."""
         s = self.state
-        T, _, inl = ba.align_frames(
+        T, _, inl = motion_only.align_frames(
             T_init[None], s.graph.poses([kf]), s.graph.disps([kf]), s.intr, torch.zeros(1, dtype=torch.int64),
             target[None].double(), weight[None].double(), huber=1.0, k1=s.k1,
         )
