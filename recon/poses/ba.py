@@ -13,9 +13,9 @@ This module owns the least-squares problem of the front end and its solvers:
   the scale by ~exp(-1.5 sigma^2), 9 % for 25 % errors). Reprojection alone cannot see the
   global scale; this tie is what makes the result metric.
 * The depth block of the Hessian is diagonal, so it is eliminated exactly with the
-  **Schur complement**; the reduced camera system (6 per free pose) is assembled with
-  scatter-adds and solved densely (Cholesky) in float64, then the depths are
-  back-substituted pixel by pixel. Levenberg-Marquardt damping with step acceptance.
+  **Schur complement** (:mod:`recon.poses.schur`); the reduced camera system (6 per free
+  pose) is solved densely (Cholesky) in float64, then the depths are back-substituted
+  pixel by pixel. Levenberg-Marquardt damping with step acceptance.
 * **lens self-calibration** (``BAOptions.calibrate_k1``): flow is measured on the
   recorded images, and both ends of every correspondence are undistorted with the lens'
   radial term k1 (``projective.undistort``) before the residual is taken; k1 can be one
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-from recon.poses import lie
+from recon.poses import lie, schur
 from recon.poses import projective as pj
 
 # Inverse depth is kept inside [MIN_DISP, MAX_DISP] (1/m): beyond 1 km nothing is
@@ -285,14 +285,6 @@ def total_cost(
     return res.cost(edges, opts.huber) + prior_cost(disps, prior, prior_w)
 
 
-def _solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """x with S x = g for a symmetric positive (semi)definite S (n, n), robust to near-singularity."""
-    L, info = torch.linalg.cholesky_ex(S)
-    if int(info) == 0:
-        return torch.cholesky_solve(g[:, None], L)[:, 0]
-    return torch.linalg.lstsq(S, g[:, None]).solution[:, 0]
-
-
 def pixel_sums(J: torch.Tensor, wgt: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """J^T W J (E, 6, 6) and J^T W r (E, 6) summed over pixels, of Jacobian planes J
     (E, 2, 6, P), weights (E, P) and residuals r (E, 2, P): one matrix product per residual
@@ -316,7 +308,7 @@ def _normal_equations(
         vi, vj: (E, 6) J^T W r for the two poses;
         C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
         Ej: (E, 6, P) pose-depth couplings J_pose^T W J_depth for pose jj (pose ii's are
-            -Ad(T_ij)^T Ej, formed per keyframe in ``_couplings``);
+            -Ad(T_ij)^T Ej, formed per keyframe in ``schur.couplings``);
         Tij: (E, 4, 4) the relative poses the system was linearised at;
     and with k1: Hkk, vk () for k1 itself, Hki, Hkj (E, 6) its couplings to the poses and
     Ek (K, P) to the depths. Per-pixel terms are planes (pixels last, ``projective``).
@@ -385,108 +377,6 @@ def _normal_equations(
     return out
 
 
-@dataclass
-class _Couplings:
-    """Per-keyframe pose-depth couplings, the layout the Schur complement works in.
-
-    The depth of pixel p of keyframe k couples to pose k (through every edge leaving k) and
-    to pose jj[e] of each edge e leaving k. B (L, 6 m, P) stacks those Jacobian products for
-    each keyframe whose depths are free (rows (L,): their ids; a held depth couples to
-    nothing): slot 0 is pose k (the sum over k's edges of -Ad(T_ij)^T Ej), slot s >= 1 the
-    s-th edge leaving k (Ej), zero-padded to the largest out-degree n. When k1 is estimated it is
-    node K, padded to a pose's 6 rows, in one last slot. pose (L, m) is the node each slot
-    belongs to (padding points at k itself with zero coupling).
-    """
-
-    B: torch.Tensor
-    pose: torch.Tensor
-    rows: torch.Tensor
-
-    @property
-    def slots(self) -> int:
-        return self.pose.shape[1]
-
-
-def _couplings(sys: dict, edges: Edges, num_kf: int, rows: torch.Tensor) -> _Couplings:
-    K = num_kf
-    L = rows.numel()
-    on = {"device": rows.device}
-    local = torch.full((K,), -1, dtype=torch.int64, **on)
-    local[rows] = torch.arange(L, **on)
-    keep = local[edges.ii] >= 0
-    Ej, T_ij = sys["Ej"], sys["Tij"]
-    if not bool(keep.all()):  # the window BA: edges leaving held depths couple to nothing
-        Ej, T_ij = Ej[keep], T_ij[keep]
-    ii, jj = local[edges.ii[keep]], edges.jj[keep]
-    E, _, P = Ej.shape
-    order = torch.argsort(ii, stable=True)
-    counts = torch.bincount(ii, minlength=L)
-    first = torch.cumsum(counts, 0) - counts
-    slot = torch.empty(E, dtype=torch.int64, **on)
-    slot[order] = torch.arange(E, **on) - first[ii[order]] + 1
-    n = int(counts.max()) if E else 0
-    m = n + 1 + ("Ek" in sys)
-    B = torch.zeros(L, m, 6, P, dtype=Ej.dtype, **on)
-    B[ii, slot] = Ej
-    # Pose k enters each edge only through T_kj: its coupling is -Ad(T_kj)^T times the
-    # edge's, summed over k's edges as one product over the slots.
-    A = torch.zeros(L, m, 6, 6, dtype=Ej.dtype, **on)
-    A[ii, slot] = -lie.adjoint(T_ij).transpose(1, 2).to(Ej.dtype)
-    B[:, 0] = A.permute(0, 2, 1, 3).reshape(L, 6, 6 * m) @ B.reshape(L, 6 * m, P)
-    pose = rows[:, None].repeat(1, m)
-    pose[ii, slot] = jj
-    if "Ek" in sys:
-        B[:, -1, 0] = sys["Ek"][rows].to(Ej.dtype)
-        pose[:, -1] = K
-    return _Couplings(B.reshape(L, 6 * m, P), pose, rows)
-
-
-def _reduced_system(
-    sys: dict, edges: Edges, Q: torch.Tensor, wz: torch.Tensor, num_kf: int, free_disp: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, _Couplings]:
-    """Schur complement over the depths: blocks S (N, N, 6, 6), gradient g (N, 6) and the
-    couplings (for the back-substitution). N = K poses, plus k1 as node K (its first row)
-    when the system has it. free_disp (K,) bool: keyframes whose depths are eliminated
-    (the others are held and drop out).
-
-    Eliminating keyframe k's depths (diagonal Hessian 1 / Q) subtracts B_k Q_k B_k^T from
-    the poses it couples to and B_k Q_k w_k from their gradient: one batched product over
-    keyframes covers pose k, every edge target and every pair of edges leaving k.
-    """
-    ii, jj = edges.ii, edges.jj
-    dt = Q.dtype
-    K = num_kf
-    N = K + ("Hkk" in sys)
-    S = torch.zeros(N * N, 6, 6, dtype=dt, device=Q.device)
-    S.index_add_(0, ii * N + ii, sys["Hii"])
-    S.index_add_(0, ii * N + jj, sys["Hij"])
-    S.index_add_(0, jj * N + ii, sys["Hij"].transpose(1, 2))
-    S.index_add_(0, jj * N + jj, sys["Hjj"])
-    g = torch.zeros(N, 6, dtype=dt, device=Q.device)
-    g.index_add_(0, ii, sys["vi"])
-    g.index_add_(0, jj, sys["vj"])
-    if N > K:
-        for pose, H in ((ii, sys["Hki"]), (jj, sys["Hkj"])):
-            row = torch.zeros(len(edges), 6, 6, dtype=dt, device=Q.device)
-            row[:, 0] = H
-            S.index_add_(0, K * N + pose, row)
-            S.index_add_(0, pose * N + K, row.transpose(1, 2))
-        S[K * N + K, 0, 0] += sys["Hkk"]
-        g[K, 0] += sys["vk"]
-
-    cpl = _couplings(sys, edges, K, free_disp.nonzero(as_tuple=True)[0])
-    B, m, L = cpl.B, cpl.slots, cpl.rows.numel()
-    Q, wz = Q[cpl.rows], wz[cpl.rows]
-    blocks = ((B * Q.to(B.dtype)[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (L, 6m, 6m)
-    blocks = blocks.reshape(L, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
-    rows = cpl.pose[:, :, None].expand(L, m, m)
-    cols = cpl.pose[:, None, :].expand(L, m, m)
-    S.index_add_(0, (rows * N + cols).reshape(-1), -blocks)
-    gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (L, 6m)
-    g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
-    return S.reshape(N, N, 6, 6), g, cpl
-
-
 def ba_step(
     T_cw: torch.Tensor,
     disps: torch.Tensor,
@@ -525,7 +415,7 @@ def ba_step(
     Q = 1.0 / C
     # A held depth has infinite stiffness: it drops out of the Schur complement.
     free_disp = torch.ones(K, dtype=torch.bool, device=disps.device) if fixed_disp is None else ~fixed_disp
-    S, g, cpl = _reduced_system(sys, edges, Q, wz, K, free_disp)
+    S, g, cpl = schur.reduced_system(sys, edges.ii, edges.jj, Q, wz, K, free_disp)
     if pose_prior is not None:
         # r(dx) = log(exp(dx) T T0^-1) ~ r + dx for the left update.
         k = torch.arange(K, device=S.device)
@@ -544,11 +434,8 @@ def ba_step(
         Sf = 0.5 * (Sf + Sf.T)
         diag = Sf.diagonal()
         Sf = Sf + torch.diag(lm * diag + opts.eps)
-        dx[free] = _solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
-    # Back-substitution: dz = Q (w - B^T dx) over the poses each keyframe's depths couple to.
-    dx_slots = dx[cpl.pose].reshape(cpl.rows.numel(), -1, 1).to(cpl.B.dtype)
-    rhs = wz[cpl.rows] - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
-    dz = torch.zeros_like(Q).index_copy_(0, cpl.rows, Q[cpl.rows] * rhs).reshape(K, height, width)
+        dx[free] = schur.solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
+    dz = schur.back_substitute(cpl, dx, Q, wz).reshape(K, height, width)
     T_new = lie.se3_exp(dx[:K]) @ T_cw
     d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
     k1_new = None if k1 is None else float(min(max(k1 + float(dx[K, 0]), -MAX_K1), MAX_K1))

@@ -14,9 +14,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from recon.poses import lie, motion_only
 from recon.poses import flow as fl
 from recon.poses import graph as gr
+from recon.poses import lie, motion_only
 from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig, ba_pixels
 from recon.poses.track_state import TrackState
