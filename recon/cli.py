@@ -237,8 +237,8 @@ def main(argv: list[str] | None = None) -> int:
         # an error. Point stdout at /dev/null so the interpreter's final flush stays quiet.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    except BaseException as error:
-        if not (isinstance(error, _Terminated) or _TERMINATION.is_set()):
+    except BaseException:
+        if not _TERMINATION.is_set():  # set by the handler before it raises _Terminated
             raise
         print("recon: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM

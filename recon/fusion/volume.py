@@ -14,7 +14,10 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-# Ray casting's range map resolution (render_depth): full resolution, for repeatable depth.
+# Ray casting's range map resolution (render_depth): full resolution. With Open3D's default
+# of 8 a different 2-10 % of the rays came back empty or on another surface from one call to
+# the next (0 % at factors 1 and 2 over repeated calls); 1 costs ~30 % more on a call that
+# takes ~20 ms at 256x192.
 RANGE_MAP_DOWN_FACTOR = 1
 
 
@@ -154,10 +157,6 @@ class TsdfVolume:
         hashmap = self.grid.hashmap()
         blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
         # Open3D reports how it sized its range map on stdout; that is not the user's business.
-        # The range map at full resolution (down factor 1): with Open3D's default of 8 a
-        # different 2-10 % of the rays came back empty or on another surface from one call to
-        # the next (0 % at factors 1 and 2 over repeated calls); 1 costs ~30 % more on a call
-        # that takes ~20 ms at 256x192.
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             result = self.grid.ray_cast(blocks, K, E, w, h, ["depth"], 1.0, 0.05, self.max_depth,
                                         float(min_weight), self.trunc / self.voxel, RANGE_MAP_DOWN_FACTOR)

@@ -43,19 +43,20 @@ class Couplings:
         return self.pose.shape[1]
 
 
-def couplings(sys: dict, ii: torch.Tensor, jj: torch.Tensor, num_kf: int, rows: torch.Tensor) -> Couplings:
+def couplings(sys: dict, edge_ii: torch.Tensor, edge_jj: torch.Tensor, num_kf: int, rows: torch.Tensor
+              ) -> Couplings:
     """The couplings of the keyframes `rows` (Couplings), from the normal equations `sys`
-    of edges (ii, jj)."""
+    of edges (edge_ii, edge_jj)."""
     K = num_kf
     L = rows.numel()
     on = {"device": rows.device}
     local = torch.full((K,), -1, dtype=torch.int64, **on)
     local[rows] = torch.arange(L, **on)
-    keep = local[ii] >= 0
+    keep = local[edge_ii] >= 0
     Ej, T_ij = sys["Ej"], sys["Tij"]
     if not bool(keep.all()):  # the window BA: edges leaving held depths couple to nothing
         Ej, T_ij = Ej[keep], T_ij[keep]
-    ii, jj = local[ii[keep]], jj[keep]
+    ii, jj = local[edge_ii[keep]], edge_jj[keep]  # ii: the keyframe's row in B
     E, _, P = Ej.shape
     order = torch.argsort(ii, stable=True)
     counts = torch.bincount(ii, minlength=L)
