@@ -115,6 +115,7 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
             store_bytes: int):
     from .export import export_reconstruction
     from .fusion import FusionResult
+    from .fusion.tsdf import warn_empty_mesh
     from .report import stream_report
 
     (volume, options) = fusion_state
@@ -127,7 +128,7 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,
                           fragments_removed=removed)
     if len(mesh.triangles) == 0:
-        log.warning("TSDF fusion: the mesh is empty (%d frames fused)", volume.frames_fused)
+        warn_empty_mesh(volume, options, config.refine != "none")
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     with clock.stage("export"):
         files = export_reconstruction(out, mesh=mesh, poses=video.poses[kept], timestamps=video.timestamps[kept],

@@ -358,6 +358,27 @@ def test_folder_prior_nan_and_inf_are_invalid_pixels(small_scene, tmp_path, caps
     assert depth.shape == (120, 160) and (depth[:10] == 0).all() and (depth[10:] > 0).mean() > 0.95
 
 
+@pytest.mark.parametrize("stream", ["off", "on"])
+def test_an_empty_mesh_is_not_written_and_says_why(small_scene, tmp_path, capsys, stream):
+    """Depth all beyond --max-depth fuses nothing: the run still writes its depth, trajectory
+    and report, warns once that the mesh is empty (naming the settings that decide it), and
+    removes the mesh an earlier run left in the folder instead of leaving it to pass for this
+    run's."""
+    out = tmp_path / "out"
+    argv = _small_scene_argv(small_scene, out) + ["--stream", stream, "--point-cloud"]
+    files = [out / name for name in ("mesh.ply", "mesh.glb", "point_cloud.ply")]
+    assert main(argv) == 0
+    assert all(path.is_file() for path in files)
+    capsys.readouterr()
+    assert main(argv + ["--max-depth", "0.05", "--overwrite"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "mesh is empty" in line]
+    assert len(err) == 1 and err[0].startswith("recon: warning: ") and "--max-depth 0.05" in err[0], err
+    assert not any(path.exists() for path in files)
+    report = json.loads((out / "report.json").read_text())
+    assert report["fusion"]["triangles"] == 0 and "mesh_ply" not in report["files"]
+    assert (out / "trajectory.txt").is_file() and len(list((out / "depth").glob("*.png"))) == 8
+
+
 def test_folder_prior_map_without_valid_pixel_is_refused(small_scene, tmp_path, capsys):
     _, _, files = small_scene
     prior = tmp_path / "prior"

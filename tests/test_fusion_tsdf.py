@@ -129,6 +129,17 @@ def test_fusion_inputs(fusion_room):
              FusionOptions(device="tpu", **QUIET))
 
 
+def test_depth_all_beyond_max_depth_gives_an_empty_mesh_and_says_so(fusion_room, caplog):
+    """Open3D raises when a frame touches no block and when an empty volume is meshed; a
+    fusion that keeps nothing returns empty geometry and warns instead."""
+    options = FusionOptions(max_depth=0.05, point_cloud=True, **QUIET)
+    with caplog.at_level(logging.WARNING):
+        r = fuse(fusion_room.depth[:3], fusion_room.rgb[:3], fusion_room.poses[:3], fusion_room.intrinsics, options)
+    assert r.frames_fused == 0 and r.blocks_used == 0
+    assert len(r.mesh.triangles) == 0 and len(r.point_cloud.points) == 0
+    assert any("mesh is empty" in rec.message and "--max-depth 0.05" in rec.message for rec in caplog.records)
+
+
 @pytest.mark.skipif(not (SHARED_DATA / "7scenes-redkitchen").is_dir(), reason="../shared is not present")
 def test_fuse_real_sensor_depth(tmp_path):
     """7-Scenes sensor depth with its ground-truth poses gives a clean kitchen surface."""

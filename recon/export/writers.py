@@ -71,10 +71,15 @@ def write_mesh_ply(path, mesh, overwrite: bool = False) -> Path:
     )
 
 
+def _legacy_cloud(cloud) -> o3d.geometry.PointCloud:
+    if isinstance(cloud, o3d.t.geometry.PointCloud):
+        return cloud.cpu().to_legacy()
+    return cloud
+
+
 def write_point_cloud_ply(path, cloud, overwrite: bool = False) -> Path:
     """Binary PLY of an Open3D point cloud (legacy or tensor)."""
-    if isinstance(cloud, o3d.t.geometry.PointCloud):
-        cloud = cloud.cpu().to_legacy()
+    cloud = _legacy_cloud(cloud)
     return _write_with_open3d(Path(path), overwrite, lambda p: o3d.io.write_point_cloud(p, cloud, write_ascii=False))
 
 
@@ -207,6 +212,8 @@ def export_reconstruction(
     depth_npy: bool = True,
 ) -> dict[str, Path]:
     """Write whatever is given into `out` under its standard name (:mod:`recon.io.output_folder`).
+    A mesh without triangles or a point cloud without points is not written (and the file an
+    earlier run left in `out` is removed).
 
     mesh: Open3D mesh; poses: (N, 4, 4) camera-to-world; timestamps: (N,) seconds;
     intrinsics: (fx, fy, cx, cy) or (N, 4) per frame, with shape = (H, W) of the
@@ -215,6 +222,14 @@ def export_reconstruction(
     Returns {label: path} of the files written.
     """
     written: dict[str, Path] = {}
+    # Nothing to write (fusion said why); a mesh of an earlier run must not pass for this one's.
+    if mesh is not None and len(_legacy_mesh(mesh).triangles) == 0:
+        for name in (MESH_PLY, MESH_GLB):
+            out.remove_stale(name)
+        mesh = None
+    if point_cloud is not None and len(_legacy_cloud(point_cloud).points) == 0:
+        out.remove_stale(POINT_CLOUD_PLY)
+        point_cloud = None
     if mesh is not None:
         with out.atomic(MESH_PLY) as tmp:
             write_mesh_ply(tmp, mesh, overwrite=True)

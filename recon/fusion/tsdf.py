@@ -343,6 +343,16 @@ def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, floa
     return float(voxel), float(options.trunc or options.trunc_voxels * voxel), float(max_depth)
 
 
+def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: bool) -> None:
+    """Say that fusion meshed nothing, and which settings decide what is meshed."""
+    gate = (f"; pixels the refinement confirmed less than --min-confidence {options.min_confidence:g} are not "
+            "fused (0 fuses every pixel; camera motion between frames gives the refinement its evidence)"
+            if confidence_used and options.min_confidence else "")
+    log.warning("TSDF fusion: the mesh is empty (%d frames fused): no surface within --max-depth %.2f m was seen "
+                "by more than --weight-threshold %g frames%s; mesh.ply and mesh.glb are not written",
+                volume.frames_fused, volume.max_depth, options.weight_threshold, gate)
+
+
 def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, confidence=None) -> FusionResult:
     """Fuse metric depth maps (and colour) into a mesh by TSDF integration.
 
@@ -394,8 +404,7 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i])
     mesh, removed = volume.mesh(options)
     if len(mesh.triangles) == 0:
-        log.warning("TSDF fusion: the mesh is empty (%d frames fused, weight_threshold %g)", volume.frames_fused,
-                    options.weight_threshold)
+        warn_empty_mesh(volume, options, confidence is not None)
     cloud = volume.point_cloud(options) if options.point_cloud else None
     fused, blocks_used = volume.frames_fused, volume.blocks_used
     return FusionResult(

@@ -124,9 +124,9 @@ class TsdfVolume:
     def integrate(self, depth, pose, intrinsics, rgb=None) -> bool:
         """Fuse one frame: depth (H, W) metres (0 invalid), pose (4, 4) camera-to-world,
         intrinsics (fx, fy, cx, cy) of the depth, rgb (H', W', 3) uint8 or None. False when
-        the frame has no valid depth (nothing fused)."""
+        the frame has no valid depth within max_depth (nothing fused; Open3D raises on it)."""
         d = clean_depth(depth)
-        if not (d > 0).any():
+        if not ((d > 0) & (d <= self.max_depth)).any():
             return False
         fx, fy, cx, cy = (float(v) for v in intrinsics)
         K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
@@ -173,6 +173,8 @@ class TsdfVolume:
         FusionOptions (weight_threshold, min_fragment_triangles, min_fragment_fraction).
         Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding)."""
         # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
+        if self.blocks_used == 0:  # nothing integrated (Open3D raises on an empty hash map)
+            return o3d.geometry.TriangleMesh(), 0
         threshold = options.weight_threshold - 0.5
         mesh = _extract(lambda: self.grid.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
         mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
@@ -183,6 +185,8 @@ class TsdfVolume:
     def point_cloud(self, options) -> o3d.geometry.PointCloud:
         """The zero crossings of what is fused so far (the mesh's weight threshold), in
         canonical order (canonical_points)."""
+        if self.blocks_used == 0:
+            return o3d.geometry.PointCloud()
         threshold = options.weight_threshold - 0.5
         return canonical_points(_extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud))
 

@@ -223,6 +223,15 @@ class OutputFolder:
     def write_json(self, name, obj) -> Path:
         return self.write_bytes(name, json_bytes(obj))
 
+    def remove_stale(self, name) -> bool:
+        """Delete `name` left by an earlier run (the folder was opened with `overwrite`), so
+        that it is not taken for this run's result; True when a file was removed."""
+        path = self.path / Path(name)
+        if not self.overwrite or path in self._written or not path.is_file():
+            return False
+        path.unlink()
+        return True
+
     def __repr__(self) -> str:
         return f"OutputFolder({str(self.path)!r}, overwrite={self.overwrite})"
 
