@@ -28,6 +28,11 @@ class StageConfig:
     # gradients of ~1e-3) damps them. docs/benchmarks.md, "MEDeA on CPU and CUDA".
     adam_eps: float = 1e-8
 
+    def checks(self) -> dict[str, bool]:
+        """Each setting's name -> whether its value can work."""
+        return {"epochs": self.epochs >= 0, "gamma": 0 < self.gamma <= 1, "patience": self.patience >= 1,
+                "lr": self.lr > 0, "min_rel_improvement": self.min_rel_improvement >= 0, "adam_eps": self.adam_eps > 0}
+
 
 @dataclass
 class MedeaConfig:
@@ -96,6 +101,34 @@ class MedeaConfig:
         for key, value in overrides.items():
             setattr(config, key, value)
         return config
+
+    def validate(self) -> None:
+        """ValueError naming the first setting that cannot work."""
+        levels = lambda pair: len(pair) == 2 and 0 <= pair[0] <= pair[1]  # noqa: E731
+        checks = {
+            "grid_size": len(self.grid_size) == 2 and min(self.grid_size) >= 1,
+            "image_scale": 0 < self.image_scale <= 1,
+            "batch_pairs": self.batch_pairs >= 1,
+            "pixel_stride": self.pixel_stride >= 1,
+            "feature_stride": self.feature_stride >= 1,
+            "feature_channels": self.feature_channels is None or self.feature_channels >= 1,
+            "stage1_levels": levels(self.stage1_levels),
+            "stage2_levels": levels(self.stage2_levels),
+            "feature_loss": self.feature_loss in ("S", "M"),
+            "photometric_weight": self.photometric_weight >= 0,
+            "depth_weight": self.depth_weight >= 0,
+            "feature_weight": self.feature_weight >= 0,
+            "feature_eps": self.feature_eps >= 0,
+            "min_sample_validity": 0 <= self.min_sample_validity <= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"MEDeA setting {name}={getattr(self, name)!r} is out of range")
+        for stage in ("stage1", "stage2"):
+            config = getattr(self, stage)
+            for name, ok in config.checks().items():
+                if not ok:
+                    raise ValueError(f"MEDeA setting {stage}.{name}={getattr(config, name)!r} is out of range")
 
     def grid_for(self, height: int, width: int) -> tuple[int, int]:
         """Grid (h, w) for a frame of this size: (8, 10) landscape, (10, 8) portrait."""

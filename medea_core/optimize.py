@@ -164,6 +164,7 @@ def run_medea(
         MedeaResult with depth at the prior's resolution, on the prior's device.
     """
     config = config or MedeaConfig()
+    config.validate()
     num = prior.shape[0]
     if num == 0:
         raise ValueError("run_medea: no frames")

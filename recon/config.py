@@ -114,6 +114,8 @@ class PipelineConfig:
             raise ReconInputError(f"refine must be one of {', '.join(REFINE_CHOICES)}, got {self.refine!r}")
         try:
             self.mvs.validate()
+            if self.adjust:
+                self.medea.validate()
         except ValueError as error:
             raise ReconInputError(str(error)) from None
         if self.rerun not in RERUN_MODES:
@@ -139,6 +141,8 @@ class PipelineConfig:
         if int(self.window_overlap) < 0 or int(self.window) < int(self.window_overlap) + 2:
             raise ReconInputError(f"a window needs at least 2 frames beyond its overlap: window {self.window}, "
                                   f"overlap {self.window_overlap}")
+        if int(self.mesh_every) < 0:
+            raise ReconInputError(f"mesh every must be >= 0 fused frames (0: only at the end), got {self.mesh_every}")
         if int(self.frame_budget) < 2:
             raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
         self.fusion.validate()

@@ -231,6 +231,10 @@ def test_bad_options(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--stride", "0"], "stride")
     _run_fails(capsys, ["run", str(video), "-o", out, "--prior", "folder"], "--prior-path")
     _run_fails(capsys, ["run", str(video), "-o", out, "--voxel-size", "-1"], "voxel_size")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--batch-pairs", "0"], "batch_pairs=0")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--lr", "-0.1"], "lr=-0.1")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--image-scale", "0"], "image_scale=0.0")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--mesh-every", "-3"], "mesh every", "-3")
     _run_fails(capsys, ["view", str(tmp_path / "nothing")], "no such file")
     assert not Path(out).exists()
 

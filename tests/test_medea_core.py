@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from medea_core import MedeaConfig, StageConfig, hierarchical_pairs, optimise_stage, stage_pairs
+from medea_core import MedeaConfig, StageConfig, hierarchical_pairs, optimise_stage, run_medea, stage_pairs
 from medea_core.frames import prepare_frames
 from medea_core.geometry import depth_in_view_i, pair_transforms, pixel_grid, reproject, sample
 from medea_core.grid import median_pool_to_grid, scale_field
@@ -226,3 +226,25 @@ def test_feature_channel_selection_keeps_the_most_varying():
                           torch.tensor([10.0, 10.0, 7.0, 4.0]), features, 0.5, "cpu", feature_channels=2)
     assert data.features.maps.shape[1] == 2
     assert torch.allclose(data.features.maps, features[:, [1, 5]])
+
+
+@pytest.mark.parametrize("change", [dict(batch_pairs=0), dict(image_scale=0.0), dict(pixel_stride=0),
+                                    dict(stage2_levels=(2, 1)), dict(feature_channels=0)])
+def test_settings_that_cannot_work_are_refused_by_name(change):
+    config = MedeaConfig(**change)
+    name = next(iter(change))
+    with pytest.raises(ValueError, match=name):
+        config.validate()
+    frames = torch.zeros(2, 3, 8, 8)
+    with pytest.raises(ValueError, match=name):
+        run_medea(frames, torch.ones(2, 8, 8), torch.eye(4).expand(2, 4, 4), torch.tensor([8.0, 8.0, 4.0, 4.0]),
+                  config=config)
+
+
+def test_a_stage_setting_that_cannot_work_names_its_stage():
+    config = MedeaConfig()
+    config.stage2.lr = -0.1
+    with pytest.raises(ValueError, match=r"stage2\.lr=-0\.1"):
+        config.validate()
+    MedeaConfig().validate()
+    MedeaConfig.fast().validate()
