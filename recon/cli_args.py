@@ -8,6 +8,7 @@ from recon.choices. The commands that run on the parsed arguments are in recon.c
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import torch
@@ -80,10 +81,17 @@ def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
 
 
 def resolve_device(name: str) -> str:
+    """The torch device for --device NAME (cpu, cuda, cuda:N or auto), checked here."""
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    match = re.fullmatch(r"cpu|cuda(?::(\d+))?", name)
+    if match is None:
+        raise ReconInputError(f"--device {name}: expected cpu, cuda, cuda:N or auto")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ReconInputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
+    if match.group(1) is not None and int(match.group(1)) >= torch.cuda.device_count():
+        raise ReconInputError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
+                              f"numbered from 0")
     return name
 
 
