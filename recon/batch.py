@@ -23,6 +23,7 @@ recon.cli; every input gets a copy with its own input and output.
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import time
 import traceback
@@ -31,7 +32,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .choices import POSE_CHOICES
+from .choices import DEVICE_PATTERN, DEVICE_SPELLINGS, POSE_CHOICES
 from .config import PipelineConfig
 from .errors import ReconInputError
 from .io.output_folder import REPORT_JSON, atomic_write_bytes, json_bytes, read_report
@@ -209,14 +210,8 @@ def batch_template(template: PipelineConfig) -> PipelineConfig:
 def check_device(device: str) -> None:
     """A bad --device fails before any task starts. Only its spelling is checked here: the
     GPU is the task's, on whichever node Ray places it."""
-    if device == "auto":
-        return
-    import torch
-
-    try:
-        torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ReconInputError(f"--device: not a device: {device!r} (cpu, cuda, cuda:N or auto)") from None
+    if re.fullmatch(DEVICE_PATTERN, device) is None:
+        raise ReconInputError(f"--device: not a device: {device!r} ({DEVICE_SPELLINGS})")
 
 
 # --------------------------------------------------------------------------- the task

@@ -32,5 +32,9 @@ RERUN_MODES = ("spawn", "save", "serve", "off")
 # Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget.
 STREAM_CHOICES = ("auto", "on", "off")
 
-__all__ = ["DEMO_PRIORS", "POSE_CHOICES", "POSE_METHODS", "PRIOR_ALIGN_CHOICES", "PRIOR_CHOICES", "REFINE_CHOICES",
-           "RERUN_MODES", "STREAM_CHOICES"]
+# Where the torch stages run (--device): "auto" is CUDA when there is one, else the CPU.
+DEVICE_PATTERN = r"auto|cpu|cuda(?::(\d+))?"
+DEVICE_SPELLINGS = "cpu, cuda, cuda:N or auto"
+
+__all__ = ["DEMO_PRIORS", "DEVICE_PATTERN", "DEVICE_SPELLINGS", "POSE_CHOICES", "POSE_METHODS",
+           "PRIOR_ALIGN_CHOICES", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES", "STREAM_CHOICES"]

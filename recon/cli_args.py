@@ -17,6 +17,8 @@ from medea_core import MedeaConfig
 
 from .choices import (
     DEMO_PRIORS,
+    DEVICE_PATTERN,
+    DEVICE_SPELLINGS,
     POSE_CHOICES,
     POSE_METHODS,
     PRIOR_ALIGN_CHOICES,
@@ -84,9 +86,9 @@ def resolve_device(name: str) -> str:
     """The torch device for --device NAME (cpu, cuda, cuda:N or auto), checked here."""
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
-    match = re.fullmatch(r"cpu|cuda(?::(\d+))?", name)
+    match = re.fullmatch(DEVICE_PATTERN, name)
     if match is None:
-        raise ReconInputError(f"--device {name}: expected cpu, cuda, cuda:N or auto")
+        raise ReconInputError(f"--device {name}: expected {DEVICE_SPELLINGS}")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ReconInputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
     if match.group(1) is not None and int(match.group(1)) >= torch.cuda.device_count():
@@ -110,7 +112,7 @@ def _numbers(text: str, count: int, what: str) -> tuple[float, ...]:
 
 
 def add_device_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
+    parser.add_argument("--device", default="auto", help=f"{DEVICE_SPELLINGS} (default %(default)s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
