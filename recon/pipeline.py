@@ -143,6 +143,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         source = select_frames(config.input, stride=config.stride, max_frames=config.max_frames,
                                start_time=config.start_time, end_time=config.end_time, width=config.width,
                                fps=config.fps, frame_budget=config.frame_budget if config.stream == "off" else None)
+        intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
         out = OutputFolder(config.output, config.overwrite)
         pose_plan = plan_poses(config.poses, source)
         say(f"input: {source.description}")
@@ -151,15 +152,13 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
         say(f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
             if config.stream == "auto" else "streaming")
-        return run_streamed(config, source, out, pose_plan, given_intrinsics(source, config.intrinsics, config.fov),
-                            say)
+        return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
     with timer.stage("prior"):  # the network is loaded before the frames are decoded: a bad model fails at once
         prior_of = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
                                   features=config.features and config.adjust, align=config.prior_align,
                                   device=config.device, progress=config.progress)
     with timer.stage("decode"):
         seq = decode(source, config.progress)
-    intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
     seq = seq.with_(intrinsics=intrinsics)
 
     say(f"depth prior: {config.prior}")

@@ -74,6 +74,13 @@ def given_intrinsics(source: FrameSource, intrinsics=None, fov: float | None = N
     """Intrinsics at working size known before poses: (values or None, where they came from).
     intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal degrees."""
     if intrinsics is not None:
+        height, width = source.native_shape
+        cx, cy = float(intrinsics[2]), float(intrinsics[3])
+        if not (0 <= cx <= width and 0 <= cy <= height):
+            # Most often a calibration of another resolution, or the numbers in another order.
+            raise ReconInputError(f"--intrinsics: the principal point ({cx:g}, {cy:g}) lies outside the "
+                                  f"{width}x{height} frames of the input; give fx,fy,cx,cy in pixels of the input "
+                                  "as decoded")
         return resize_intrinsics(intrinsics, source.native_shape, source.shape), "given"
     if fov is not None:
         return intrinsics_from_fov(fov, *source.shape), f"fov {fov:g} deg"

@@ -227,6 +227,8 @@ def test_bad_options(tmp_path, capsys):
     video = _video(tmp_path / "clip.mp4", 4)
     out = str(tmp_path / "out")
     _run_fails(capsys, ["run", str(video), "-o", out, "--intrinsics", "500,500,320"], "--intrinsics", "4 numbers")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--intrinsics", "1500,1500,960,540"], "--intrinsics",
+               "(960, 540) lies outside")
     _run_fails(capsys, ["run", str(video), "-o", out, "--rerun", "loud"], "--rerun", "loud")
     _run_fails(capsys, ["run", str(video), "-o", out, "--stride", "0"], "stride")
     _run_fails(capsys, ["run", str(video), "-o", out, "--prior", "folder"], "--prior-path")
