@@ -56,6 +56,17 @@ def test_known_errors_are_measured(tmp_path, recording):
     assert "median_frame" in text and "F-score@5cm" in text
 
 
+def test_an_output_without_a_mesh_says_so(tmp_path, recording):
+    seq, root = recording
+    indices = np.arange(0, 12, 2)
+    out = _output(tmp_path, seq, indices, seq.depth[indices], seq.poses[indices], "gt")
+    (out / "mesh.ply").unlink()
+    result = evaluate_output(out, root, EvalOptions(progress=False))
+    assert "mesh" not in result and "no mesh" in result["mesh_missing"]
+    assert result["depth"]["metric"]["abs_rel"] < 1e-3
+    assert "mesh: no mesh in" in format_evaluation(result)
+
+
 def test_estimated_poses_are_aligned_before_the_mesh_is_compared(tmp_path, recording):
     seq, root = recording
     indices = np.arange(12)

@@ -138,6 +138,9 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
             reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
         mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
         result["mesh"] = mesh_metrics(mesh, reference, options.threshold, options.mesh_points).to_dict()
+    else:
+        # A run that meshed nothing writes no mesh file: say so rather than leave the table out.
+        result["mesh_missing"] = f"no mesh in {out.path} (the run meshed nothing: see its warnings)"
     return result
 
 
@@ -164,4 +167,6 @@ def format_evaluation(result: dict) -> str:
                   "|---|---|---|---|---|---|---|",
                   f"| | {m['accuracy']:.4f} | {m['completeness']:.4f} | {m['chamfer']:.4f} | {m['precision']:.4f} | "
                   f"{m['recall']:.4f} | {m['fscore']:.4f} |"]
+    if "mesh_missing" in result:
+        lines += ["", f"mesh: {result['mesh_missing']}"]
     return "\n".join(lines)
