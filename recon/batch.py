@@ -23,7 +23,6 @@ recon.cli; every input gets a copy with its own input and output.
 from __future__ import annotations
 
 import logging
-import re
 import socket
 import time
 import traceback
@@ -32,8 +31,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .choices import DEVICE_PATTERN, DEVICE_SPELLINGS, POSE_CHOICES
-from .config import PipelineConfig
+from .choices import POSE_CHOICES
+from .config import PipelineConfig, device_index
 from .errors import ReconInputError
 from .io.output_folder import REPORT_JSON, atomic_write_bytes, json_bytes, read_report
 
@@ -207,13 +206,6 @@ def batch_template(template: PipelineConfig) -> PipelineConfig:
                    poses=poses, progress=False)
 
 
-def check_device(device: str) -> None:
-    """A bad --device fails before any task starts. Only its spelling is checked here: the
-    GPU is the task's, on whichever node Ray places it."""
-    if re.fullmatch(DEVICE_PATTERN, device) is None:
-        raise ReconInputError(f"--device: not a device: {device!r} ({DEVICE_SPELLINGS})")
-
-
 # --------------------------------------------------------------------------- the task
 
 
@@ -378,7 +370,7 @@ def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOp
     """
     import_ray()  # the missing package is the first thing to hear about
     options.validate()
-    check_device(template.device)
+    device_index(template.device)  # only its spelling: the GPU is the task's, on the node Ray picks
     template.validate()  # the run options, once, before any task (e.g. --prior hf without a model folder)
     template = batch_template(template)
     out = Path(out)

@@ -8,7 +8,6 @@ from recon.choices. The commands that run on the parsed arguments are in recon.c
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
 import torch
@@ -17,7 +16,6 @@ from medea_core import MedeaConfig
 
 from .choices import (
     DEMO_PRIORS,
-    DEVICE_PATTERN,
     DEVICE_SPELLINGS,
     POSE_CHOICES,
     POSE_METHODS,
@@ -84,14 +82,14 @@ def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
 
 def resolve_device(name: str) -> str:
     """The torch device for --device NAME (cpu, cuda, cuda:N or auto), checked here."""
+    from .config import device_index
+
+    index = device_index(name)
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
-    match = re.fullmatch(DEVICE_PATTERN, name)
-    if match is None:
-        raise ReconInputError(f"--device {name}: expected {DEVICE_SPELLINGS}")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ReconInputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
-    if match.group(1) is not None and int(match.group(1)) >= torch.cuda.device_count():
+    if index is not None and index >= torch.cuda.device_count():
         raise ReconInputError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
                               f"numbered from 0")
     return name

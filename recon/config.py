@@ -6,6 +6,7 @@ once by ``validate`` before any work and recorded in ``report.json`` by ``to_dic
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -15,10 +16,29 @@ import numpy as np
 from medea_core import MedeaConfig
 from mvs_core import MvsConfig
 
-from .choices import POSE_METHODS, PRIOR_ALIGN_CHOICES, PRIOR_CHOICES, REFINE_CHOICES, RERUN_MODES, STREAM_CHOICES
+from .choices import (
+    DEVICE_PATTERN,
+    DEVICE_SPELLINGS,
+    POSE_METHODS,
+    PRIOR_ALIGN_CHOICES,
+    PRIOR_CHOICES,
+    REFINE_CHOICES,
+    RERUN_MODES,
+    STREAM_CHOICES,
+)
 from .errors import ReconInputError
 from .fusion import FusionOptions
 from .poses.polish import PolishConfig
+
+
+def device_index(name: str) -> int | None:
+    """N of a --device spelled cuda:N (None for cpu, cuda and auto); ReconInputError for
+    any other spelling. Only the spelling: whether the machine has that device is the
+    caller's to check, on the machine that will run it."""
+    match = re.fullmatch(DEVICE_PATTERN, name)
+    if match is None:
+        raise ReconInputError(f"--device {name}: expected {DEVICE_SPELLINGS}")
+    return None if match.group(1) is None else int(match.group(1))
 
 
 @dataclass
