@@ -14,14 +14,16 @@ Rows:
 * ``stream``: the defaults of a long input (depth frames by motion, windows of 48);
 * ``stream, all frames``: every tracked frame gets depth (the one-shot run's work);
 * ``batch``: `--stream off` (every frame in memory at once; only where it fits);
-* ``stream, estimated poses``: the streaming front end instead of the pose file.
+* ``stream, estimated poses``: the streaming front end instead of the pose file;
+* ``batch, estimated poses``: `--stream off` with the poses estimated (every frame gets
+  depth; the one-shot run a user gets on a video up to the frame budget).
 
 Usage: python benchmarks/stream.py [--lengths 300 1200 3600] [--batch-lengths 300 1200]
-[--rounds N]. Prints a table, writes benchmarks/results/stream.json. Run it alone on the
+[--batch-estimate-lengths 300] [--rounds N]. Prints a table, writes benchmarks/results/stream.json. Run it alone on the
 machine (timings on a shared CPU are not comparable). With ``--rounds N`` the whole plan
 runs N times in turn (interleaved, so that the machine's drifts hit every row alike) and the
 table gives each row's median, and the ratio of every streamed row's s/frame to the batch
-row's of the same length.
+row's of the same length and pose source.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ def main() -> None:
     parser.add_argument("--batch-lengths", type=int, nargs="*", default=[300, 1200])
     parser.add_argument("--all-frames-lengths", type=int, nargs="*", default=[300])
     parser.add_argument("--estimate-lengths", type=int, nargs="*", default=[300])
+    parser.add_argument("--batch-estimate-lengths", type=int, nargs="*", default=[])
     parser.add_argument("--extra", default="", help="more `recon run` options for every run, e.g. \"--refine none "
                         "--depth-frames 12\" for a quick memory-growth series (say so with the figures)")
     parser.add_argument("--rounds", type=int, default=1, help="run the plan this many times, interleaved")
@@ -94,16 +97,18 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, default=SHARED / "data" / "7scenes-redkitchen")
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    longest = max(args.lengths + args.batch_lengths + args.all_frames_lengths + args.estimate_lengths)
+    longest = max(args.lengths + args.batch_lengths + args.all_frames_lengths + args.estimate_lengths
+                  + args.batch_estimate_lengths)
     video, poses = ping_pong_video(args.work / f"pingpong_{longest}.mp4", longest, args.dataset)
     # Given poses (the ground truth as a pose file) and no polish, so that stream and batch
     # do the same work; estimated poses in rows of their own.
     given = ["--poses", str(poses), "--intrinsics", "525,525,320,240", "--no-polish", *args.extra.split()]
     plan = [("stream", n, "on", given) for n in args.lengths]
     plan += [("batch", n, "off", [*given, "--frame-budget", str(n)]) for n in args.batch_lengths]
-    plan += [("stream, estimated poses", n, "on", ["--poses", "estimate", "--intrinsics", "525,525,320,240",
-                                                   *args.extra.split()])
-             for n in args.estimate_lengths]
+    estimated = ["--poses", "estimate", "--intrinsics", "525,525,320,240", *args.extra.split()]
+    plan += [("stream, estimated poses", n, "on", estimated) for n in args.estimate_lengths]
+    plan += [("batch, estimated poses", n, "off", [*estimated, "--frame-budget", str(n)])
+             for n in args.batch_estimate_lengths]
     plan += [("stream, all frames", n, "on", [*given, "--depth-frames", "all"]) for n in args.all_frames_lengths]
     results = []
     for round_ in range(args.rounds):
@@ -124,17 +129,24 @@ def main() -> None:
 
 def summarise(results: list[dict]) -> list[dict]:
     """One row per (run, length): medians over the rounds, and the median over rounds of the
-    ratio of its s/frame to the batch row's of the same length and round (None without one)."""
+    ratio of its s/frame to the batch row's of the same length, round and pose source (None
+    without one)."""
     def median(values):
         values = [v for v in values if v is not None]
         return float(np.median(values)) if values else None
 
-    batch = {(r["length"], r["round"]): r.get("s_per_frame") for r in results if r["run"] == "batch"}
+    batch = {(r["run"], r["length"], r["round"]): r.get("s_per_frame") for r in results
+             if r["run"].startswith("batch")}
+
+    def reference(r: dict) -> tuple:
+        kind = "batch, estimated poses" if r["run"].endswith("estimated poses") else "batch"
+        return kind, r["length"], r["round"]
+
     out = []
     for key in dict.fromkeys((r["run"], r["length"]) for r in results):
         runs = [r for r in results if (r["run"], r["length"]) == key]
-        ratios = [r["s_per_frame"] / batch[(r["length"], r["round"])] for r in runs
-                  if r.get("s_per_frame") and batch.get((r["length"], r["round"])) and r["run"] != "batch"]
+        ratios = [r["s_per_frame"] / batch[reference(r)] for r in runs
+                  if r.get("s_per_frame") and batch.get(reference(r)) and not r["run"].startswith("batch")]
         out.append({"run": key[0], "length": key[1], "rounds": len(runs),
                     "depth_frames": runs[-1].get("depth_frames", "-"),
                     "peak_rss_mb": median([r.get("peak_rss_mb") for r in runs]) or float("nan"),
