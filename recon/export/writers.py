@@ -222,12 +222,15 @@ def export_reconstruction(
     Returns {label: path} of the files written.
     """
     written: dict[str, Path] = {}
+    # Converted once here: the PLY and GLB writers then get the legacy geometry as it is.
+    mesh = None if mesh is None else _legacy_mesh(mesh)
+    point_cloud = None if point_cloud is None else _legacy_cloud(point_cloud)
     # Nothing to write (fusion said why); a mesh of an earlier run must not pass for this one's.
-    if mesh is not None and len(_legacy_mesh(mesh).triangles) == 0:
+    if mesh is not None and len(mesh.triangles) == 0:
         for name in (MESH_PLY, MESH_GLB):
             out.remove_stale(name)
         mesh = None
-    if point_cloud is not None and len(_legacy_cloud(point_cloud).points) == 0:
+    if point_cloud is not None and len(point_cloud.points) == 0:
         out.remove_stale(POINT_CLOUD_PLY)
         point_cloud = None
     if mesh is not None:
