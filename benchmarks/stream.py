@@ -19,11 +19,12 @@ Rows:
   depth; the one-shot run a user gets on a video up to the frame budget).
 
 Usage: python benchmarks/stream.py [--lengths 300 1200 3600] [--batch-lengths 300 1200]
-[--batch-estimate-lengths 300] [--rounds N]. Prints a table, writes benchmarks/results/stream.json. Run it alone on the
-machine (timings on a shared CPU are not comparable). With ``--rounds N`` the whole plan
-runs N times in turn (interleaved, so that the machine's drifts hit every row alike) and the
-table gives each row's median, and the ratio of every streamed row's s/frame to the batch
-row's of the same length and pose source.
+[--batch-estimate-lengths 300] [--rounds N]. Prints a table, writes
+benchmarks/results/stream.json. Run it alone on the machine (timings on a shared CPU are
+not comparable). With ``--rounds N`` the whole plan runs N times in turn (interleaved, so
+that the machine's drifts hit every row alike) and the table gives each row's median, and
+the ratio of every streamed row's s/frame to the batch row's of the same length and pose
+source.
 """
 
 from __future__ import annotations
