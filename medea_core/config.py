@@ -8,6 +8,7 @@ epsilons, the short-sequence fallback, the device) are documented where they liv
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from operator import attrgetter
 from typing import Literal
 
 
@@ -121,14 +122,11 @@ class MedeaConfig:
             "feature_eps": self.feature_eps >= 0,
             "min_sample_validity": 0 <= self.min_sample_validity <= 1,
         }
+        for stage in ("stage1", "stage2"):
+            checks.update({f"{stage}.{name}": ok for name, ok in getattr(self, stage).checks().items()})
         for name, ok in checks.items():
             if not ok:
-                raise ValueError(f"MEDeA setting {name}={getattr(self, name)!r} is out of range")
-        for stage in ("stage1", "stage2"):
-            config = getattr(self, stage)
-            for name, ok in config.checks().items():
-                if not ok:
-                    raise ValueError(f"MEDeA setting {stage}.{name}={getattr(config, name)!r} is out of range")
+                raise ValueError(f"MEDeA setting {name}={attrgetter(name)(self)!r} is out of range")
 
     def grid_for(self, height: int, width: int) -> tuple[int, int]:
         """Grid (h, w) for a frame of this size: (8, 10) landscape, (10, 8) portrait."""
