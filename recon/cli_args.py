@@ -160,6 +160,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                    help="streamed runs: the tracked frames that get depth and are fused: motion = one each time the "
                         f"camera moved {d.depth_motion:g} x the median depth or turned {d.depth_rotation:g} degrees, "
                         "all, or every K-th (default %(default)s)")
+    g.add_argument("--depth-motion", type=float, default=d.depth_motion,
+                   help="streamed runs, --depth-frames motion: the camera's movement that takes a frame, as a fraction "
+                        "of the median depth (default %(default)s)")
+    g.add_argument("--depth-rotation", type=float, default=d.depth_rotation,
+                   help="streamed runs, --depth-frames motion: the turn in degrees that takes a frame "
+                        "(default %(default)s)")
     g.add_argument("--window", type=int, default=d.window,
                    help="streamed runs: frames per MEDeA window (default %(default)s)")
     g.add_argument("--window-overlap", type=int, default=d.window_overlap,
@@ -316,7 +322,8 @@ def pipeline_config_from_args(args: argparse.Namespace):
     return PipelineConfig(
         input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
         max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
-        stream=args.stream, depth_frames=args.depth_frames, window=args.window, window_overlap=args.window_overlap,
+        stream=args.stream, depth_frames=args.depth_frames, depth_motion=args.depth_motion,
+        depth_rotation=args.depth_rotation, window=args.window, window_overlap=args.window_overlap,
         mesh_every=args.mesh_every,
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,

@@ -153,11 +153,19 @@ class PipelineConfig:
             from .poses.options import check_pose_options
 
             check_pose_options(self.pose_options)
+        self._validate_streaming()
+        self.fusion.validate()
+
+    def _validate_streaming(self) -> None:
+        """The frame budget and the streamed run's choices of depth frames and windows."""
         if self.stream not in STREAM_CHOICES:
             raise ReconInputError(f"stream must be one of {', '.join(STREAM_CHOICES)}, got {self.stream!r}")
         if not (self.depth_frames in ("motion", "all") or (self.depth_frames.isdigit() and int(self.depth_frames) > 0)):
             raise ReconInputError(
                 f"depth frames must be motion, all or a positive whole number, got {self.depth_frames!r}")
+        if not (self.depth_motion > 0 and self.depth_rotation > 0):
+            raise ReconInputError(f"depth motion and depth rotation must be > 0, got {self.depth_motion} and "
+                                  f"{self.depth_rotation}")
         if int(self.window_overlap) < 0 or int(self.window) < int(self.window_overlap) + 2:
             raise ReconInputError(f"a window needs at least 2 frames beyond its overlap: window {self.window}, "
                                   f"overlap {self.window_overlap}")
@@ -165,7 +173,6 @@ class PipelineConfig:
             raise ReconInputError(f"mesh every must be >= 0 fused frames (0: only at the end), got {self.mesh_every}")
         if int(self.frame_budget) < 2:
             raise ReconInputError(f"frame budget must be >= 2, got {self.frame_budget}")
-        self.fusion.validate()
 
     def _validate_prior(self) -> None:
         """The prior's choices and the cheap checks of its files (an "hf" model folder: that

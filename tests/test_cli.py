@@ -237,6 +237,7 @@ def test_bad_options(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--lr", "-0.1"], "lr=-0.1")
     _run_fails(capsys, ["run", str(video), "-o", out, "--image-scale", "0"], "image_scale=0.0")
     _run_fails(capsys, ["run", str(video), "-o", out, "--mesh-every", "-3"], "mesh every", "-3")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--depth-motion", "0"], "depth motion", "> 0")
     _run_fails(capsys, ["run", str(video), "-o", out, "--device", "gpu0"], "--device gpu0", "cuda:N")
     _run_fails(capsys, ["view", str(tmp_path / "nothing")], "no such file")
     assert not Path(out).exists()
