@@ -460,9 +460,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--threshold", type=float, default=0.05,
                     help="mesh precision/recall distance, metres (default %(default)s)")
     ev.add_argument("--reference-mesh", type=Path, help="compare with this mesh instead of a TSDF of the sensor depth")
-    ev.add_argument("--mesh-align", choices=["auto", "none", "se3", "sim3"], default="auto",
+    ev.add_argument("--mesh-align", choices=["auto", "none", "se3", "sim3", "sim3+icp"], default="auto",
                     help="bring the mesh into the ground truth's frame first; auto: Sim(3) from the trajectory "
-                         "when the poses were estimated, none for ground-truth poses")
+                         "when the poses were estimated, none for ground-truth poses; sim3+icp: that Sim(3), then "
+                         "ICP with a scale onto the reference surface (Tanks and Temples' protocol)")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing OUT/eval.json")
     ev.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser

@@ -83,6 +83,30 @@ def test_estimated_poses_are_aligned_before_the_mesh_is_compared(tmp_path, recor
     assert result["mesh"]["fscore"] > 0.9
 
 
+def test_icp_registers_a_right_mesh_whose_trajectory_is_off(tmp_path, recording):
+    """Tanks and Temples' two-step registration: the mesh is right, but the camera centres are
+    spread 8 % too wide, so the trajectory's Sim(3) shrinks the mesh with them; ICP on the
+    surface puts it back."""
+    seq, root = recording
+    indices = np.arange(12)
+    mesh = fuse(seq.depth[indices], seq.rgb[indices], seq.poses[indices], seq.intrinsics,
+                FusionOptions(progress=False)).mesh
+    poses = seq.poses[indices].copy()
+    centre = poses[:, :3, 3].mean(0)
+    poses[:, :3, 3] = centre + 1.08 * (poses[:, :3, 3] - centre)
+    report = {"frames": {"indices": list(map(int, indices))}, "poses": {"source": "estimate"}}
+    export_reconstruction(OutputFolder(tmp_path / "out"), mesh=mesh, poses=poses, intrinsics=seq.intrinsics,
+                          shape=(120, 160), depth=seq.depth[indices], report=report, glb=False)
+    by_trajectory = evaluate_output(tmp_path / "out", root, EvalOptions(progress=False, mesh_points=20_000))
+    refined = evaluate_output(tmp_path / "out", root,
+                              EvalOptions(progress=False, mesh_points=20_000, mesh_align="sim3+icp"))
+    assert by_trajectory["trajectory"]["ate_sim3"]["scale"] == pytest.approx(1 / 1.08, rel=1e-3)
+    assert by_trajectory["mesh_align"] == "sim3" and by_trajectory["mesh"]["fscore"] < 0.7
+    assert refined["mesh_align"] == "sim3+icp" and refined["mesh"]["fscore"] > 0.9
+    assert refined["mesh_icp"]["scale"] == pytest.approx(1.08, rel=0.01)
+    assert f"alignment: scale {refined['mesh_icp']['scale']:.4f}" in format_evaluation(refined)
+
+
 def test_bad_folders(tmp_path, recording):
     _, root = recording
     with pytest.raises(ReconInputError, match="report.json"):

@@ -13,7 +13,8 @@ folder read back by :func:`recon.io.output_folder.load_output`:
   ground-truth poses over the same frames and voxel size. When the poses were estimated,
   the mesh is first brought into the ground truth's frame by a Sim(3) fitted to the
   camera orientations and centres (``mesh_align="auto"``; see
-  :func:`recon.eval.trajectory.pose_alignment`).
+  :func:`recon.eval.trajectory.pose_alignment`), optionally refined by ICP onto the
+  reference surface (``"sim3+icp"``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import open3d as o3d
 
 from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
-from recon.eval.mesh import DEFAULT_THRESHOLD, mesh_metrics
+from recon.eval.mesh import DEFAULT_THRESHOLD, icp_similarity, mesh_metrics, sample_surface
 from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
 from recon.io.datasets import open_dataset
 from recon.io.output_folder import load_output
@@ -40,14 +41,15 @@ class EvalOptions:
     precision/recall distance. mesh_points: surface samples per mesh. reference_mesh: a mesh
     file to compare with instead of the sensor-depth TSDF. mesh_align: "auto" (Sim(3) from
     the trajectory when the poses were estimated, none for ground-truth poses), "none",
-    "se3" or "sim3"."""
+    "se3", "sim3" or "sim3+icp" (that Sim(3), then ICP with a scale onto the reference
+    surface, as Tanks and Temples registers a reconstruction)."""
 
     min_depth: float = 1e-3
     max_depth: float = 10.0
     threshold: float = DEFAULT_THRESHOLD
     mesh_points: int = 200_000
     reference_mesh: Path | None = None
-    mesh_align: Literal["auto", "none", "se3", "sim3"] = "auto"
+    mesh_align: Literal["auto", "none", "se3", "sim3", "sim3+icp"] = "auto"
     progress: bool = True
 
 
@@ -125,8 +127,8 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
         mode = options.mesh_align
         if mode == "auto":
             mode = "none" if pose_source in ("gt", "ground truth", "dataset") or "ground" in pose_source else "sim3"
-        if mode != "none":
-            alignment = pose_alignment(out.poses, dataset.poses[out.indices], mode)
+        if mode.removesuffix("+icp") != "none":
+            alignment = pose_alignment(out.poses, dataset.poses[out.indices], mode.removesuffix("+icp"))
         result["mesh_align"] = mode
     if out.mesh is not None and len(out.mesh.triangles) > 0:
         if options.reference_mesh is not None:
@@ -137,11 +139,26 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
             voxel = out.report.get("fusion", {}).get("voxel_size")
             reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
         mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
+        if result.get("mesh_align", "").endswith("+icp"):
+            mesh, result["mesh_icp"] = _icp_refined(mesh, reference, options.mesh_points)
         result["mesh"] = mesh_metrics(mesh, reference, options.threshold, options.mesh_points).to_dict()
     else:
         # A run that meshed nothing writes no mesh file: say so rather than leave the table out.
         result["mesh_missing"] = f"no mesh in {out.path} (the run meshed nothing: see its warnings)"
     return result
+
+
+def _icp_refined(mesh: tuple[np.ndarray, np.ndarray], reference, num_points: int) -> tuple[tuple, dict]:
+    """The mesh (vertices, triangles) moved by the similarity ICP finds onto the reference
+    surface (:func:`recon.eval.mesh.icp_similarity`), and that similarity's size: scale,
+    rotation in degrees, translation in metres."""
+    similarity = icp_similarity(sample_surface(mesh, num_points, 0), sample_surface(reference, num_points, 1))
+    linear = similarity[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(linear)))
+    angle = np.degrees(np.arccos(np.clip((np.trace(linear / scale) - 1) / 2, -1.0, 1.0)))
+    vertices = mesh[0] @ linear.T + similarity[:3, 3]
+    return (vertices, mesh[1]), {"scale": scale, "rotation_deg": float(angle),
+                                 "translation_m": float(np.linalg.norm(similarity[:3, 3]))}
 
 
 def format_evaluation(result: dict) -> str:
@@ -167,6 +184,10 @@ def format_evaluation(result: dict) -> str:
                   "|---|---|---|---|---|---|---|",
                   f"| | {m['accuracy']:.4f} | {m['completeness']:.4f} | {m['chamfer']:.4f} | {m['precision']:.4f} | "
                   f"{m['recall']:.4f} | {m['fscore']:.4f} |"]
+    if "mesh_icp" in result:
+        icp = result["mesh_icp"]
+        lines += ["", f"ICP after the trajectory's alignment: scale {icp['scale']:.4f}, rotation "
+                      f"{icp['rotation_deg']:.2f} deg, translation {icp['translation_m']:.3f} m"]
     if "mesh_missing" in result:
         lines += ["", f"mesh: {result['mesh_missing']}"]
     return "\n".join(lines)
