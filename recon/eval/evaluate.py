@@ -148,17 +148,27 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
     return result
 
 
+# The most ICP may change the trajectory's alignment: a refinement, not a search. Where the
+# two surfaces barely overlap, ICP with a scale can shrink the mesh towards a point (on TUM
+# fr1/rpy with estimated poses it went to scale 0.05); such a result is refused.
+ICP_MAX_SCALE_CHANGE = 1.25
+ICP_MAX_ROTATION_DEG = 10.0
+
+
 def _icp_refined(mesh: tuple[np.ndarray, np.ndarray], reference, num_points: int) -> tuple[tuple, dict]:
     """The mesh (vertices, triangles) moved by the similarity ICP finds onto the reference
     surface (:func:`recon.eval.mesh.icp_similarity`), and that similarity's size: scale,
-    rotation in degrees, translation in metres."""
+    rotation in degrees, translation in metres, and whether it was accepted (within
+    ICP_MAX_SCALE_CHANGE and ICP_MAX_ROTATION_DEG; if not, the mesh is returned as it came)."""
     similarity = icp_similarity(sample_surface(mesh, num_points, 0), sample_surface(reference, num_points, 1))
     linear = similarity[:3, :3]
-    scale = float(np.cbrt(np.linalg.det(linear)))
-    angle = np.degrees(np.arccos(np.clip((np.trace(linear / scale) - 1) / 2, -1.0, 1.0)))
-    vertices = mesh[0] @ linear.T + similarity[:3, 3]
-    return (vertices, mesh[1]), {"scale": scale, "rotation_deg": float(angle),
-                                 "translation_m": float(np.linalg.norm(similarity[:3, 3]))}
+    scale = float(np.cbrt(max(np.linalg.det(linear), 1e-12)))
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(linear / scale) - 1) / 2, -1.0, 1.0))))
+    accepted = 1 / ICP_MAX_SCALE_CHANGE <= scale <= ICP_MAX_SCALE_CHANGE and angle <= ICP_MAX_ROTATION_DEG
+    if accepted:
+        mesh = (mesh[0] @ linear.T + similarity[:3, 3], mesh[1])
+    return mesh, {"scale": scale, "rotation_deg": angle, "translation_m": float(np.linalg.norm(similarity[:3, 3])),
+                  "accepted": bool(accepted)}
 
 
 def format_evaluation(result: dict) -> str:
@@ -186,8 +196,9 @@ def format_evaluation(result: dict) -> str:
                   f"{m['recall']:.4f} | {m['fscore']:.4f} |"]
     if "mesh_icp" in result:
         icp = result["mesh_icp"]
+        verdict = "" if icp["accepted"] else " (refused: too far from the trajectory's alignment, which is kept)"
         lines += ["", f"ICP after the trajectory's alignment: scale {icp['scale']:.4f}, rotation "
-                      f"{icp['rotation_deg']:.2f} deg, translation {icp['translation_m']:.3f} m"]
+                      f"{icp['rotation_deg']:.2f} deg, translation {icp['translation_m']:.3f} m{verdict}"]
     if "mesh_missing" in result:
         lines += ["", f"mesh: {result['mesh_missing']}"]
     return "\n".join(lines)
