@@ -110,16 +110,16 @@ def test_icp_registers_a_right_mesh_whose_trajectory_is_off(tmp_path, recording)
 def test_an_icp_that_collapses_the_mesh_is_refused(monkeypatch):
     """Scaled ICP on surfaces that barely overlap can shrink the mesh towards a point; the
     evaluation then keeps the trajectory's alignment and says so."""
-    import recon.eval.evaluate as evaluate
+    import recon.eval.mesh as mesh_module
 
     square = (np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]), np.array([[0, 1, 2], [0, 2, 3]]))
     collapse = np.diag([0.05, 0.05, 0.05, 1.0])
-    monkeypatch.setattr(evaluate, "icp_similarity", lambda pred, gt: collapse)
-    mesh, icp = evaluate._icp_refined(square, square, 1000)
+    monkeypatch.setattr(mesh_module, "icp_similarity", lambda pred, gt: collapse)
+    mesh, icp = mesh_module.icp_registered(square, square, 1000)
     assert not icp["accepted"] and icp["scale"] == pytest.approx(0.05)
     np.testing.assert_array_equal(mesh[0], square[0])
-    monkeypatch.setattr(evaluate, "icp_similarity", lambda pred, gt: np.diag([1.1, 1.1, 1.1, 1.0]))
-    mesh, icp = evaluate._icp_refined(square, square, 1000)
+    monkeypatch.setattr(mesh_module, "icp_similarity", lambda pred, gt: np.diag([1.1, 1.1, 1.1, 1.0]))
+    mesh, icp = mesh_module.icp_registered(square, square, 1000)
     assert icp["accepted"] and icp["rotation_deg"] == pytest.approx(0.0, abs=1e-6)
     np.testing.assert_allclose(mesh[0], 1.1 * square[0])
 

@@ -29,7 +29,7 @@ import open3d as o3d
 
 from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
-from recon.eval.mesh import DEFAULT_THRESHOLD, icp_similarity, mesh_metrics, sample_surface
+from recon.eval.mesh import DEFAULT_THRESHOLD, icp_registered, mesh_metrics
 from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
 from recon.io.datasets import open_dataset
 from recon.io.output_folder import load_output
@@ -140,35 +140,12 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
             reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
         mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
         if result.get("mesh_align", "").endswith("+icp"):
-            mesh, result["mesh_icp"] = _icp_refined(mesh, reference, options.mesh_points)
+            mesh, result["mesh_icp"] = icp_registered(mesh, reference, options.mesh_points)
         result["mesh"] = mesh_metrics(mesh, reference, options.threshold, options.mesh_points).to_dict()
     else:
         # A run that meshed nothing writes no mesh file: say so rather than leave the table out.
         result["mesh_missing"] = f"no mesh in {out.path} (the run meshed nothing: see its warnings)"
     return result
-
-
-# The most ICP may change the trajectory's alignment: a refinement, not a search. Where the
-# two surfaces barely overlap, ICP with a scale can shrink the mesh towards a point (on TUM
-# fr1/rpy with estimated poses it went to scale 0.05); such a result is refused.
-ICP_MAX_SCALE_CHANGE = 1.25
-ICP_MAX_ROTATION_DEG = 10.0
-
-
-def _icp_refined(mesh: tuple[np.ndarray, np.ndarray], reference, num_points: int) -> tuple[tuple, dict]:
-    """The mesh (vertices, triangles) moved by the similarity ICP finds onto the reference
-    surface (:func:`recon.eval.mesh.icp_similarity`), and that similarity's size: scale,
-    rotation in degrees, translation in metres, and whether it was accepted (within
-    ICP_MAX_SCALE_CHANGE and ICP_MAX_ROTATION_DEG; if not, the mesh is returned as it came)."""
-    similarity = icp_similarity(sample_surface(mesh, num_points, 0), sample_surface(reference, num_points, 1))
-    linear = similarity[:3, :3]
-    scale = float(np.cbrt(max(np.linalg.det(linear), 1e-12)))
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(linear / scale) - 1) / 2, -1.0, 1.0))))
-    accepted = 1 / ICP_MAX_SCALE_CHANGE <= scale <= ICP_MAX_SCALE_CHANGE and angle <= ICP_MAX_ROTATION_DEG
-    if accepted:
-        mesh = (mesh[0] @ linear.T + similarity[:3, 3], mesh[1])
-    return mesh, {"scale": scale, "rotation_deg": angle, "translation_m": float(np.linalg.norm(similarity[:3, 3])),
-                  "accepted": bool(accepted)}
 
 
 def format_evaluation(result: dict) -> str:

@@ -11,7 +11,9 @@ the point-set metrics:
 
 Both meshes are sampled with the same number of points (area-weighted triangle choice,
 uniform barycentric position) from a fixed seed, so results are reproducible; distances
-are nearest-neighbour distances with scipy's cKDTree. Import as ``recon.eval.mesh``.
+are nearest-neighbour distances with scipy's cKDTree. It also owns the registration of a
+mesh onto a reference surface by ICP (Tanks and Temples' refinement step). Import as
+``recon.eval.mesh``.
 """
 
 from __future__ import annotations
@@ -198,6 +200,30 @@ def icp_similarity(pred_points: np.ndarray, gt_points: np.ndarray, radii: tuple[
     return np.asarray(transform)
 
 
+# The most ICP may change the trajectory's alignment: a refinement, not a search. Where the
+# two surfaces barely overlap, ICP with a scale can shrink the mesh towards a point (on TUM
+# fr1/rpy with estimated poses it went to scale 0.05); such a result is refused.
+ICP_MAX_SCALE_CHANGE = 1.25
+ICP_MAX_ROTATION_DEG = 10.0
+
+
+def icp_registered(mesh: tuple[np.ndarray, np.ndarray], reference,
+                   num_points: int = DEFAULT_POINTS) -> tuple[tuple, dict]:
+    """The mesh (vertices, triangles) moved by the similarity ICP finds onto the reference
+    surface (:func:`icp_similarity`), and that similarity's size: scale,
+    rotation in degrees, translation in metres, and whether it was accepted (within
+    ICP_MAX_SCALE_CHANGE and ICP_MAX_ROTATION_DEG; if not, the mesh is returned as it came)."""
+    similarity = icp_similarity(sample_surface(mesh, num_points, 0), sample_surface(reference, num_points, 1))
+    linear = similarity[:3, :3]
+    scale = float(np.cbrt(max(np.linalg.det(linear), 1e-12)))
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(linear / scale) - 1) / 2, -1.0, 1.0))))
+    accepted = 1 / ICP_MAX_SCALE_CHANGE <= scale <= ICP_MAX_SCALE_CHANGE and angle <= ICP_MAX_ROTATION_DEG
+    if accepted:
+        mesh = (mesh[0] @ linear.T + similarity[:3, 3], mesh[1])
+    return mesh, {"scale": scale, "rotation_deg": angle, "translation_m": float(np.linalg.norm(similarity[:3, 3])),
+                  "accepted": bool(accepted)}
+
+
 def mesh_metrics(
     pred,
     gt,
@@ -226,5 +252,5 @@ def mesh_metrics(
     return point_metrics(pred_points, gt_points, threshold)
 
 
-__all__ = ["MeshMetrics", "icp_similarity", "mesh_arrays", "mesh_metrics", "point_metrics", "sample_surface",
-           "visible_mask"]
+__all__ = ["ICP_MAX_ROTATION_DEG", "ICP_MAX_SCALE_CHANGE", "MeshMetrics", "icp_registered", "icp_similarity",
+           "mesh_arrays", "mesh_metrics", "point_metrics", "sample_surface", "visible_mask"]
