@@ -13,7 +13,7 @@ and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -48,6 +48,7 @@ class _WindowRecord:
     medea_epochs: dict
     refined_share: float | None
     refined_frames: int = 0
+    medea_seconds: dict = field(default_factory=dict)
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
@@ -120,7 +121,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
             logger.log_losses(medea.history)
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean()),
-                                     0 if refined is None else len(pos) - first))
+                                     0 if refined is None else len(pos) - first, _seconds(medea)))
     bar.close()
     return (volume, options), records
 
@@ -182,6 +183,10 @@ def _log_mesh(logger, volume, options, index: int) -> None:
     if len(mesh.triangles):
         logger.log_mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), np.asarray(mesh.vertex_colors),
                         index=index)
+
+
+def _seconds(medea) -> dict:
+    return {} if medea is None else {name: round(float(value), 3) for name, value in medea.seconds.items()}
 
 
 def _epochs(medea) -> dict:

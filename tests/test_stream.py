@@ -57,6 +57,7 @@ def test_streamed_run_matches_the_one_shot_run(room_video, both_runs):
     # Frames a window shares with the one before are refined once, in the window before.
     each = streamed.report["windows"]["each"]
     assert [w["refined_frames"] for w in each] == [w["new"] for w in each] and sum(w["new"] for w in each) == FRAMES
+    assert all(w["medea_seconds"]["stage1"] > 0 and w["medea_seconds"]["stage2"] > 0 for w in each)
     written = load_output(folder)
     assert np.array_equal(written.indices, np.arange(FRAMES))  # every frame got depth, in order
     assert np.allclose(written.poses, seq.poses, atol=1e-4)
