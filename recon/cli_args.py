@@ -33,8 +33,8 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     d = MedeaConfig()
     g = parser.add_argument_group("MEDeA depth adjustment")
     g.add_argument("--preset", choices=["paper", "fast"], default=preset,
-                   help="paper: the paper's settings; fast: pixel stride 2 and Stage II lr 0.01, "
-                        "about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
+                   help="paper: the paper's settings; fast: pixel stride 2, Stage II lr 0.01 and Stage I at most "
+                        "150 epochs, about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
     g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
     g.add_argument("--image-scale", type=float,
                    help=f"working resolution relative to the input (paper {d.image_scale})")
@@ -43,7 +43,8 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     g.add_argument("--feature-stride", type=int, help="the same on the feature grid (paper 1)")
     g.add_argument("--feature-channels", type=int,
                    help="keep only the N most varying feature channels (paper: all); warping cost grows with N")
-    g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs})")
+    g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs}, "
+                                                       f"fast preset {MedeaConfig.fast().stage1.epochs})")
     g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
     g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
     g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")
