@@ -30,11 +30,12 @@ from .errors import ReconInputError
 
 def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -> None:
     """Options mirroring MedeaConfig. Unset options keep the preset's value."""
-    d = MedeaConfig()
+    d, fast = MedeaConfig(), MedeaConfig.fast()
     g = parser.add_argument_group("MEDeA depth adjustment")
     g.add_argument("--preset", choices=["paper", "fast"], default=preset,
-                   help="paper: the paper's settings; fast: pixel stride 2, Stage II lr 0.01 and Stage I at most "
-                        "150 epochs, about 2x faster at equal accuracy on our benchmarks (default %(default)s)")
+                   help=f"paper: the paper's settings; fast: pixel stride {fast.pixel_stride}, Stage II lr "
+                        f"{fast.stage2.lr:g} and Stage I at most {fast.stage1.epochs} epochs, about 2x faster at "
+                        "equal accuracy on our benchmarks (default %(default)s)")
     g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
     g.add_argument("--image-scale", type=float,
                    help=f"working resolution relative to the input (paper {d.image_scale})")
@@ -44,7 +45,7 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     g.add_argument("--feature-channels", type=int,
                    help="keep only the N most varying feature channels (paper: all); warping cost grows with N")
     g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs}, "
-                                                       f"fast preset {MedeaConfig.fast().stage1.epochs})")
+                                                       f"fast preset {fast.stage1.epochs})")
     g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
     g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
     g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")

@@ -102,8 +102,9 @@ def peak_memory_mb() -> float | None:
 def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
                   store_bytes: int) -> dict:
     """report.json of a streamed run (recon.stream): the one-shot report's sections, with
-    the tracked frames, the depth frames, per window MEDeA's epochs and seconds, the scale anchor and
-    the refinement's share, and the bytes the frame store parked on disk (store_bytes)."""
+    the tracked frames, the depth frames, per window MEDeA's epochs and seconds, the scale
+    anchor and the refinement's share, and the bytes the frame store parked on disk
+    (store_bytes)."""
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     depth_idx = video.indices[video.depth_frame]
     anchors = [w["anchor"] for w in windows[1:]]

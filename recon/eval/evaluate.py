@@ -120,15 +120,16 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
     gt_depth = dataset.load_depth_batch(out.indices) if dataset.has_depth and out.depth is not None else None
     if gt_depth is not None:
         result["depth"] = evaluate_depth(out.depth, gt_depth, options)
-    alignment = None
+    alignment, by_icp = None, False
     if out.poses is not None and dataset.has_poses:
         result["trajectory"] = evaluate_trajectory(out.poses, dataset.poses[out.indices])
         pose_source = str(out.report.get("poses", {}).get("source", ""))
         mode = options.mesh_align
         if mode == "auto":
             mode = "none" if pose_source in ("gt", "ground truth", "dataset") or "ground" in pose_source else "sim3"
-        if mode.removesuffix("+icp") != "none":
-            alignment = pose_alignment(out.poses, dataset.poses[out.indices], mode.removesuffix("+icp"))
+        by_trajectory, by_icp = mode.removesuffix("+icp"), mode.endswith("+icp")
+        if by_trajectory != "none":
+            alignment = pose_alignment(out.poses, dataset.poses[out.indices], by_trajectory)
         result["mesh_align"] = mode
     if out.mesh is not None and len(out.mesh.triangles) > 0:
         if options.reference_mesh is not None:
@@ -139,7 +140,7 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
             voxel = out.report.get("fusion", {}).get("voxel_size")
             reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
         mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
-        if result.get("mesh_align", "").endswith("+icp"):
+        if by_icp:
             mesh, result["mesh_icp"] = icp_registered(mesh, reference, options.mesh_points)
         result["mesh"] = mesh_metrics(mesh, reference, options.threshold, options.mesh_points).to_dict()
     else:
