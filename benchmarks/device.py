@@ -114,7 +114,7 @@ def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, th
         torch.set_num_threads(threads)
     config = PipelineConfig(input=input_path, output=workdir / f"out-{device}-{poses.replace('/', '_')[-20:]}",
                             overwrite=True, intrinsics=tuple(intrinsics), poses=poses, rerun="off", progress=False,
-                            device=device)
+                            device=device, stream="off")  # the one-shot run: its depth arrays are compared below
     config.medea.device = device
     if medea_eps is not None:
         config.medea.stage1.adam_eps = medea_eps

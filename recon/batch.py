@@ -261,7 +261,8 @@ def run_input(label: str, config: PipelineConfig, threads: int, gpus: float) -> 
     try:
         result = run_pipeline(_with_device(config, _task_device(config.device, gpus)))
         mesh = result.fusion.mesh
-        outcome = Outcome(label, str(config.output), DONE, time.perf_counter() - start, frames=len(result.frames),
+        frames = result.report["frames"]["count"]  # one-shot or streamed (recon.stream), as a skipped row reads it
+        outcome = Outcome(label, str(config.output), DONE, time.perf_counter() - start, frames=frames,
                           vertices=len(mesh.vertices), triangles=len(mesh.triangles))
     except Exception as error:
         outcome = _failure(label, str(config.output), error, start)

@@ -29,7 +29,8 @@ REFINE_CHOICES = ("mvs", "none")
 # so that the parser does not import the rerun SDK (a second, at every `recon --help`).
 RERUN_MODES = ("spawn", "save", "serve", "off")
 
-# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget.
+# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget
+# and videos whose poses are estimated (recon.pipeline.stream_reason).
 STREAM_CHOICES = ("auto", "on", "off")
 
 # Where the torch stages run (--device): "auto" is CUDA when there is one, else the CPU.

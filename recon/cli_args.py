@@ -156,8 +156,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default %(default)s)")
     g.add_argument("--stream", choices=STREAM_CHOICES, default=d.stream,
                    help="stream the frames through the stages in bounded memory, MEDeA on overlapping windows, the "
-                        "mesh growing as it goes: auto = when the input has more frames than --frame-budget; off "
-                        "raises the stride to fit the budget instead (default %(default)s)")
+                        "mesh growing as it goes: auto = when the input has more frames than --frame-budget, and "
+                        "for a video whose poses are estimated (depth for the frames the camera moved to reach; "
+                        "run again at once, where SfM can be tried, if the front end loses the camera); off gives "
+                        "every frame depth and raises the stride to fit the budget (default %(default)s)")
     g.add_argument("--depth-frames", default=d.depth_frames, metavar="{motion,all,K}",
                    help="streamed runs: the tracked frames that get depth and are fused: motion = one each time the "
                         f"camera moved {d.depth_motion:g} x the median depth or turned {d.depth_rotation:g} degrees, "

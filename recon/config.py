@@ -49,8 +49,9 @@ class PipelineConfig:
     stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
     frame_budget: the most frames a one-shot run holds in memory. stream: "auto" streams
         inputs with more frames than frame_budget (recon.stream: frames flow through the
-        stages, memory flat in the video's length), "on" always, "off" never (then, with no
-        stride given, the stride is raised so that at most frame_budget frames are used).
+        stages, memory flat in the video's length) and videos whose poses are estimated
+        (recon.pipeline.stream_reason), "on" always, "off" never (then, with no stride
+        given, the stride is raised so that at most frame_budget frames are used).
     depth_frames: which tracked frames get depth and are fused in a streamed run: "motion"
         (a frame each time the camera moved depth_motion x the median depth or turned
         depth_rotation degrees since the last one), "all", or "K" (every K-th frame).

@@ -207,7 +207,7 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> 
         poses=str(inputs["poses"]) if poses == "gt" else "estimate", pose_options=dict(options.pose_options),
         prior="folder" if prior is not None else "fastdepth", prior_path=inputs.get("prior"),
         adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device,
-        progress=options.progress,
+        progress=options.progress, stream="off",  # the scoring below reads the one-shot run's prior and MEDeA depth
     )
     pose_options = ""
     if config.pose_options:  # the estimator, which owns the syntax, is there when options are given
@@ -216,7 +216,7 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> 
         pose_options = "".join(f" --pose-option {format_pose_option(k, v)}" for k, v in config.pose_options.items())
     command = (
         f"recon run {config.input} -o {out.path} --overwrite --width 0 --intrinsics {fx:g},{fy:g},{cx:g},{cy:g} "
-        f"--poses {config.poses} --prior {config.prior}{pose_options}"
+        f"--poses {config.poses} --stream off --prior {config.prior}{pose_options}"
         + (f" --prior-path {config.prior_path}" if prior is not None else "")
         + f" --rerun {options.rerun}"
     )

@@ -124,6 +124,33 @@ def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None 
         raise
 
 
+def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
+    """Why this run is streamed (the line said), or None for a one-shot run.
+
+    ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget) and
+    video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
+    the streamed run gives depth only to the frames the camera moved to reach, which on the
+    videos measured was 1.2-2.2x faster for a mesh as good (docs/benchmarks.md, "Videos
+    stream when their poses are estimated"). SfM needs every frame at once: not streamed.
+    """
+    if config.stream == "on":
+        return "streaming"
+    if config.stream == "off":
+        return None
+    if source.count > config.frame_budget:
+        return f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
+    if source.kind == "video" and pose_plan.estimated and config.pose_method != "sfm":
+        return ("streaming the video (estimated poses: depth for the frames the camera moved to reach; "
+                "--stream off gives every frame depth)")
+    return None
+
+
+def _one_shot_fallback(config: PipelineConfig, source) -> bool:
+    """Whether a streamed run that lost the camera is run again at once: only when auto chose
+    to stream a video that fits the frame budget, and SfM may be tried."""
+    return config.stream == "auto" and source.count <= config.frame_budget and config.pose_method == "auto"
+
+
 def _remove_if_empty(folder: Path) -> None:
     """rmdir `folder` and its empty subfolders; anything holding a file stays."""
     for sub in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
@@ -147,12 +174,20 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         out = OutputFolder(config.output, config.overwrite)
         pose_plan = plan_poses(config.poses, source)
         say(f"input: {source.description}")
-    if config.stream == "on" or (config.stream == "auto" and source.count > config.frame_budget):
+    why = stream_reason(config, source, pose_plan)
+    if why is not None:
+        from .poses import TrackingLostError
         from .stream import run_streamed
 
-        say(f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
-            if config.stream == "auto" else "streaming")
-        return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
+        say(why)
+        try:
+            return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
+        except TrackingLostError as err:
+            if not _one_shot_fallback(config, source):
+                raise
+            # The one-shot run can still try SfM, which the streamed front end cannot.
+            log.warning("the streamed front end lost the camera (%s); running the video at once, with SfM "
+                        "as the fallback", err)
     with timer.stage("prior"):  # the network is loaded before the frames are decoded: a bad model fails at once
         prior_of = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
                                   features=config.features and config.adjust, align=config.prior_align,

@@ -108,15 +108,17 @@ def test_a_window_is_anchored_to_the_fused_surface_it_revisits(room_video):
 
 
 def test_streamed_run_with_estimated_poses(room_video, tmp_path):
-    """The streaming front end tracks the room, closes the trajectory (global BA, gate) and
-    the depth frames (every 3rd) get metric depth at those poses; of the other frames only
-    the grey image the front end's finish needs waits on disk."""
+    """A video with estimated poses streams by default (stream "auto"): the streaming front
+    end tracks the room, closes the trajectory (global BA, gate) and the depth frames (every
+    3rd) get metric depth at those poses; of the other frames only the grey image the front
+    end's finish needs waits on disk."""
     from recon.eval.trajectory import ate_rmse
 
     seq, _ = room_video
-    result = run_pipeline(replace(_config(room_video, tmp_path / "est", "on", rerun="off"), poses="estimate",
+    result = run_pipeline(replace(_config(room_video, tmp_path / "est", "auto", rerun="off"), poses="estimate",
                                   depth_frames="3"))
     report = result.report
+    assert report["streamed"] and report["options"]["stream"] == "auto"
     assert report["frames"]["depth_frames"] == FRAMES // 3
     # Parked: colour, prior (and features) of the depth frames, far less of the others: in
     # all less than every frame's colour alone (which is what used to be parked, and more).
@@ -159,3 +161,65 @@ def test_sigterm_stops_a_run_and_removes_its_temporary_frames(room_video, tmp_pa
     assert run.returncode == 128 + signal.SIGTERM, err[-3000:]  # stderr says why, should it ever fail
     assert err.strip().splitlines()[-1] == "recon: terminated" and "Traceback" not in err
     assert not list(temp.glob("recon-frames-*")) and not out.exists()
+
+
+def test_auto_streams_long_inputs_and_videos_with_estimated_poses(room_video, tmp_path):
+    """stream "auto": one-shot for given poses and for SfM (which needs every frame at once),
+    streamed beyond the frame budget and for a video whose poses are estimated."""
+    import cv2
+
+    from recon.io.frames import open_source
+    from recon.pipeline import stream_reason
+    from recon.stages import PosePlan
+
+    _, inputs = room_video
+    video = open_source(inputs["video"])
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, frame in zip(range(3), video):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), frame.rgb[..., ::-1])
+    images = open_source(folder)
+    given, estimated = PosePlan("file"), PosePlan("estimate")
+    auto = PipelineConfig(input=inputs["video"], output=tmp_path / "out")
+    assert stream_reason(auto, video, given) is None
+    assert "video" in stream_reason(auto, video, estimated)
+    assert stream_reason(replace(auto, pose_method="sfm"), video, estimated) is None
+    assert stream_reason(auto, images, estimated) is None
+    assert "frame budget" in stream_reason(replace(auto, frame_budget=FRAMES - 1), video, given)
+    assert stream_reason(replace(auto, stream="off"), video, estimated) is None
+    assert stream_reason(replace(auto, stream="on"), images, given) == "streaming"
+
+
+def test_a_video_the_streamed_front_end_loses_is_run_at_once(room_video, tmp_path, monkeypatch, caplog):
+    """When the streaming front end loses the camera on a video that auto chose to stream, the
+    run goes on at once (where SfM can still be tried) and says so; asked for streaming, the
+    error stands."""
+    import recon.stream
+    from recon.errors import ReconInputError
+    from recon.poses import TrackingLostError
+
+    def lost(*_args, **_kwargs):
+        raise TrackingLostError("tracking lost at frame 5 (test)", frame=5)
+
+    monkeypatch.setattr(recon.stream, "run_streamed", lost)
+    config = replace(_config(room_video, tmp_path / "auto", "auto", rerun="off"), poses="estimate",
+                     refine="none", glb=False)
+    with caplog.at_level("WARNING", logger="recon.pipeline"):
+        result = run_pipeline(config)
+    assert not result.report.get("streamed") and result.report["frames"]["count"] >= FRAMES - 2
+    assert any("lost the camera" in r.getMessage() and "frame 5" in r.getMessage() for r in caplog.records)
+    with pytest.raises(ReconInputError, match="frame 5"):
+        run_pipeline(replace(config, output=tmp_path / "on", stream="on"))
+    assert not (tmp_path / "on").exists()
+
+
+def test_a_batch_task_reports_a_streamed_run(room_video, tmp_path):
+    """`recon batch` runs each input through run_pipeline: a streamed run (a video with
+    estimated poses, or a long one) is reported like a one-shot run."""
+    from recon.batch import DONE, run_input
+
+    config = replace(_config(room_video, tmp_path / "task", "on", rerun="off"), refine="none", depth_frames="6",
+                     glb=False)
+    outcome = run_input("room.mp4", config, threads=2, gpus=0)
+    assert outcome.status == DONE, outcome.error
+    assert outcome.frames == FRAMES and outcome.triangles > 1000

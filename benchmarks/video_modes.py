@@ -1,0 +1,114 @@
+"""Videos with estimated poses, one-shot against streamed: what `--stream auto` chooses for a
+video file (recon.pipeline.stream_reason) and why.
+
+The recordings in ../shared/data are written once as 640x480 mp4 files at 30 fps (OpenCV's
+mp4v, as a phone video would be decoded), then each clip below runs twice as `recon run
+VIDEO -o OUT --stream off|on` with nothing else given (the focal length is searched, the
+poses estimated), one run after the other so that the machine's drift touches both alike.
+Each output is scored by `recon eval OUT --gt DATASET` twice: the mesh aligned by the
+trajectory's Sim(3) (the default), and then registered by its surface (`--mesh-align
+sim3+icp`, Tanks and Temples' second step; refused, and so equal to the first, when ICP
+would move it by more than 1.25x or 10 degrees).
+
+Clips: 7-Scenes redkitchen 0-399, 200-399, every 2nd frame, 0-149 and 0-299; TUM fr1/rpy
+0-99 (near-pure rotation). s/frame is the report's stage seconds over the tracked frames.
+
+Usage: python benchmarks/video_modes.py [--clips NAME ...] [--work DIR] [--json video_modes]
+Prints a table, writes benchmarks/results/<json>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import machine, table, write_json  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+SEVEN, TUM = DATA / "7scenes-redkitchen", DATA / "tum-fr1-rpy"
+# name: (recording, `recon run` frame selection)
+CLIPS = {
+    "7scenes 0-399": (SEVEN, []),
+    "7scenes 200-399": (SEVEN, ["--start", "6.66"]),
+    "7scenes 0-399 every 2nd": (SEVEN, ["--stride", "2"]),
+    "7scenes 0-149": (SEVEN, ["--end", "5"]),
+    "7scenes 0-299": (SEVEN, ["--max-frames", "300"]),
+    "tum 0-99": (TUM, []),
+}
+
+
+def recording_video(dataset: Path, work: Path) -> Path:
+    """The recording's frames as one mp4 at 30 fps (written once)."""
+    from recon.io.frames import open_source
+    from recon.io.video import write_video
+
+    path = work / f"{dataset.name}.mp4"
+    if not path.is_file():
+        write_video(np.stack([f.rgb for f in open_source(dataset, width=640)]), path, fps=30.0)
+    return path
+
+
+def recon(*args: str) -> None:
+    cmd = [str(Path(sys.executable).with_name("recon")), *args]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)}: {(done.stderr.strip().splitlines() or ['?'])[-1]}")
+
+
+def run_clip(video: Path, dataset: Path, selection: list[str], mode: str, out: Path) -> dict:
+    recon("run", str(video), "-o", str(out), "--overwrite", "--quiet", "--rerun", "off", "--stream", mode, *selection)
+    report = json.loads((out / "report.json").read_text())
+    scores = {}
+    for align in ("auto", "sim3+icp"):
+        recon("eval", str(out), "--gt", str(dataset), "--quiet", "--overwrite", "--mesh-align", align)
+        scores[align] = json.loads((out / "eval.json").read_text())
+    frames = report["frames"]
+    tracked = frames.get("tracked", frames["count"])
+    trajectory = scores["auto"].get("trajectory", {}).get("ate_sim3", {})
+    return {"mode": mode, "frames": tracked, "depth_frames": frames.get("depth_frames", frames["count"]),
+            "seconds": report["seconds"], "s_per_frame": sum(report["seconds"].values()) / tracked,
+            "abs_rel": scores["auto"]["depth"]["metric"]["abs_rel"], "fscore": scores["auto"]["mesh"]["fscore"],
+            "fscore_icp": scores["sim3+icp"]["mesh"]["fscore"], "icp": scores["sim3+icp"].get("mesh_icp"),
+            "trajectory_scale": trajectory.get("scale"), "ate_sim3": trajectory.get("rmse"),
+            "focal": report["intrinsics"]["values"][0]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clips", nargs="*", default=list(CLIPS), choices=list(CLIPS))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/recon-video-modes"))
+    parser.add_argument("--json", default="video_modes")
+    args = parser.parse_args()
+    if not DATA.is_dir():
+        sys.exit(f"recon: error: {DATA}: the recordings are not there")
+    args.work.mkdir(parents=True, exist_ok=True)
+
+    results, rows = [], []
+    for name in args.clips:
+        dataset, selection = CLIPS[name]
+        video = recording_video(dataset, args.work)
+        for mode in ("off", "on"):
+            r = {"clip": name, **run_clip(video, dataset, selection, mode,
+                                          args.work / f"{name.replace(' ', '_')}-{mode}")}
+            results.append(r)
+            icp = r["icp"] or {}
+            rows.append([name, "one-shot" if mode == "off" else "streamed", r["frames"], r["depth_frames"],
+                         f"{r['s_per_frame']:.3f}", f"{r['abs_rel']:.4f}", f"{r['fscore']:.3f}",
+                         f"{r['fscore_icp']:.3f}" if icp.get("accepted") else "refused",
+                         f"{r['trajectory_scale']:.3f}", f"{r['focal']:.0f}"])
+            print(rows[-1], flush=True)
+            write_json(args.json, {"machine": machine(), "results": results})
+    print(table(["clip", "run", "frames", "depth frames", "s/frame", "abs rel", "F@5cm Sim(3)", "F@5cm +ICP",
+                 "trajectory scale", "focal"], rows))
+
+
+if __name__ == "__main__":
+    main()
