@@ -130,7 +130,7 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
     ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget) and
     video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
     the streamed run gives depth only to the frames the camera moved to reach, which on the
-    videos measured was 1.2-2.2x faster for a mesh as good (docs/benchmarks.md, "Videos
+    videos measured was 1.1-1.9x faster for a mesh as good (docs/benchmarks.md, "Videos
     stream when their poses are estimated"). SfM needs every frame at once: not streamed.
     """
     if config.stream == "on":
