@@ -25,11 +25,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, table, write_json  # noqa: E402
+from benchmarks.stream import ping_pong_video  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -46,14 +45,11 @@ CLIPS = {
 
 
 def recording_video(dataset: Path, work: Path) -> Path:
-    """The recording's frames as one mp4 at 30 fps (written once)."""
+    """The recording's frames, in order, as one mp4 at 30 fps (written once, with its
+    trajectory beside it): stream.py's back-and-forth video as long as the recording."""
     from recon.io.frames import open_source
-    from recon.io.video import write_video
 
-    path = work / f"{dataset.name}.mp4"
-    if not path.is_file():
-        write_video(np.stack([f.rgb for f in open_source(dataset, width=640)]), path, fps=30.0)
-    return path
+    return ping_pong_video(work / f"{dataset.name}.mp4", open_source(dataset).count, dataset)[0]
 
 
 def recon(*args: str) -> None:

@@ -139,16 +139,17 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
         return None
     if source.count > config.frame_budget:
         return f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
-    if source.kind == "video" and pose_plan.estimated and config.pose_method != "sfm":
+    if _streamed_as_video(config, source, pose_plan):
         return ("streaming the video (estimated poses: depth for the frames the camera moved to reach; "
                 "--stream off gives every frame depth)")
     return None
 
 
-def _one_shot_fallback(config: PipelineConfig, source) -> bool:
-    """Whether a streamed run that lost the camera is run again at once: only when auto chose
-    to stream a video that fits the frame budget, and SfM may be tried."""
-    return config.stream == "auto" and source.count <= config.frame_budget and config.pose_method == "auto"
+def _streamed_as_video(config: PipelineConfig, source, pose_plan) -> bool:
+    """auto's video rule (stream_reason): a video within the frame budget, poses estimated,
+    not by SfM. Such a run that loses the camera can be run again at once."""
+    return (config.stream == "auto" and source.count <= config.frame_budget and source.kind == "video"
+            and pose_plan.estimated and config.pose_method != "sfm")
 
 
 def _remove_if_empty(folder: Path) -> None:
@@ -183,7 +184,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         try:
             return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
         except TrackingLostError as err:
-            if not _one_shot_fallback(config, source):
+            if not (_streamed_as_video(config, source, pose_plan) and config.pose_method == "auto"):
                 raise
             # The one-shot run can still try SfM, which the streamed front end cannot.
             log.warning("the streamed front end lost the camera (%s); running the video at once, with SfM "
