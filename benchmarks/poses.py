@@ -36,6 +36,7 @@ from recon.errors import ReconInputError  # noqa: E402
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
 from recon.poses import estimate_poses  # noqa: E402
+from recon.poses.options import parse_pose_option  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -138,8 +139,9 @@ def main() -> None:
     parser.add_argument("--json", default="poses", help="results file name (benchmarks/results/NAME.json)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    settings = {k: float(v) for k, v in (item.split("=", 1) for item in args.set)}
-    tag = "".join(f" [{k}={v:g}]" for k, v in settings.items())
+    # Typed like the CLI's --pose-option (an int field such as global_iters stays an int).
+    settings = dict(parse_pose_option(item) for item in args.set)
+    tag = "".join(f" [{k}={v}]" for k, v in settings.items())
     results, rows = [], []
     for case in args.cases:
         if parse_case(case)[0] in ("7scenes", "7scenes-nok", "tum") and not DATA.is_dir():
