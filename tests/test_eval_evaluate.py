@@ -104,6 +104,9 @@ def test_icp_registers_a_right_mesh_whose_trajectory_is_off(tmp_path, recording)
     assert by_trajectory["mesh_align"] == "sim3" and by_trajectory["mesh"]["fscore"] < 0.7
     assert refined["mesh_align"] == "sim3+icp" and refined["mesh"]["fscore"] > 0.9
     assert refined["mesh_icp"]["scale"] == pytest.approx(1.08, rel=0.01)
+    # The same evaluation keeps the trajectory-only score, equal to the plain run's.
+    assert refined["mesh_before_icp"]["fscore"] == pytest.approx(by_trajectory["mesh"]["fscore"], abs=1e-9)
+    assert f"before ICP {refined['mesh_before_icp']['fscore']:.4f}" in format_evaluation(refined)
     assert f"alignment: scale {refined['mesh_icp']['scale']:.4f}" in format_evaluation(refined)
 
 
