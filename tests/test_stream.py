@@ -107,6 +107,33 @@ def test_a_window_is_anchored_to_the_fused_surface_it_revisits(room_video):
     assert _anchor(None, revisit, seq.depth[4:10], shared=[]) == (1.0, "none")
 
 
+def test_windows_whose_scale_disagrees_with_the_fused_surface_are_reported(both_runs, caplog):
+    """Windows record the frames they span; a window brought to the fused surface by more
+    than ANCHOR_DISAGREEMENT is named in a warning with what would hold the scale better."""
+    from recon.stream_depth import _WindowRecord, warn_scale_disagreement
+
+    _, streamed, _ = both_runs
+    each = streamed.report["windows"]["each"]
+    assert each[0]["first_frame"] == 0 and each[-1]["last_frame"] == FRAMES - 1
+    assert all(a["first_frame"] < b["first_frame"] <= a["last_frame"] for a, b in zip(each, each[1:]))
+    windows = [_WindowRecord(46, 46, 1.0, "none", {}, None, 0, {}, 0, 45),
+               _WindowRecord(47, 39, 0.88, "fused surface", {}, None, 0, {}, 38, 84),
+               _WindowRecord(46, 38, 0.77, "fused surface", {}, None, 0, {}, 77, 122)]
+    config = PipelineConfig(input="x", output="y", refine="none", depth_frames="all")
+    with caplog.at_level("WARNING", logger="recon.stream_depth"):
+        warn_scale_disagreement(windows, config)
+    [message] = [r.getMessage() for r in caplog.records]
+    assert "1 of 3 windows" in message and "frames 77-122, x0.77" in message
+    assert "--depth-frames motion" in message and "--refine mvs" in message
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="recon.stream_depth"):
+        warn_scale_disagreement(windows[:2], config)  # 12 %: within the bound
+        assert not caplog.records
+        warn_scale_disagreement(windows, PipelineConfig(input="x", output="y"))  # the defaults: no advice
+    [message] = [r.getMessage() for r in caplog.records]
+    assert message.endswith("hold their scale poorly")
+
+
 def test_streamed_run_with_estimated_poses(room_video, tmp_path):
     """A video with estimated poses streams by default (stream "auto"): the streaming front
     end tracks the room, closes the trajectory (global BA, gate) and the depth frames (every
