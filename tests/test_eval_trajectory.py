@@ -189,3 +189,24 @@ def test_rpe_rotation_ignores_non_orthonormal_ground_truth():
     small = poses.copy()
     small[1:, :3, :3] = small[1:, :3, :3] @ Rotation.from_rotvec([0, 0, 1e-4]).as_matrix()
     assert rpe(small, poses)["rot_errors_deg"][0] == pytest.approx(np.degrees(1e-4), rel=1e-3)
+
+
+def test_a_scale_the_camera_centres_do_not_determine_is_not_used_on_a_mesh():
+    """A camera that turns on the spot with its centres jittering by a centimetre: the Sim(3)
+    fit explains nothing of them and its scale is noise, so the mesh keeps scale 1 (and says
+    why); a walk that the fit explains keeps the trajectory's scale."""
+    rng = np.random.default_rng(3)
+    turning = _poses(Rotation.from_rotvec(np.outer(np.linspace(0, 0.8, 40), [0.2, 1.0, 0.1])).as_matrix(),
+                     rng.normal(scale=0.01, size=(40, 3)))
+    jittered = turning.copy()
+    jittered[:, :3, 3] = rng.normal(scale=0.01, size=(40, 3))
+    assert align(jittered, turning, "sim3")[2] < 0.5
+    fit = pose_alignment(jittered, turning, "sim3")
+    assert fit["scale"] == 1.0 and "too little to give a scale" in fit["scale_from"]
+    np.testing.assert_allclose(fit["rotation"], np.eye(3), atol=1e-9)
+    gt = _random_trajectory()
+    walked = gt.copy()
+    walked[:, :3, 3] = 0.9 * gt[:, :3, 3] + rng.normal(scale=0.01, size=(len(gt), 3))
+    fit = pose_alignment(walked, gt, "sim3")
+    assert fit["scale_from"] == "trajectory" and fit["scale"] == pytest.approx(1 / 0.9, rel=0.02)
+

@@ -19,6 +19,7 @@ folder read back by :func:`recon.io.output_folder.load_output`:
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
@@ -33,6 +34,8 @@ from recon.eval.mesh import DEFAULT_THRESHOLD, icp_registered, mesh_metrics
 from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
 from recon.io.datasets import open_dataset
 from recon.io.output_folder import load_output
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -130,6 +133,9 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
         by_trajectory, by_icp = mode.removesuffix("+icp"), mode.endswith("+icp")
         if by_trajectory != "none":
             alignment = pose_alignment(out.poses, dataset.poses[out.indices], by_trajectory)
+            result["mesh_scale"] = {"scale": alignment["scale"], "from": alignment["scale_from"]}
+            if alignment["scale_from"] not in ("trajectory", "se3"):
+                log.warning("%s: the mesh is aligned with scale %s", out.path, alignment["scale_from"])
         result["mesh_align"] = mode
     if out.mesh is not None and len(out.mesh.triangles) > 0:
         if options.reference_mesh is not None:
