@@ -133,9 +133,12 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
         by_trajectory, by_icp = mode.removesuffix("+icp"), mode.endswith("+icp")
         if by_trajectory != "none":
             alignment = pose_alignment(out.poses, dataset.poses[out.indices], by_trajectory)
-            result["mesh_scale"] = {"scale": alignment["scale"], "from": alignment["scale_from"]}
-            if alignment["scale_from"] not in ("trajectory", "se3"):
-                log.warning("%s: the mesh is aligned with scale %s", out.path, alignment["scale_from"])
+            result["mesh_scale"] = {"scale": alignment["scale"], "from": alignment["scale_from"],
+                                    "explained": alignment["explained"], "fitted_scale": alignment["fitted_scale"]}
+            if alignment["scale_from"] == "undetermined":
+                log.warning("%s: the mesh is aligned with scale 1, not the trajectory's %.3f: that fit explains "
+                            "%.0f%% of the camera centres' spread, too little to give a scale", out.path,
+                            alignment["fitted_scale"], 100 * max(alignment["explained"], 0.0))
         result["mesh_align"] = mode
     if out.mesh is not None and len(out.mesh.triangles) > 0:
         if options.reference_mesh is not None:

@@ -127,26 +127,27 @@ def pose_alignment(est_poses, gt_poses, mode: AlignMode = "sim3") -> dict:
     straight path undetermined, and everything for a camera that mostly rotates (TUM
     fr1/rpy): harmless for ATE, degrees off for a mesh 2-3 m away. A scale the centres do
     not determine (the fit explains less than MIN_SCALE_EXPLAINED of their spread) is not
-    used: s = 1, and "scale_from" says why.
-    Returns {"scale", "rotation" (3, 3), "translation" (3,), "scale_from"}.
+    used: s = 1.
+    Returns {"scale", "rotation" (3, 3), "translation" (3,), "scale_from", "explained",
+    "fitted_scale"}: scale_from "trajectory" (the Sim(3) scale), "undetermined" (scale 1
+    because the fit explains too little), "se3" or "none"; explained the fit's R^2 over the
+    centres and fitted_scale its scale (None unless mode is "sim3").
     """
     est, gt, valid = _matched(est_poses, gt_poses)
     est, gt = est[valid], gt[valid]
+    fit = {"explained": None, "fitted_scale": None}
     if mode == "none":
-        return {"scale": 1.0, "rotation": np.eye(3), "translation": np.zeros(3), "scale_from": "none"}
+        return {"scale": 1.0, "rotation": np.eye(3), "translation": np.zeros(3), "scale_from": "none", **fit}
     scale, scale_from = 1.0, "se3"
     if mode == "sim3":
-        rot_c, trans_c, scale = align(est, gt, "sim3")
-        explained = explained_share(est, gt, rot_c, trans_c, scale)
-        scale_from = "trajectory"
-        if explained < MIN_SCALE_EXPLAINED:
-            scale_from = (f"1, not the trajectory's {scale:.3f}: that fit explains {max(explained, 0.0):.0%} of the "
-                          "camera centres' spread, too little to give a scale")
-            scale = 1.0
+        rot_c, trans_c, fitted = align(est, gt, "sim3")
+        fit = {"explained": explained_share(est, gt, rot_c, trans_c, fitted), "fitted_scale": float(fitted)}
+        scale, scale_from = ((fitted, "trajectory") if fit["explained"] >= MIN_SCALE_EXPLAINED
+                             else (1.0, "undetermined"))
     u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3]))
     rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
     trans = (gt[:, :3, 3] - scale * est[:, :3, 3] @ rot.T).mean(0)
-    return {"scale": float(scale), "rotation": rot, "translation": trans, "scale_from": scale_from}
+    return {"scale": float(scale), "rotation": rot, "translation": trans, "scale_from": scale_from, **fit}
 
 
 def move_points(points: np.ndarray, alignment: dict | None) -> np.ndarray:
