@@ -185,6 +185,11 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
                    help="pinhole intrinsics in pixels of the input as decoded (pixel centres at integers)")
     g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
+    g.add_argument("--rolling-shutter", type=float, default=d.rolling_shutter, metavar="MS",
+                   help="the camera's rolling-shutter readout time in milliseconds (phones and webcams: about 10-30; "
+                        "0: a global shutter, default). Each frame is resampled to one instant with the camera's "
+                        "turn rate from the poses (estimated poses: estimated again on the resampled frames); "
+                        "one-shot runs only")
 
     g = parser.add_argument_group("poses")
     g.add_argument("--poses", default="auto", metavar="{%s}|PATH" % ",".join(POSE_CHOICES),
@@ -331,6 +336,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         mesh_every=args.mesh_every,
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
+        rolling_shutter=args.rolling_shutter,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
         prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,

@@ -30,6 +30,9 @@ from .errors import ReconInputError
 from .fusion import FusionOptions
 from .poses.polish import PolishConfig
 
+# A readout longer than a frame at 10 fps is not a rolling shutter but a typo.
+MAX_READOUT_MS = 100.0
+
 
 def device_index(name: str) -> int | None:
     """N of a --device spelled cuda:N (None for cpu, cuda and auto); ReconInputError for
@@ -63,6 +66,10 @@ class PipelineConfig:
         of view in degrees (used when intrinsics are not given).
     poses: "auto", "gt" (dataset ground truth), "estimate", or a pose file / folder
         (TUM, COLMAP, nerfstudio, 7-Scenes/ScanNet matrices, Open3D .log).
+    rolling_shutter: the camera's rolling-shutter readout time in milliseconds (0: a global
+        shutter). The frames are resampled to one instant each, with the angular velocity of
+        the given poses or of a first estimate (then estimated again on the resampled frames):
+        recon.rolling_shutter. One-shot runs only.
     pose_method: estimator, "auto" | "frontend" | "sfm".
     pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
         ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
@@ -105,6 +112,7 @@ class PipelineConfig:
     fps: float | None = None
     intrinsics: tuple[float, float, float, float] | None = None
     fov: float | None = None
+    rolling_shutter: float = 0.0
     poses: str = "auto"
     pose_method: str = "auto"
     pose_options: dict[str, Any] = field(default_factory=dict)
@@ -148,6 +156,9 @@ class PipelineConfig:
             if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
                 raise ReconInputError(
                     f"intrinsics must be four numbers fx,fy,cx,cy with fx, fy > 0, got {self.intrinsics}")
+        if not (0.0 <= self.rolling_shutter <= MAX_READOUT_MS):
+            raise ReconInputError(f"rolling-shutter readout must be between 0 and {MAX_READOUT_MS:g} ms (one frame "
+                                  f"at 10 fps), got {self.rolling_shutter:g}")
         if self.pose_method not in POSE_METHODS:
             raise ReconInputError(f"pose method must be one of {', '.join(POSE_METHODS)}, got {self.pose_method!r}")
         if self.pose_options:

@@ -16,9 +16,12 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
                local Hugging Face model, its disparity aligned to FastDepth or sensor depth);
                the network is loaded before the frames are decoded;
 ``poses``      camera-to-world poses: a pose file, the dataset's ground truth, or estimated
-               (frames the quality gate drops leave the sequence here); given poses are
-               polished against the frames when the refinement runs (:mod:`recon.poses.polish`:
-               multi-view stereo needs sub-pixel agreement that given poses rarely have);
+               (frames the quality gate drops leave the sequence here); with a rolling-shutter
+               readout given, the frames are resampled to one instant each with the poses'
+               turn rate (:mod:`recon.rolling_shutter`) and estimated poses estimated again on
+               them; given poses are polished against the frames when the refinement runs
+               (:mod:`recon.poses.polish`: multi-view stereo needs sub-pixel agreement that
+               given poses rarely have);
 ``undistort``  frames, prior and features resampled into the pinhole camera when the poses
                came with a lens term (:mod:`recon.lens`);
 ``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``);
@@ -40,7 +43,7 @@ says so). Poses ``"auto"``: a dataset's ground truth when it has one, else estim
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -67,6 +70,7 @@ from .stages import (
     refine_depth,
     select_frames,
     tracking_states,
+    unrolled_frames,
 )
 
 log = logging.getLogger(__name__)
@@ -218,6 +222,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
             log.warning("camera intrinsics unknown; assuming NYU Depth v2's field of view "
                         "(pass --intrinsics or --fov for a better mesh)")
         seq = seq.with_(intrinsics=tuple(float(v) for v in seq.intrinsics))
+        if config.rolling_shutter > 0:
+            seq, pose_stage, tracking = _unroll(config, pose_plan, source, seq, pose_stage, tracking, say)
         if not pose_plan.estimated and config.refine != "none" and config.polish:
             say("polishing the given poses against the frames")
             pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress, config.device)
@@ -289,6 +295,23 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         intrinsics=seq.intrinsics, fusion=fused, medea=medea_result, seconds=dict(timer.seconds), files=files,
         report=report, rerun_url=rerun_url, adjusted_depth=adjusted, refined=refined,
     )
+
+
+def _unroll(config: PipelineConfig, pose_plan, source, seq: Sequence, pose_stage, tracking, say):
+    """Frames resampled for a rolling shutter with the turn rate of the poses; estimated
+    poses are estimated again on them (the first estimate carries the shutter's error)."""
+    say(f"resampling the frames for a {config.rolling_shutter:g} ms rolling shutter")
+    seq, shutter = unrolled_frames(seq, config.rolling_shutter)
+    if pose_plan.estimated:
+        say("poses again, on the resampled frames")
+        pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=config.pose_options,
+                                  device=config.device, progress=config.progress)
+        seq = seq.with_(poses=pose_stage.poses)
+        tracking = tracking_states(pose_stage, seq)
+        if pose_stage.keep is not None:
+            log.warning(pose_stage.dropped_note)
+            seq = seq.take(pose_stage.keep)
+    return seq, replace(pose_stage, info={**pose_stage.info, "rolling_shutter": shutter}), tracking
 
 
 def _warn_unsupported(refined, seq: Sequence, min_frame_share: float) -> None:

@@ -1,9 +1,10 @@
 """The sequence bundle: the frames of a run and everything known per frame, kept in step.
 
 Stages hand one :class:`Sequence` to the next instead of parallel arrays, so that leaving
-frames out (``take``) or resampling them into the pinhole camera (``undistort``) changes
-every per-frame array at once and none can fall out of step. A window of frames of a long
-video is a ``Sequence`` too: the streamed pipeline cuts windows with ``take``.
+frames out (``take``), resampling them into the pinhole camera (``undistort``) or to one
+instant per frame (``unroll``, a rolling shutter) changes every per-frame array at once
+and none can fall out of step. A window of frames of a long video is a ``Sequence`` too:
+the streamed pipeline cuts windows with ``take``.
 
 Conventions (README): rgb (N, H, W, 3) uint8; depth (N, H, W) metres, 0 = invalid;
 intrinsics (fx, fy, cx, cy) in pixels of ``rgb``; poses (N, 4, 4) camera-to-world, OpenCV
@@ -16,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import rolling_shutter as rs
 from .lens import undistort_features, undistort_images
 
 
@@ -83,6 +85,29 @@ class Sequence:
             features=None if self.features is None else
             undistort_features(self.features, self.intrinsics, self.size, k1),
         )
+
+    def unroll(self, omega: np.ndarray, readout: float) -> tuple[Sequence, np.ndarray]:
+        """Frames, prior depth and features of a rolling-shutter camera resampled to each
+        frame's timestamp (recon.rolling_shutter), given the body angular velocity omega
+        (N, 3) rad/s and the readout time in seconds. Frames the shutter bends by less than
+        rolling_shutter.MIN_SHIFT_PX stay as they are. Returns the sequence and the largest
+        shift of each frame (pixels)."""
+        if self.intrinsics is None:
+            raise ValueError("unrolling needs the intrinsics")
+        rgb, prior, features = self.rgb.copy(), None if self.prior_depth is None else self.prior_depth.copy(), (
+            None if self.features is None else self.features.copy())
+        shifts = np.zeros(len(self))
+        for k in range(len(self)):
+            pos = rs.recorded_position(omega[k], self.intrinsics, self.size, readout)
+            shifts[k] = float(rs.largest_shift(pos[None])[0])
+            if shifts[k] < rs.MIN_SHIFT_PX:
+                continue
+            rgb[k] = rs.unroll_images(self.rgb[k:k + 1], pos[None])[0]
+            if prior is not None:
+                prior[k] = rs.unroll_images(self.prior_depth[k:k + 1], pos[None], nearest=True)[0]
+            if features is not None:
+                features[k] = rs.unroll_features(self.features[k:k + 1], pos[None])[0]
+        return replace(self, rgb=rgb, prior_depth=prior, features=features), shifts
 
 
 __all__ = ["Sequence"]

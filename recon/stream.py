@@ -73,6 +73,9 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
                  given: tuple[tuple | None, str], say: Callable[[str], None]) -> StreamResult:
     """Both passes (module docstring) into ``out``; given: (intrinsics or None, their source)."""
     clock = StageClock()
+    if config.rolling_shutter > 0:
+        log.warning("--rolling-shutter is not applied in a streamed run (it needs the poses of every frame "
+                    "first); the frames are used as recorded (--stream off applies it)")
     with ExitStack() as stack:
         store = stack.enter_context(FrameStore())
         logger, rec_path = _open_logger(config, out, stack)
