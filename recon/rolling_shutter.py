@@ -5,8 +5,9 @@ bottom over a readout time. While the camera turns, each row sees the scene from
 different orientation: straight lines lean, and the frame is no longer one pinhole image,
 which every later stage (flow bundle adjustment, MEDeA, the plane sweep, fusion) assumes.
 The bundle adjustment then trades rotation for translation: on 7-Scenes (every 4th frame of
-0-399, estimated poses) the path came out 5.4 % too long against the mesh, and on frames
-unrolled with a 30 ms readout 2.8 % (docs/benchmarks.md, "Rolling shutter").
+0-399, estimated poses) the camera path came out 5.4 % too long against the ground truth,
+and 3.6 % on the frames unrolled with a 30 ms readout (docs/benchmarks.md, "Rolling
+shutter").
 
 The model is rotation-only, after Forssén and Ringaby ("Rectifying rolling shutter video from
 hand-held devices", CVPR 2010): row v of a frame H rows high is exposed at
