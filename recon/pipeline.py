@@ -208,13 +208,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
     say(f"poses: {config.poses}")
     with timer.stage("poses"):
-        pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=config.pose_options,
-                                  device=config.device, progress=config.progress)
-        seq = seq.with_(poses=pose_stage.poses)
-        tracking = tracking_states(pose_stage, seq)
-        if pose_stage.keep is not None:
-            log.warning(pose_stage.dropped_note)
-            seq = seq.take(pose_stage.keep)
+        seq, pose_stage, tracking = _posed(config, pose_plan, source, seq)
         if seq.intrinsics is None and pose_stage.intrinsics is not None:
             seq, intrinsics_from = seq.with_(intrinsics=pose_stage.intrinsics), f"poses ({pose_stage.source})"
         if seq.intrinsics is None:
@@ -304,14 +298,21 @@ def _unroll(config: PipelineConfig, pose_plan, source, seq: Sequence, pose_stage
     seq, shutter = unrolled_frames(seq, config.rolling_shutter)
     if pose_plan.estimated:
         say("poses again, on the resampled frames")
-        pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=config.pose_options,
-                                  device=config.device, progress=config.progress)
-        seq = seq.with_(poses=pose_stage.poses)
-        tracking = tracking_states(pose_stage, seq)
-        if pose_stage.keep is not None:
-            log.warning(pose_stage.dropped_note)
-            seq = seq.take(pose_stage.keep)
+        seq, pose_stage, tracking = _posed(config, pose_plan, source, seq)
     return seq, replace(pose_stage, info={**pose_stage.info, "rolling_shutter": shutter}), tracking
+
+
+def _posed(config: PipelineConfig, pose_plan, source, seq: Sequence):
+    """(sequence with its poses, the pose stage, the tracking states): the frames the quality
+    gate (or a missing ground truth) leaves out are taken out, with a warning."""
+    pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=config.pose_options,
+                              device=config.device, progress=config.progress)
+    seq = seq.with_(poses=pose_stage.poses)
+    tracking = tracking_states(pose_stage, seq)
+    if pose_stage.keep is not None:
+        log.warning(pose_stage.dropped_note)
+        seq = seq.take(pose_stage.keep)
+    return seq, pose_stage, tracking
 
 
 def _warn_unsupported(refined, seq: Sequence, min_frame_share: float) -> None:

@@ -239,6 +239,7 @@ def test_bad_options(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--mesh-every", "-3"], "mesh every", "-3")
     _run_fails(capsys, ["run", str(video), "-o", out, "--depth-motion", "0"], "depth motion", "> 0")
     _run_fails(capsys, ["run", str(video), "-o", out, "--device", "gpu0"], "--device gpu0", "cuda:N")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--rolling-shutter", "150"], "rolling-shutter readout", "150")
     _run_fails(capsys, ["view", str(tmp_path / "nothing")], "no such file")
     assert not Path(out).exists()
 
@@ -480,6 +481,28 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     report = json.loads((refined / "report.json").read_text())
     assert report["options"]["mvs"]["num_sources"] == 3 and len(report["refine"]["sources"][0]) == 3
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
+
+
+def test_rolling_shutter_resamples_the_frames_and_estimates_the_poses_again(demo, tmp_path, capsys):
+    """--rolling-shutter: a one-shot run resamples the turning frames and estimates the poses
+    again on them (report.json: poses.rolling_shutter); a streamed run says it does not."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    video = str(out / "input/synthetic.mp4")
+    common = ["--poses", "estimate", "--pose-method", "frontend", "--prior", "folder", "--prior-path",
+              str(out / "input/prior"), "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0",
+              "--no-medea", "--refine", "none", "--rolling-shutter", "30", "--quiet", "--rerun", "off", "--no-npy"]
+    one_shot = tmp_path / "one_shot"
+    assert main(["run", video, "-o", str(one_shot), "--stream", "off", *common]) == 0
+    report = json.loads((one_shot / "report.json").read_text())
+    shutter = report["poses"]["rolling_shutter"]
+    assert shutter["readout_ms"] == 30.0 and shutter["frames_resampled"] >= FRAMES // 2
+    assert 0.5 < shutter["max_shift_px"] < 20 and shutter["median_turn_deg_per_s"] > 5
+    assert report["options"]["rolling_shutter"] == 30.0
+    assert len(read_poses(one_shot / "trajectory.txt").poses) == FRAMES
+    assert "not applied" not in capsys.readouterr().err
+    assert main(["run", video, "-o", str(tmp_path / "streamed"), "--stream", "on", *common]) == 0
+    assert "--rolling-shutter is not applied in a streamed run" in capsys.readouterr().err
 
 
 def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path, capsys):
