@@ -110,3 +110,15 @@ def test_poses_estimated_again_on_unrolled_frames_lose_the_shutter_error():
     unrolled, _ = ate(unrolled_frames(recorded.with_(poses=first), readout * 1000)[0])
     assert rolled > 3 * still, (still, rolled)
     assert unrolled < 0.5 * rolled, (rolled, unrolled)
+
+
+def test_features_follow_the_frame_pixels_at_their_own_resolution():
+    """A feature that is its own cell's x coordinate, read where the frame pixels were
+    recorded (here 16 frame pixels to the right): the cell coordinate of that place."""
+    height, width, h, w = 240, 320, 30, 40
+    grid = np.stack(np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)), -1)
+    positions = (grid + np.array([16.0, 0.0], np.float32))[None]
+    ramp = np.broadcast_to(np.arange(w, dtype=np.float32), (h, w))
+    out = rs.unroll_features(np.stack([ramp])[None], positions)
+    expected = np.minimum(ramp + 16.0 * (w - 1) / (width - 1), w - 1)
+    np.testing.assert_allclose(out[0, 0], expected, atol=1e-3)
