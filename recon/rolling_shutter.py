@@ -108,18 +108,17 @@ def roll_images(images: np.ndarray, positions: np.ndarray) -> np.ndarray:
 
 def unroll_features(features: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """Feature maps (N, C, h, w) covering the frames, resampled like the frames (bilinear)."""
-    n, c, h, w = features.shape
+    h, w = features.shape[2:]
     height, width = positions.shape[1:3]
     pos = torch.from_numpy(positions).permute(0, 3, 1, 2)
     small = F.interpolate(pos, size=(h, w), mode="bilinear", align_corners=True).permute(0, 2, 3, 1)
-    # Frame pixel -> feature cell, both with pixel centres at integer coordinates.
-    scale = torch.tensor([(w - 1) / max(width - 1, 1), (h - 1) / max(height - 1, 1)])
-    grid = small * scale / torch.tensor([max(w - 1, 1), max(h - 1, 1)]) * 2 - 1
+    # Frame pixels to grid_sample's [-1, 1]: pixel centres at integers in both the frame and
+    # the feature map (align_corners), so the frame's corners are the map's.
+    grid = small / torch.tensor([max(width - 1, 1), max(height - 1, 1)]) * 2 - 1
     out = F.grid_sample(torch.from_numpy(features).float(), grid.float(), mode="bilinear", padding_mode="border",
                         align_corners=True)
     return out.numpy().astype(features.dtype, copy=False)
 
 
 __all__ = ["MIN_SHIFT_PX", "angular_velocity", "largest_shift", "recorded_position", "recorded_positions",
-           "roll_images",
-           "unroll_features", "unroll_images"]
+           "roll_images", "unroll_features", "unroll_images"]
