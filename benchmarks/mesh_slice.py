@@ -27,8 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from priors import VARIANTS, medea_config  # noqa: E402
-from report import DATA, MAX_DEPTH, refined_run  # noqa: E402
+from priors import MAX_DEPTH, VARIANTS, medea_config  # noqa: E402
+from report import DATA  # noqa: E402
+from report_runs import refined_run  # noqa: E402
 
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
