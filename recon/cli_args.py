@@ -188,8 +188,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--rolling-shutter", type=float, default=d.rolling_shutter, metavar="MS",
                    help="the camera's rolling-shutter readout time in milliseconds (phones and webcams: about 10-30; "
                         "0: a global shutter, default). Each frame is resampled to one instant with the camera's "
-                        "turn rate from the poses (estimated poses: estimated again on the resampled frames); "
-                        "one-shot runs only")
+                        "turn rate from the poses (estimated poses: estimated again on the resampled frames, "
+                        "so such a video is not streamed by --stream auto; a streamed run applies it to given "
+                        "poses only)")
 
     g = parser.add_argument_group("poses")
     g.add_argument("--poses", default="auto", metavar="{%s}|PATH" % ",".join(POSE_CHOICES),

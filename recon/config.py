@@ -69,7 +69,8 @@ class PipelineConfig:
     rolling_shutter: the camera's rolling-shutter readout time in milliseconds (0: a global
         shutter). The frames are resampled to one instant each, with the angular velocity of
         the given poses or of a first estimate (then estimated again on the resampled frames):
-        recon.rolling_shutter. One-shot runs only.
+        recon.rolling_shutter. A streamed run resamples its depth frames with given poses
+        and leaves the frames as recorded with estimated ones (it tracks only once).
     pose_method: estimator, "auto" | "frontend" | "sfm".
     pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
         ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.

@@ -135,7 +135,9 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
     video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
     the streamed run gives depth only to the frames the camera moved to reach, which on the
     videos measured was 1.1-1.9x faster for a mesh as good (docs/benchmarks.md, "Videos
-    stream when their poses are estimated"). SfM needs every frame at once: not streamed.
+    stream when their poses are estimated"). SfM needs every frame at once, and a rolling
+    shutter with estimated poses needs the trajectory estimated a second time: neither is
+    streamed by that rule.
     """
     if config.stream == "on":
         return "streaming"
@@ -151,9 +153,9 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
 
 def _streamed_as_video(config: PipelineConfig, source, pose_plan) -> bool:
     """auto's video rule (stream_reason): a video within the frame budget, poses estimated,
-    not by SfM. Such a run that loses the camera can be run again at once."""
+    not by SfM, no rolling shutter. Such a run that loses the camera can be run again at once."""
     return (config.stream == "auto" and source.count <= config.frame_budget and source.kind == "video"
-            and pose_plan.estimated and config.pose_method != "sfm")
+            and pose_plan.estimated and config.pose_method != "sfm" and config.rolling_shutter == 0)
 
 
 def _remove_if_empty(folder: Path) -> None:

@@ -316,14 +316,22 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
 def unrolled_frames(seq: Sequence, readout_ms: float) -> tuple[Sequence, dict]:
     """The frames resampled to one instant each (recon.rolling_shutter), with the turn rate
     of their poses: (sequence, what report.json says of it)."""
-    from .rolling_shutter import MIN_SHIFT_PX, angular_velocity
+    from .rolling_shutter import angular_velocity
 
     omega = angular_velocity(seq.poses, seq.timestamps)
     unrolled, shifts = seq.unroll(omega, readout_ms / 1000.0)
+    return unrolled, shutter_summary(omega, shifts, readout_ms)
+
+
+def shutter_summary(omega: np.ndarray, shifts: np.ndarray, readout_ms: float) -> dict:
+    """What report.json says of a rolling-shutter resampling: omega (N, 3) rad/s and the
+    largest shift (N,) pixels of the frames it resampled (or left, under MIN_SHIFT_PX)."""
+    from .rolling_shutter import MIN_SHIFT_PX
+
     speed = np.degrees(np.linalg.norm(omega, axis=1))
-    return unrolled, {"readout_ms": float(readout_ms), "frames_resampled": int((shifts >= MIN_SHIFT_PX).sum()),
-                      "median_shift_px": float(np.median(shifts)), "max_shift_px": float(shifts.max()),
-                      "median_turn_deg_per_s": float(np.median(speed))}
+    return {"readout_ms": float(readout_ms), "frames_resampled": int((shifts >= MIN_SHIFT_PX).sum()),
+            "median_shift_px": float(np.median(shifts)), "max_shift_px": float(shifts.max()),
+            "median_turn_deg_per_s": float(np.median(speed))}
 
 
 def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:

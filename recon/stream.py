@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +36,7 @@ from .config import PipelineConfig
 from .io.frame_store import FrameStore
 from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .io.source import FrameSource
-from .stages import PosePlan
+from .stages import PosePlan, shutter_summary
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
 
@@ -73,16 +73,22 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
                  given: tuple[tuple | None, str], say: Callable[[str], None]) -> StreamResult:
     """Both passes (module docstring) into ``out``; given: (intrinsics or None, their source)."""
     clock = StageClock()
-    if config.rolling_shutter > 0:
-        log.warning("--rolling-shutter is not applied in a streamed run (it needs the poses of every frame "
-                    "first); the frames are used as recorded (--stream off applies it)")
+    if config.rolling_shutter > 0 and pose_plan.estimated:
+        log.warning("--rolling-shutter is not applied in a streamed run with estimated poses (the trajectory "
+                    "would have to be estimated again on the resampled frames); the frames are used as "
+                    "recorded (--stream off applies it)")
     with ExitStack() as stack:
         store = stack.enter_context(FrameStore())
         logger, rec_path = _open_logger(config, out, stack)
         say("tracking (streamed)")
         video = track_video(config, source, pose_plan, given, store, logger, clock)
         say(f"depth: {int(video.depth_frame.sum())} of {len(video.indices)} frames in windows of {config.window}")
-        volume, windows = depth_windows(config, video, pose_plan, store, out, logger, clock)
+        omega = _turn_rate(config, pose_plan, video, say)
+        volume, windows, shifts = depth_windows(config, video, pose_plan, store, out, logger, clock, omega)
+        if omega is not None and shifts:
+            at = np.array(sorted(shifts))
+            summary = shutter_summary(omega[at], np.array([shifts[p] for p in at]), config.rolling_shutter)
+            video = replace(video, pose_info={**video.pose_info, "rolling_shutter": summary})
         say("export")
         result = _finish(config, source, out, video, volume, windows, clock, logger, store.bytes_written)
         url = logger.url if logger is not None else None
@@ -91,6 +97,17 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
     result.rerun_url = url
     result.files["report"] = out.write_json(REPORT_JSON, _with_files(result.report, result.files, out))
     return result
+
+
+def _turn_rate(config: PipelineConfig, pose_plan: PosePlan, video: TrackedVideo, say) -> np.ndarray | None:
+    """The body angular velocity (N, 3) of every tracked frame when the depth frames are to be
+    resampled for a rolling shutter (given poses: they do not depend on the frames), else None."""
+    if config.rolling_shutter <= 0 or pose_plan.estimated:
+        return None
+    from .rolling_shutter import angular_velocity
+
+    say(f"depth frames resampled for a {config.rolling_shutter:g} ms rolling shutter")
+    return angular_velocity(video.poses, video.timestamps)
 
 
 def _open_logger(config: PipelineConfig, out: OutputFolder, stack: ExitStack):

@@ -68,8 +68,11 @@ class _WindowRecord:
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
-                  out: OutputFolder, logger, clock: StageClock):
-    """MEDeA, refinement, depth files and fusion window by window: (volume, window records)."""
+                  out: OutputFolder, logger, clock: StageClock, omega: np.ndarray | None = None):
+    """MEDeA, refinement, depth files and fusion window by window: ((volume, fusion options),
+    window records, the largest rolling-shutter shift in pixels of each depth frame by its
+    position). omega: the body angular velocity (N, 3) rad/s of every tracked frame when
+    the frames are resampled for a rolling shutter of ``config.rolling_shutter`` ms, else None."""
     import torch
     from tqdm.auto import tqdm
 
@@ -87,12 +90,13 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
-    volume, records, finished, swept, fused = None, [], {}, {}, 0
+    volume, records, finished, swept, fused, shifts = None, [], {}, {}, 0, {}
     bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
     for window in windows:
         pos = positions[window.start:window.stop]
         with clock.stage("store"):
-            seq = _window_sequence(video, store, pos, undistort)
+            seq, window_shifts = _window_sequence(video, store, pos, undistort, omega, config.rolling_shutter)
+        shifts.update(zip(pos.tolist(), window_shifts))
         with clock.stage("medea"):
             if config.adjust:
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
@@ -141,7 +145,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                                      int(seq.indices[0]), int(seq.indices[-1])))
     bar.close()
     warn_scale_disagreement(records, config)
-    return (volume, options), records
+    return (volume, options), records, shifts
 
 
 def warn_scale_disagreement(records: list[_WindowRecord], config: PipelineConfig) -> None:
@@ -188,12 +192,20 @@ def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray
     return 1.0, "none"
 
 
-def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, undistort: bool) -> Sequence:
+def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, undistort: bool,
+                     omega: np.ndarray | None, readout_ms: float) -> tuple[Sequence, list[float]]:
+    """The window's frames read back from the store, resampled for the rolling shutter (when
+    omega is given; the shutter bends the recorded image, so before the lens), then into the
+    lens' pinhole image: (sequence, largest shutter shift of each frame, [] without)."""
     features = [store.get(p, "features") for p in pos] if store.has(int(pos[0]), "features") else None
     seq = Sequence(video.indices[pos], video.timestamps[pos], store.stack(pos, "rgb"), [video.names[p] for p in pos],
                    video.intrinsics, store.stack(pos, "prior"), None if features is None else np.stack(features),
                    video.poses[pos])
-    return seq.undistort(video.lens_k1) if undistort else seq
+    shifts: list[float] = []
+    if omega is not None:
+        seq, frame_shifts = seq.unroll(omega[pos], readout_ms / 1000.0)
+        shifts = frame_shifts.tolist()
+    return (seq.undistort(video.lens_k1) if undistort else seq), shifts
 
 
 def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, seq: Sequence, options):

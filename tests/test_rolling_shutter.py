@@ -122,3 +122,41 @@ def test_features_follow_the_frame_pixels_at_their_own_resolution():
     out = rs.unroll_features(np.stack([ramp])[None], positions)
     expected = np.minimum(ramp + 16.0 * (w - 1) / (width - 1), w - 1)
     np.testing.assert_allclose(out[0, 0], expected, atol=1e-3)
+
+
+def test_a_streamed_run_with_given_poses_resamples_its_depth_frames(tmp_path):
+    """The synthetic room walked at three times its speed and recorded with a 50 ms rolling
+    shutter, run streamed with its true poses: resampling the depth frames (what
+    `--rolling-shutter` does there) puts the fused surface back where the scene is, and
+    report.json says what was resampled."""
+    from dataclasses import replace
+
+    from medea_core import MedeaConfig
+    from recon.demo import mesh_scores, write_demo_inputs
+    from recon.io.output_folder import OutputFolder
+    from recon.pipeline import run_pipeline
+
+    count, readout = 24, 0.05
+    room = render_sequence(count, 256, 192, seed=0, speed=3)
+    stamps = np.arange(count) / 30.0
+    positions = rs.recorded_positions(rs.angular_velocity(room.poses, stamps), room.intrinsics, (192, 256), readout)
+    recorded = replace(room, rgb=rs.roll_images(room.rgb, positions))
+    inputs = write_demo_inputs(OutputFolder(tmp_path / "input"), recorded,
+                               rs.roll_images(simulate_prior(room.depth, seed=1), positions))
+    fast = MedeaConfig.fast()
+    medea = replace(fast, seed=0, stage1=replace(fast.stage1, epochs=60), stage2=replace(fast.stage2, epochs=10))
+
+    def streamed(name: str, readout_ms: float):
+        return run_pipeline(PipelineConfig(
+            input=inputs["video"], output=tmp_path / name, width=None, intrinsics=room.intrinsics,
+            poses=str(inputs["poses"]), prior="folder", prior_path=inputs["prior"], medea=medea, polish=False,
+            stream="on", depth_frames="all", window=12, window_overlap=4, rerun="off", progress=False,
+            rolling_shutter=readout_ms))
+
+    as_recorded, resampled = streamed("recorded", 0.0), streamed("resampled", readout * 1000)
+    assert "rolling_shutter" not in as_recorded.report["poses"]
+    shutter = resampled.report["poses"]["rolling_shutter"]
+    assert shutter["readout_ms"] == 50.0 and shutter["frames_resampled"] >= count // 2 and shutter["max_shift_px"] > 2
+    f_recorded = mesh_scores(as_recorded.fusion.mesh, room)["fscore"]
+    f_resampled = mesh_scores(resampled.fusion.mesh, room)["fscore"]
+    assert f_resampled > f_recorded + 0.15, (f_recorded, f_resampled)  # measured 0.50 -> 0.83

@@ -191,8 +191,9 @@ def test_sigterm_stops_a_run_and_removes_its_temporary_frames(room_video, tmp_pa
 
 
 def test_auto_streams_long_inputs_and_videos_with_estimated_poses(room_video, tmp_path):
-    """stream "auto": one-shot for given poses and for SfM (which needs every frame at once),
-    streamed beyond the frame budget and for a video whose poses are estimated."""
+    """stream "auto": one-shot for given poses, for SfM (which needs every frame at once) and
+    for a rolling shutter with estimated poses (estimated twice), streamed beyond the frame
+    budget and for a video whose poses are estimated."""
     import cv2
 
     from recon.io.frames import open_source
@@ -211,6 +212,9 @@ def test_auto_streams_long_inputs_and_videos_with_estimated_poses(room_video, tm
     assert stream_reason(auto, video, given) is None
     assert "video" in stream_reason(auto, video, estimated)
     assert stream_reason(replace(auto, pose_method="sfm"), video, estimated) is None
+    # A rolling shutter with estimated poses needs a second estimate, which only a one-shot run makes.
+    assert stream_reason(replace(auto, rolling_shutter=30.0), video, estimated) is None
+    assert "frame budget" in stream_reason(replace(auto, rolling_shutter=30.0, frame_budget=FRAMES - 1), video, given)
     assert stream_reason(auto, images, estimated) is None
     assert "frame budget" in stream_reason(replace(auto, frame_budget=FRAMES - 1), video, given)
     assert stream_reason(replace(auto, stream="off"), video, estimated) is None
