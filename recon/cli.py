@@ -9,7 +9,7 @@ those configs by recon.cli_args.
 What the user reads: results and stage names on stdout; on stderr, progress bars (unless
 --quiet) and one line per message. The library never prints: its warnings go through the
 ``recon`` logger, which `main` gives one handler that writes each as ``recon: warning:
-...``. INFO records of the library (the estimated focal length, TSDF sizes, SfM keyframes)
+...``. INFO records of the library (TSDF sizes, SfM keyframes)
 are details for Python callers who configure logging; the command line does not show them.
 Bad input raises ReconInputError anywhere below; `main` prints it as the single line
 ``recon: error: ...`` and exits with code 2, without a traceback.

@@ -4,6 +4,7 @@ streaming front end (frame by frame) giving the batch result."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -47,12 +48,17 @@ def test_frontend_calibrates_a_barrel_lens(pose_room):
     assert scale_error(pinhole.poses, seq.poses) > 0.10
 
 
-def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room):
+def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room, caplog):
+    """The focal length is searched when no intrinsics are given, and the user is warned once
+    with the figure and how to give the camera instead."""
     seq, prior = pose_room
-    res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
     f_true = seq.intrinsics[0]
     assert abs(res.intrinsics[0] / f_true - 1) <= 0.05, (res.intrinsics, f_true)
     assert res.diagnostics["focal_search"]["bracketed"]
+    said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
+    assert len(said) == 1 and f"{res.intrinsics[0]:.1f} px" in said[0] and "--fov or --intrinsics" in said[0]
     length = path_length(seq.poses)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
 
