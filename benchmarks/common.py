@@ -1,4 +1,4 @@
-"""Helpers shared by the benchmark scripts: machine description, tables, JSON output."""
+"""Helpers shared by the benchmark scripts: machine description, progress lines, tables, JSON output."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import json
 import os
 import platform
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -32,6 +33,11 @@ def machine() -> dict:
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
     return info
+
+
+def say(text: str) -> None:
+    """A progress line with the time of day (long benchmark runs are read as they go)."""
+    print(f"[{time.strftime('%H:%M:%S')}] {text}", flush=True)
 
 
 def table(headers: list[str], rows: list[list]) -> str:

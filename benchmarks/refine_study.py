@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from common import RESULTS, machine, table, write_json  # noqa: E402
+from common import RESULTS, machine, say, table, write_json  # noqa: E402
 
 from medea_core import MedeaConfig  # noqa: E402
 from mvs_core import MvsConfig  # noqa: E402
@@ -94,10 +94,6 @@ def policy_confidence(result, policy: str) -> np.ndarray:
         weak = result.stats["reconstructed"].numpy() < 0.15
         confidence[weak] = (result.depth.numpy()[weak] > 0).astype(np.float32)
     return confidence
-
-
-def say(text: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {text}", flush=True)
 
 
 def load_set(name: str):
