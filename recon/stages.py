@@ -22,6 +22,7 @@ from .errors import ReconInputError
 from .io.frames import DatasetSource, open_source
 from .io.pose_matching import frame_names, match_pose_file
 from .io.source import FrameSource
+from .rolling_shutter import MIN_SHIFT_PX, angular_velocity
 from .sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -316,8 +317,6 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
 def unrolled_frames(seq: Sequence, readout_ms: float) -> tuple[Sequence, dict]:
     """The frames resampled to one instant each (recon.rolling_shutter), with the turn rate
     of their poses: (sequence, what report.json says of it)."""
-    from .rolling_shutter import angular_velocity
-
     omega = angular_velocity(seq.poses, seq.timestamps)
     unrolled, shifts = seq.unroll(omega, readout_ms / 1000.0)
     return unrolled, shutter_summary(omega, shifts, readout_ms)
@@ -326,8 +325,6 @@ def unrolled_frames(seq: Sequence, readout_ms: float) -> tuple[Sequence, dict]:
 def shutter_summary(omega: np.ndarray, shifts: np.ndarray, readout_ms: float) -> dict:
     """What report.json says of a rolling-shutter resampling: omega (N, 3) rad/s and the
     largest shift (N,) pixels of the frames it resampled (or left, under MIN_SHIFT_PX)."""
-    from .rolling_shutter import MIN_SHIFT_PX
-
     speed = np.degrees(np.linalg.norm(omega, axis=1))
     return {"readout_ms": float(readout_ms), "frames_resampled": int((shifts >= MIN_SHIFT_PX).sum()),
             "median_shift_px": float(np.median(shifts)), "max_shift_px": float(shifts.max()),

@@ -36,6 +36,7 @@ from .config import PipelineConfig
 from .io.frame_store import FrameStore
 from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .io.source import FrameSource
+from .rolling_shutter import angular_velocity
 from .stages import PosePlan, shutter_summary
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
@@ -104,8 +105,6 @@ def _turn_rate(config: PipelineConfig, pose_plan: PosePlan, video: TrackedVideo,
     resampled for a rolling shutter (given poses: they do not depend on the frames), else None."""
     if config.rolling_shutter <= 0 or pose_plan.estimated:
         return None
-    from .rolling_shutter import angular_velocity
-
     say(f"depth frames resampled for a {config.rolling_shutter:g} ms rolling shutter")
     return angular_velocity(video.poses, video.timestamps)
 
