@@ -3,10 +3,13 @@
 This module owns the search: the principal point is taken at the image centre and
 fx = fy = f; for each candidate f the first keyframes are bundle-adjusted (poses and
 depths, the same dense BA as tracking, on the flows already computed, which do not depend
-on f) and the final robust reprojection cost is the score. A coarse sweep over a log grid
-of field-of-view candidates brackets the minimum, then golden-section search on log f
-refines it. Rotation is what makes f observable: the flow of a rotating camera bends with
-x^2 / f, which no choice of depths can imitate.
+on f) and the final robust reprojection cost is the score. A lens measured beforehand from
+straight edges (``recon.poses.plumb_line``, which needs no focal length) is held in each
+of these BAs at its k1 for that f: an ignored barrel lens bends the flow as a longer focal
+length does, and the search would absorb it. A coarse sweep over a log grid of
+field-of-view candidates brackets the minimum, then golden-section search on log f refines
+it. Rotation is what makes f observable: the flow of a rotating camera bends with x^2 / f,
+which no choice of depths can imitate.
 
 :func:`estimate_focal` picks those keyframes (by the front end's motion filter) and scores
 f; :func:`search_focal` does the sweep and the golden section.
@@ -24,6 +27,7 @@ import torch
 from recon.poses import ba, motion_only
 from recon.poses import flow as fl
 from recon.poses.frontend_config import FrontendConfig, disp_from_depth, make_geometry
+from recon.poses.plumb_line import LensEstimate
 from recon.poses.result import PriorSource, TrackingLostError, pool_depth
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
@@ -90,10 +94,11 @@ def search_focal(
     return FocalSearch(focal=float(f_best), evaluations=evals, bracketed=bracketed)
 
 
-def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendConfig, progress: bool = False
-                   ) -> FocalSearch:
+def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendConfig,
+                   lens: LensEstimate | None = None) -> FocalSearch:
     """Focal length (pixels, fx = fy, principal point at the centre) minimising the BA cost
-    of the first keyframes. frames: the first frames of the video (H, W, 3) uint8."""
+    of the first keyframes. frames: the first frames of the video (H, W, 3) uint8; lens: the
+    lens measured from straight edges (None: a pinhole camera)."""
     height, width = frames[0].shape[:2]
     ba_geo = make_geometry((height, width), cfg.calib_stride)
 
@@ -128,15 +133,16 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
     score_opts = replace(opts, huber_auto=0.0, huber=1.0)
 
     def score(f: float) -> float:
+        k1 = lens.k1(f) if lens is not None else 0.0
         intr = ba_geo.ba_intrinsics((f, f, (width - 1) / 2.0, (height - 1) / 2.0))
         T = torch.eye(4, dtype=torch.float64).repeat(len(kfs), 1, 1)
         for k in range(1, len(kfs)):
             sel = (edges.ii == k - 1) & (edges.jj == k)
             e = edges.select(sel)
             Tk, _, _ = motion_only.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
-                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight)
+                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight, k1=k1)
             T[k] = Tk[0]
-        T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts)
-        return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts)
+        T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts, k1=k1)
+        return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts, k1=k1)
 
     return search_focal(score, candidate_focals(width, height), tol=cfg.calib_tol)

@@ -8,7 +8,8 @@ window BA, relocalisation; its ``droid_frontend``), ``backend`` (edges, global B
 calibration, metric scale; its ``droid_backend``) and ``filler`` (the non-keyframes; its
 ``trajectory_filler``). Their pieces: ``flow`` (DIS + confidence), ``graph`` (keyframes,
 edges, proximity), ``ba`` (Schur-complement LM, motion-only alignment), ``calib`` (focal
-search), ``lie``, ``projective``; the settings are ``frontend_config``'s.
+search), ``plumb_line`` (the lens from straight edges, before the search), ``lie``,
+``projective``; the settings are ``frontend_config``'s.
 
 Resolutions: frames come at working resolution (H, W); flow runs at 1/4 and BA at 1/8
 (the flow is pooled 2x2 with confidence weights). Internally poses are world-to-camera
@@ -24,13 +25,14 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler
+from recon.poses import ba, backend, filler, plumb_line
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.frontend_config import FrontendConfig, make_geometry
@@ -176,16 +178,26 @@ class StreamingFrontend:
         """Focal search on the buffered first frames, then track them."""
         frames, self._pending = self._pending, []
         height, width = frames[0].shape[:2]
-        search = estimate_focal(frames, self.prior, self.cfg)
+        lens = None
+        if self.cfg.plumb_line and self.cfg.calibrate_lens and self.cfg.lens_k1 == 0.0:
+            lens = plumb_line.estimate_lens(frames)
+            self.diagnostics["plumb_line"] = lens.to_dict()
+            lens = lens if lens.trusted else None
+        search = estimate_focal(frames, self.prior, self.cfg, lens)
         self.intrinsics = (search.focal, search.focal, (width - 1) / 2.0, (height - 1) / 2.0)
         self.diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
                                             "evaluations": search.evaluations}
-        # A warning, not a detail: on the Kinect clips measured the search landed 9-16 % long
-        # (docs/benchmarks.md, "What else limits the two misses"), and the mesh inherits it.
+        if lens is not None:
+            # Tracking starts from the lens the focal length was found with; the BA refines it.
+            self.cfg = replace(self.cfg, lens_k1=lens.k1(search.focal))
+            self.diagnostics["plumb_line"]["k1"] = self.cfg.lens_k1
+        # A warning, not a detail: on the Kinect videos measured the search landed up to 15 % long
+        # even through the lens from straight edges (docs/benchmarks.md, "The lens from straight
+        # edges before the focal search"), and the mesh inherits it.
         log.warning("focal length estimated from the video: %.1f px (horizontal field of view %.1f deg); on the "
-                    "real recordings measured this search came out 9-16 %% long (lens distortion and rolling "
-                    "shutter bend the flow as a longer focal length does), which changes the mesh's size and "
-                    "shape: pass --fov or --intrinsics if the camera is known", search.focal,
+                    "real recordings measured this search came out up to 15 %% long (a rolling shutter and "
+                    "lens distortion bend the flow as a longer focal length does), which changes the mesh's "
+                    "size and shape: pass --fov or --intrinsics if the camera is known", search.focal,
                     math.degrees(2 * math.atan(width / (2 * search.focal))))
         for i, frame in enumerate(frames):
             self._track(i, frame)

@@ -67,6 +67,10 @@ class FrontendConfig:
         ``calibrate_after`` keyframes exist (``calibrate_iters`` LM iterations; tracking
         goes on with it) and again in the final global BA. An ignored lens makes the BA
         trade rotation for translation.
+    plumb_line: when the focal length is searched and the lens is to be calibrated from k1 =
+        0, first measure the lens from the frames' straight edges (``plumb_line``, which
+        needs no focal length), search the focal length through that lens and start
+        tracking from it: a barrel lens ignored by the search makes the focal length long.
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -115,6 +119,7 @@ class FrontendConfig:
     calibrate_lens: bool = True
     calibrate_after: int = 20
     calibrate_iters: int = 4
+    plumb_line: bool = True
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25
