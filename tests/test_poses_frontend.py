@@ -62,10 +62,29 @@ def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room,
     assert res.diagnostics["focal_search"]["bracketed"]
     # The room's textured walls break its edges: no lens is claimed, the search is a pinhole one.
     assert res.diagnostics["plumb_line"]["trusted"] is False and "k1" not in res.diagnostics["plumb_line"]
+    # ... and too few of its edges are straight to agree on vanishing points: the flow's value stands.
+    assert res.diagnostics["vanishing_points"]["used"] is False and res.diagnostics["focal_source"] == "flow"
     said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
     assert len(said) == 1 and f"{res.intrinsics[0]:.1f} px" in said[0] and "--fov or --intrinsics" in said[0]
     length = path_length(seq.poses)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
+
+
+def test_a_trusted_vanishing_point_focal_replaces_the_search(pose_room, caplog, monkeypatch):
+    """Where the vanishing points give a trusted focal length near the search's, tracking
+    runs with it, and the warning says where it came from."""
+    from recon.poses import vanishing
+
+    seq, prior = pose_room
+    f_vp = 0.97 * seq.intrinsics[0]
+    monkeypatch.setattr(vanishing, "estimate_focal_vp",
+                        lambda frames, lens=None, cfg=None: vanishing.VanishingFocal(f_vp, 0.6, 24, 36, 40, True))
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal_source"] == "vanishing points"
+    assert res.diagnostics["vanishing_points"]["used"] is True
+    said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
+    assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0]
 
 
 def test_focal_search_through_the_measured_lens(pose_room):

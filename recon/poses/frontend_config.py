@@ -71,6 +71,13 @@ class FrontendConfig:
         0, first measure the lens from the frames' straight edges (``plumb_line``, which
         needs no focal length), search the focal length through that lens and start
         tracking from it: a barrel lens ignored by the search makes the focal length long.
+    vanishing_points, vanishing_window: when the focal length is searched, also measure it
+        from the vanishing points of the frames' straight edges (``vanishing``: a Manhattan
+        world's orthogonal directions), and take that value when it is trusted and lies
+        within ``vanishing_window`` times the flow-based search's. On the recordings' clips
+        the trusted values were within 5 % of the camera's, the search's within -10 to +17 %
+        (one TUM clip -39 %): the window spans the search's usual error, and outside it one
+        of the two has failed and nothing tells which, so the search's stands, with a warning.
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -120,6 +127,8 @@ class FrontendConfig:
     calibrate_after: int = 20
     calibrate_iters: int = 4
     plumb_line: bool = True
+    vanishing_points: bool = True
+    vanishing_window: tuple[float, float] = (0.8, 1.25)
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25
