@@ -87,6 +87,23 @@ def test_a_trusted_vanishing_point_focal_replaces_the_search(pose_room, caplog, 
     assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0]
 
 
+def test_vanishing_points_far_from_the_search_leave_it_standing(pose_room, caplog, monkeypatch):
+    """A trusted vanishing-point value outside the window: one of the two estimates has
+    failed, so the search's value stands and the warning gives both."""
+    from recon.poses import vanishing
+
+    seq, prior = pose_room
+    f_vp = 0.6 * seq.intrinsics[0]
+    monkeypatch.setattr(vanishing, "estimate_focal_vp",
+                        lambda frames, lens=None, cfg=None: vanishing.VanishingFocal(f_vp, 0.6, 24, 36, 40, True))
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    assert res.diagnostics["focal_source"] == "flow" and res.diagnostics["vanishing_points"]["used"] is False
+    assert res.intrinsics[0] == pytest.approx(res.diagnostics["focal_search"]["focal"])
+    said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
+    assert len(said) == 1 and f"vanishing points put it at {f_vp:.1f} px" in said[0]
+
+
 def test_focal_search_through_the_measured_lens(pose_room):
     """The room filmed through a barrel lens (k1 = -0.1) with the focal length withheld: as a
     pinhole search the focal length comes out long, as on the real recordings; searched
