@@ -70,37 +70,36 @@ def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room,
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
 
 
-def test_a_trusted_vanishing_point_focal_replaces_the_search(pose_room, caplog, monkeypatch):
-    """Where the vanishing points give a trusted focal length near the search's, tracking
-    runs with it, and the warning says where it came from."""
+def _with_vanishing_focal(pose_room, caplog, monkeypatch, share_of_true: float):
+    """The room tracked without intrinsics while the vanishing points report a trusted focal
+    length of `share_of_true` x the true one: (that focal length, the result, the focal
+    warnings)."""
     from recon.poses import vanishing
 
     seq, prior = pose_room
-    f_vp = 0.97 * seq.intrinsics[0]
+    f_vp = share_of_true * seq.intrinsics[0]
     monkeypatch.setattr(vanishing, "estimate_focal_vp",
                         lambda frames, lens=None, cfg=None: vanishing.VanishingFocal(f_vp, 0.6, 24, 36, 40, True))
     with caplog.at_level(logging.WARNING, logger="recon"):
         res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    return f_vp, res, [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
+
+
+def test_a_trusted_vanishing_point_focal_replaces_the_search(pose_room, caplog, monkeypatch):
+    """Where the vanishing points give a trusted focal length near the search's, tracking
+    runs with it, and the warning says where it came from."""
+    f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.97)
     assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal_source"] == "vanishing points"
     assert res.diagnostics["vanishing_points"]["used"] is True
-    said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
     assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0]
 
 
 def test_vanishing_points_far_from_the_search_leave_it_standing(pose_room, caplog, monkeypatch):
     """A trusted vanishing-point value outside the window: one of the two estimates has
     failed, so the search's value stands and the warning gives both."""
-    from recon.poses import vanishing
-
-    seq, prior = pose_room
-    f_vp = 0.6 * seq.intrinsics[0]
-    monkeypatch.setattr(vanishing, "estimate_focal_vp",
-                        lambda frames, lens=None, cfg=None: vanishing.VanishingFocal(f_vp, 0.6, 24, 36, 40, True))
-    with caplog.at_level(logging.WARNING, logger="recon"):
-        res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
+    f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.6)
     assert res.diagnostics["focal_source"] == "flow" and res.diagnostics["vanishing_points"]["used"] is False
     assert res.intrinsics[0] == pytest.approx(res.diagnostics["focal_search"]["focal"])
-    said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
     assert len(said) == 1 and f"vanishing points put it at {f_vp:.1f} px" in said[0]
 
 
