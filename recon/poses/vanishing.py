@@ -49,8 +49,8 @@ class VanishingConfig:
     min_length: shortest segment used, as a fraction of the frame's width (shorter segments
         point too loosely).
     max_rms: a segment's rms distance from its line (pixels) after undistortion.
-    tolerance: a segment supports a vanishing point when the direction from its midpoint
-        to the point is within this angle (degrees) of the segment's.
+    tolerance: a segment's vote for a vanishing point falls from 1, when the direction from
+        the segment's centre to the point is the segment's own, to 0 at this angle (degrees).
     triads: random segment triples tried per frame.
     min_drop: a frame's support curve must fall by this much (relative) on both sides of its
         peak for the frame to have a focal length (see :func:`curve_peak`).
