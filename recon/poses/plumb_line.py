@@ -92,6 +92,19 @@ class LensEstimate:
         return {"corner_shift": self.corner_shift, "regions": self.regions, "trusted": self.trusted}
 
 
+def sample_grays(frames, max_frames: int, max_width: int) -> tuple[list[np.ndarray], float]:
+    """Grey images (H', W') uint8 of at most `max_frames` frames (list of (H, W, 3) uint8 RGB),
+    evenly spaced, downscaled to at most `max_width` wide; and that scale (H' = scale H)."""
+    height, width = frames[0].shape[:2]
+    scale = min(1.0, max_width / width)
+    size = (round(width * scale), round(height * scale))
+    chosen = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).round().astype(int))
+    grays = [cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY) for i in chosen]
+    if scale < 1.0:
+        grays = [cv2.resize(g, size, interpolation=cv2.INTER_AREA) for g in grays]
+    return grays, scale
+
+
 def line_support(gray: np.ndarray, cfg: PlumbLineConfig) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel edge points (P, 2) (x, y) of a grey frame (H, W) uint8 and their region ids
     (P,) int64, 0..regions-1; only regions at least ``cfg.min_length`` x W long."""
@@ -174,15 +187,11 @@ def estimate_lens(frames, cfg: PlumbLineConfig | None = None) -> LensEstimate:
     cfg = cfg or PlumbLineConfig()
     height, width = frames[0].shape[:2]
     half_diagonal = 0.5 * float(np.hypot(width - 1, height - 1))
-    scale = min(1.0, cfg.max_width / width)
-    size = (round(width * scale), round(height * scale))
+    grays, _ = sample_grays(frames, cfg.max_frames, cfg.max_width)
+    size = grays[0].shape[::-1]
     centre = ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0)
-    chosen = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), cfg.max_frames)).round().astype(int))
     points, ids, count = [], [], 0
-    for i in chosen:
-        gray = cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY)
-        if scale < 1.0:
-            gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    for gray in grays:
         p, r = line_support(gray, cfg)
         points.append(p)
         ids.append(r + count)
@@ -208,4 +217,4 @@ def estimate_lens(frames, cfg: PlumbLineConfig | None = None) -> LensEstimate:
     return LensEstimate(float(vertex), half_diagonal, regions, True, scores.tolist())
 
 
-__all__ = ["LensEstimate", "PlumbLineConfig", "estimate_lens", "line_rms", "line_support"]
+__all__ = ["LensEstimate", "PlumbLineConfig", "estimate_lens", "line_rms", "line_support", "sample_grays"]

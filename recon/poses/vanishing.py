@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 import torch
 
@@ -201,18 +200,12 @@ def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None,
     uint8 RGB, one camera) from their vanishing points; `lens`: measured from straight
     edges (None or untrusted: a pinhole camera)."""
     cfg = cfg or VanishingConfig()
-    height, width = frames[0].shape[:2]
-    scale = min(1.0, cfg.max_width / width)
-    size = (round(width * scale), round(height * scale))
+    grays, scale = pl.sample_grays(frames, cfg.max_frames, cfg.max_width)
     corner_shift = lens.corner_shift if lens is not None and lens.trusted else 0.0
-    focals = candidate_focals(size[0], cfg)
+    focals = candidate_focals(grays[0].shape[1], cfg)
     rng = np.random.default_rng(cfg.seed)
-    chosen = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), cfg.max_frames)).round().astype(int))
     peaks = []
-    for i in chosen:
-        gray = cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY)
-        if scale < 1.0:
-            gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    for gray in grays:
         lines, centres, lengths = line_segments(gray, corner_shift, cfg)
         if len(lines) < 3:
             continue
@@ -226,12 +219,12 @@ def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None,
         if peak is not None:
             peaks.append(peak)
     if not peaks:
-        return VanishingFocal(0.0, 0.0, 0, 0, len(chosen), False)
+        return VanishingFocal(0.0, 0.0, 0, 0, len(grays), False)
     peaks = np.asarray(peaks)
     group = agreeing_group(peaks, cfg.agree)
-    share = float(group.sum()) / len(chosen)
+    share = float(group.sum()) / len(grays)
     trusted = share >= cfg.min_share and int(group.sum()) >= cfg.min_frames
-    return VanishingFocal(float(np.median(peaks[group])) / scale, share, int(group.sum()), len(peaks), len(chosen),
+    return VanishingFocal(float(np.median(peaks[group])) / scale, share, int(group.sum()), len(peaks), len(grays),
                           trusted)
 
 
