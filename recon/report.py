@@ -18,11 +18,29 @@ def _wh(shape) -> list[int]:
     return [int(shape[1]), int(shape[0])]
 
 
+def scale_vs_prior(log_scales) -> dict:
+    """How far MEDeA moved the depth's overall scale from the prior's, from its log-scale
+    grids (N, h, w): each frame's median cell, as a factor; the median, 10th and 90th
+    percentile over frames. Only translation between views measures that scale: under
+    near-pure rotation (TUM fr1/rpy, ground-truth poses: 0.72, where the sensor says 0.93)
+    the losses move it and nothing corrects them (docs/benchmarks.md, "Probes of stop
+    41")."""
+    # MEDeA returns them on the prior's device, which may be a GPU.
+    grids = np.asarray(log_scales.cpu() if hasattr(log_scales, "cpu") else log_scales, np.float64)
+    if len(grids) == 0:
+        return {}
+    per_frame = np.exp(np.median(grids.reshape(len(grids), -1), axis=1))
+    p10, median, p90 = np.percentile(per_frame, [10, 50, 90])
+    return {"median": float(median), "p10": float(p10), "p90": float(p90)}
+
+
 def medea_summary(result) -> dict:
-    """Per stage: epochs run, whether it stopped early, first and last epoch losses."""
+    """Per stage: epochs run, whether it stopped early, first and last epoch losses; the
+    overall scale MEDeA gave the depth against the prior's (:func:`scale_vs_prior`)."""
     if result is None:
         return {}
-    out = {"keyframes": int(len(result.keyframes)), "seconds": dict(result.seconds), "stages": {}}
+    out = {"keyframes": int(len(result.keyframes)), "seconds": dict(result.seconds),
+           "scale_vs_prior": scale_vs_prior(result.log_scales), "stages": {}}
     for name, history in result.history.items():
         losses = {term: [float(v) for v in values] for term, values in history.losses.items()}
         out["stages"][name] = {

@@ -8,6 +8,7 @@ import pytest
 from medea_core import MedeaConfig
 from recon.eval.depth import depth_metrics, multiview_inconsistency
 from recon.medea import adjust_sequence
+from recon.report import scale_vs_prior
 from recon.synthetic import render_sequence, simulate_prior
 
 
@@ -54,3 +55,26 @@ def test_propagation_alone_fixes_non_keyframes(scene):
     no_propagation = adjust_sequence(seq.rgb, prior, seq.poses, seq.intrinsics, config=quick, progress=False)
     unchanged = no_propagation.depth.numpy()[others]
     assert np.allclose(unchanged, prior[others])
+
+
+def test_report_gives_the_scale_medea_moved_the_prior_by(scene):
+    """report.json's medea.scale_vs_prior: with translation in the poses, MEDeA moves each
+    frame's scale to the truth's, so the reported factor matches truth / prior."""
+    seq, prior = scene
+    result = adjust_sequence(seq.rgb, prior, seq.poses, seq.intrinsics, config=MedeaConfig.fast(), progress=False)
+    reported = scale_vs_prior(result.log_scales)
+    valid = prior > 0
+    truth_over_prior = np.array([np.median(g[v] / p[v]) for g, p, v in zip(seq.depth, prior, valid)])
+    assert reported["median"] == pytest.approx(np.median(truth_over_prior), rel=0.05)
+    assert reported["p10"] < reported["median"] < reported["p90"]
+    # The simulated prior's frames differ in scale by ~20 %: the spread is reported too.
+    assert reported["p90"] / reported["p10"] > 1.2
+
+
+def test_scale_vs_prior_of_known_grids():
+    grids = np.log(np.array([0.5, 1.0, 2.0, 4.0, 8.0]))[:, None, None] * np.ones((5, 8, 10))
+    grids[:, 0, 0] = 5.0  # one outlying cell per frame does not move a frame's median
+    out = scale_vs_prior(grids)
+    assert out["median"] == pytest.approx(2.0)
+    assert out["p10"] == pytest.approx(np.percentile([0.5, 1, 2, 4, 8], 10))
+    assert scale_vs_prior(np.zeros((0, 8, 10))) == {}
