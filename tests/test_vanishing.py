@@ -14,17 +14,9 @@ from recon.poses.vanishing import (
     curve_peak,
     estimate_focal_vp,
 )
+from recon.synthetic.camera import camera_rotation
 
 WIDTH, HEIGHT = 640, 480
-
-
-def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """Camera-to-world rotation (3, 3) of a camera turned by these angles (degrees)."""
-    y, p, r = np.radians([yaw, pitch, roll])
-    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
-    rz = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])
-    return ry @ rx @ rz
 
 
 def _room_edges() -> list[tuple[np.ndarray, np.ndarray]]:
@@ -57,9 +49,10 @@ def _room_frames(focal: float, count: int, seed: int = 0, face_on: bool = False)
     frames = []
     for _ in range(count):
         if face_on:
-            rot = _rotation(90.0 * rng.integers(0, 4), 0.0, 0.0)
+            rot = camera_rotation(np.radians(90.0 * rng.integers(0, 4)), 0.0, 0.0)
         else:
-            rot = _rotation(rng.uniform(-180, 180), rng.uniform(-25, 25), rng.uniform(-8, 8))
+            yaw, pitch_up, roll = rng.uniform(-180, 180), rng.uniform(-25, 25), rng.uniform(-8, 8)
+            rot = camera_rotation(*np.radians([yaw, -pitch_up, roll]))
         position = rng.uniform([-1.0, -0.5, -1.0], [1.0, 0.5, 1.0])
         img = np.full((HEIGHT * 2, WIDTH * 2), 150, np.uint8)
         for a, b in edges:

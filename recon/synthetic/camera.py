@@ -20,8 +20,8 @@ def intrinsics_for(width: int, height: int) -> tuple[float, float, float, float]
     return (focal, focal, (width - 1) / 2.0, (height - 1) / 2.0)
 
 
-def _rotation(yaw: float, pitch_down: float, roll: float) -> np.ndarray:
-    """Camera-to-world rotation (3, 3): yaw about world y (down), then pitch, then roll."""
+def camera_rotation(yaw: float, pitch_down: float, roll: float) -> np.ndarray:
+    """Camera-to-world rotation (3, 3) from radians: yaw about world y (down), then pitch, then roll."""
     cy, sy = np.cos(yaw), np.sin(yaw)
     cp, sp = np.cos(pitch_down), np.sin(pitch_down)
     cr, sr = np.cos(roll), np.sin(roll)
@@ -67,6 +67,6 @@ def camera_path(num_frames: int, seed: int, speed: float = 1.0, times=None) -> n
     roll = wave(0.025, 61, 11) + 0.008 * np.sin(2 * np.pi * t / 21 + phase[0])
     poses = np.tile(np.eye(4), (num_frames, 1, 1))
     for i in range(num_frames):
-        poses[i, :3, :3] = _rotation(yaw[i], pitch[i], roll[i])
+        poses[i, :3, :3] = camera_rotation(yaw[i], pitch[i], roll[i])
     poses[:, :3, 3] = np.stack([x, y, z], axis=1)
     return poses
