@@ -25,7 +25,10 @@ def test_loop_pairs_find_where_the_path_comes_back(sfm_room):
     assert skf.sequential_gaps(3) == {1, 2, 3, 4}
     assert pairs and all(b - a > 4 for a, b in pairs)
     gaps = np.array([abs(order[a] - order[b]) for a, b in pairs])
-    assert np.median(gaps) <= 2 and gaps.max() <= 12, gaps  # random pairs: median ~10 frames apart
+    # Random pairs would sit ~10 frames apart. Which looser pairs come back besides the close
+    # ones varies with the CPU's SIFT and k-means arithmetic (up to 16 frames apart on one
+    # Intel Xeon, 12 on AMD EPYC), so the bound is on the bulk.
+    assert np.median(gaps) <= 2 and np.mean(gaps <= 6) >= 0.7, gaps
     for b in range(18, 30):  # the way back, beyond the sequential window of the turn
         assert any(abs(order[a] - order[b]) <= 2 for a, c in pairs if c == b), order[b]
 
