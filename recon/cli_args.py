@@ -231,6 +231,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-polish", action="store_true",
                    help="use given poses (dataset, pose file) as they are; by default they are polished against the "
                         "frames before MEDeA when refining (recon.poses.polish)")
+    g.add_argument("--no-medea-gate", action="store_true",
+                   help="run MEDeA even when the polish finds that the frames contradict the given poses (by default "
+                        "it is then skipped and the refinement starts from the prior's depth)")
 
     g = parser.add_argument_group("TSDF fusion")
     g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
@@ -342,6 +345,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
         refine=args.refine, mvs=mvs_config_from_args(args), polish=not args.no_polish,
+        medea_gate=not args.no_medea_gate,
         fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
         progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
     )

@@ -83,6 +83,9 @@ class PipelineConfig:
         dataset's depth). Metric models are used as they are.
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
+    medea_gate: skip MEDeA, and give the refinement the prior's depth, when the polish finds
+        that the frames contradict the given poses (recon.poses.polish.pose_disagreement):
+        MEDeA would bend the depth to fit them (TUM fr1/rpy: mesh F@5cm 0.009 against 0.128).
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
     polish: polish given poses against the frames before MEDeA when refining
@@ -123,6 +126,7 @@ class PipelineConfig:
     weights: Path | None = None
     features: bool = True
     adjust: bool = True
+    medea_gate: bool = True
     medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
     refine: str = "mvs"
     mvs: MvsConfig = field(default_factory=MvsConfig)

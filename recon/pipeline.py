@@ -24,7 +24,8 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
                given poses rarely have);
 ``undistort``  frames, prior and features resampled into the pinhole camera when the poses
                came with a lens term (:mod:`recon.lens`);
-``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``);
+``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``, and when the
+               polish finds that the frames contradict the given poses, ``medea_gate``);
 ``refine``     per-pixel multi-view stereo around MEDeA's depth, with a confidence per pixel
                (``refine="mvs"``, :mod:`recon.refine`; ``"none"`` keeps the paper's pipeline);
 ``fusion``     TSDF fusion of the final depth with colour (only the pixels the refinement
@@ -234,8 +235,13 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     else:
         timer.seconds["undistort"] = 0.0
 
-    medea_result = None
-    if config.adjust:
+    medea_result, medea_skipped = None, None
+    disagreement = pose_stage.info.get("polish", {}).get("disagreement")
+    if config.adjust and config.medea_gate and disagreement:
+        medea_skipped = f"the frames contradict the poses: {disagreement}"
+        log.warning("MEDeA skipped, %s; its consistency terms would bend the depth to fit them, so the refinement "
+                    "starts from the prior's depth (--no-medea-gate runs MEDeA anyway)", medea_skipped)
+    if config.adjust and medea_skipped is None:
         say("MEDeA depth adjustment")
         with timer.stage("medea"):
             depth, medea_result = adjust_with_medea(seq, config.medea, config.features, config.progress)
@@ -281,7 +287,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
 
     report = build_report(
         config=config, source=source, seq=seq, intrinsics_from=intrinsics_from, pose_stage=pose_stage,
-        undistorted=undistorted, prior=prior, medea_result=medea_result, refined=refined,
+        undistorted=undistorted, prior=prior, medea_result=medea_result, medea_skipped=medea_skipped, refined=refined,
         fusion=fusion_summary(fused, fusion_options.min_confidence if refined is not None else None),
         seconds=timer.seconds, files={k: str(Path(v).relative_to(out.path)) for k, v in files.items()},
     )

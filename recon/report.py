@@ -80,10 +80,10 @@ def versions() -> dict:
 
 
 def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undistorted: bool, prior, medea_result,
-                 refined, fusion: dict, seconds: dict, files: dict) -> dict:
+                 refined, fusion: dict, seconds: dict, files: dict, medea_skipped: str | None = None) -> dict:
     """report.json's content. seq: the sequence as fused (frames left out are not in it);
     prior: the PriorOutput; seconds: {stage: wall seconds}; files: {label: path relative
-    to the output folder}."""
+    to the output folder}; medea_skipped: why MEDeA was skipped although enabled."""
     features = seq.features
     return {
         "input": _input_section(config, source),
@@ -94,7 +94,7 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
                   "frames_undistorted": undistorted},
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,
                   "features": None if features is None else list(features.shape[1:])},
-        "medea": medea_summary(medea_result),
+        "medea": {"skipped": medea_skipped} if medea_skipped else medea_summary(medea_result),
         "refine": {"method": config.refine, **refine_summary(refined)},
         "fusion": fusion,
         "memory": {"peak_rss_mb": peak_memory_mb()},

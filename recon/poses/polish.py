@@ -56,6 +56,12 @@ class PolishConfig:
         rendered sequence, a good SfM model) are left exactly as given: polishing is
         limited by the flow's own noise.
     calibrate_lens: estimate the lens' radial term k1 as well.
+    min_fit: the share of the flow (BA inlier fraction) the poses that come out of the
+        polish (polished, or kept as given) must explain for multi-view depth to trust
+        them (``pose_disagreement``). Under TUM fr1/rpy's motion capture, kept as given,
+        0.65-0.71 of the flow fits and MEDeA's mesh scores F@5cm 0.009-0.049 where the
+        refinement on the prior scores 0.097-0.136; polished TUM 0.80, polished 7-Scenes
+        0.90-0.95 (docs/benchmarks.md, "Given poses that disagree with the frames").
     flow: the DIS flow settings.
     """
 
@@ -68,6 +74,7 @@ class PolishConfig:
     depth_iters: int = 3
     min_gain: float = 1.5
     calibrate_lens: bool = True
+    min_fit: float = 0.75
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
 
     def to_dict(self) -> dict:
@@ -156,15 +163,34 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     info = {
         "polished": bool(accepted), "cost_gain": float(gain), "pairs": len(pairs), "edges": len(edges),
         "ba_rmse_px": report.rmse, "ba_inlier_fraction": report.inlier_fraction,
+        "given_rmse_px": held_report.rmse, "given_inlier_fraction": held_report.inlier_fraction,
         "ba_cost": [report.costs[0], report.costs[-1]], "lens_k1": report.k1 if accepted else 0.0,
         "median_move_m": float(np.median(moved)), "max_move_m": float(moved.max()),
         "median_turn_deg": float(np.degrees(np.median(turned.norm(dim=-1).numpy()))),
         "seconds": time.perf_counter() - t0, "config": cfg.to_dict(),
     }
     if not accepted:
-        info["reason"] = (f"the given poses already explain the flow: polishing them lowers the BA cost only "
-                          f"{gain:.2f}x (< {cfg.min_gain}x); kept as given")
+        fits = held_report.inlier_fraction >= cfg.min_fit
+        info["reason"] = (f"{'the given poses already explain the flow: ' if fits else ''}polishing them lowers the "
+                          f"BA cost only {gain:.2f}x (< {cfg.min_gain}x); kept as given")
     return PolishResult(out, float(report.k1) if cfg.calibrate_lens and accepted else 0.0, info)
 
 
-__all__ = ["PolishConfig", "PolishResult", "polish_pairs", "polish_poses", "pose_tie"]
+def pose_disagreement(info: dict, min_fit: float) -> str | None:
+    """Why multi-view depth should not trust the poses a polish returned, or None.
+
+    info: PolishResult.info. The poses are those polished, or the given ones when the
+    polish kept them; if under them less than ``min_fit`` of the flow fits (BA inlier
+    fraction), the frames contradict the poses (a camera whose rows are read while it
+    turns, poses timed or calibrated for another camera), and MEDeA's consistency terms
+    would bend the depth to fit them.
+    """
+    polished = bool(info.get("polished"))
+    fit = info.get("ba_inlier_fraction" if polished else "given_inlier_fraction")
+    if fit is None or not np.isfinite(fit) or fit >= min_fit:
+        return None
+    poses = "the polished poses" if polished else "the given poses, which polishing did not improve"
+    return f"only {100 * fit:.0f}% of the flow between the frames fits {poses} (at least {100 * min_fit:.0f}% needed)"
+
+
+__all__ = ["PolishConfig", "PolishResult", "polish_pairs", "polish_poses", "pose_disagreement", "pose_tie"]
