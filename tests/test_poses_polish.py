@@ -102,7 +102,7 @@ def test_fit_of_the_poses_in_use_decides():
 @pytest.mark.parametrize("name, stride, flagged", [("tum-fr1-rpy", 1, True), ("7scenes-redkitchen", 4, False)])
 def test_motion_capture_poses_that_the_frames_contradict_are_flagged(name, stride, flagged):
     # TUM fr1/rpy's motion-capture poses do not fit its fast-turning colour frames, and no
-    # polish fixes them (MEDeA's mesh on them: F@5cm 0.009 against the prior's 0.128);
+    # polish fixes them (frames 0-49: MEDeA's mesh F@5cm 0.009, the refinement on the prior 0.128);
     # 7-Scenes' KinectFusion poses polish to fit. The sensor depth stands in for a prior.
     from recon.io.datasets import open_dataset
 
