@@ -333,12 +333,11 @@ def shutter_summary(omega: np.ndarray, shifts: np.ndarray, readout_ms: float) ->
 
 def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:
     """The given poses polished against the frames (recon.poses.polish, ``config`` its
-    PolishConfig; its bundle adjustment on ``device``), the lens with them; info["polish"]
-    ["disagreement"] says why multi-view depth should not trust them (None: it may)."""
-    from .poses.polish import polish_poses, pose_disagreement
+    PolishConfig; its bundle adjustment on ``device``), the lens with them."""
+    from .poses.polish import polish_poses
 
     result = polish_poses(seq.rgb, seq.prior_depth, stage.poses, seq.intrinsics, config, progress, device)
-    info = {**stage.info, "polish": {**result.info, "disagreement": pose_disagreement(result.info, config.min_fit)}}
+    info = {**stage.info, "polish": result.info}
     source = f"{stage.source}, polished against the frames" if result.info.get("polished") else stage.source
     return replace(stage, poses=result.poses, source=source, info=info, lens_k1=result.lens_k1)
 

@@ -84,7 +84,8 @@ class PolishConfig:
 @dataclass
 class PolishResult:
     """poses: (N, 4, 4) polished camera-to-world; lens_k1: the radial term they belong to
-    (0 when not estimated); info: what the BA did and how far the poses moved."""
+    (0 when not estimated); info: what the BA did and how far the poses moved, and
+    info["disagreement"]: why multi-view depth should not trust the poses (None: it may)."""
 
     poses: np.ndarray
     lens_k1: float
@@ -126,7 +127,8 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     poses = np.asarray(poses, np.float64)
     good = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
     if len(good) < 2:
-        return PolishResult(poses.copy(), 0.0, {"polished": False, "reason": "fewer than 2 valid poses"})
+        return PolishResult(poses.copy(), 0.0, {"polished": False, "reason": "fewer than 2 valid poses",
+                                                   "disagreement": None})
     geo = make_geometry(frames.shape[1:3], cfg.ba_stride)
     intr = geo.ba_intrinsics(intrinsics)
     pooled = np.stack([pool_depth(np.asarray(prior_depth[i], np.float32), geo.ba_shape) for i in good])
@@ -169,8 +171,9 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
         "median_turn_deg": float(np.degrees(np.median(turned.norm(dim=-1).numpy()))),
         "seconds": time.perf_counter() - t0, "config": cfg.to_dict(),
     }
+    info["disagreement"] = pose_disagreement(info, cfg.min_fit)
     if not accepted:
-        fits = held_report.inlier_fraction >= cfg.min_fit
+        fits = info["disagreement"] is None
         info["reason"] = (f"{'the given poses already explain the flow: ' if fits else ''}polishing them lowers the "
                           f"BA cost only {gain:.2f}x (< {cfg.min_gain}x); kept as given")
     return PolishResult(out, float(report.k1) if cfg.calibrate_lens and accepted else 0.0, info)
