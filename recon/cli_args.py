@@ -232,8 +232,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                    help="use given poses (dataset, pose file) as they are; by default they are polished against the "
                         "frames before MEDeA when refining (recon.poses.polish)")
     g.add_argument("--no-medea-gate", action="store_true",
-                   help="run MEDeA even when the polish finds that the frames contradict the given poses (by default "
-                        "it is then skipped and the refinement starts from the prior's depth)")
+                   help="run MEDeA even when the polish finds that the frames contradict the given poses (streamed "
+                        "runs polish each window only to judge them); by default MEDeA is then skipped and the "
+                        "refinement starts from the prior's depth")
 
     g = parser.add_argument_group("TSDF fusion")
     g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")

@@ -120,9 +120,9 @@ def peak_memory_mb() -> float | None:
 def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
                   store_bytes: int) -> dict:
     """report.json of a streamed run (recon.stream): the one-shot report's sections, with
-    the tracked frames, the depth frames, per window MEDeA's epochs and seconds, the scale
-    anchor and the refinement's share, and the bytes the frame store parked on disk
-    (store_bytes)."""
+    the tracked frames, the depth frames, per window MEDeA's epochs and seconds (or why its
+    gate skipped it, with the given poses' fit), the scale anchor and the refinement's
+    share, and the bytes the frame store parked on disk (store_bytes)."""
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     depth_idx = video.indices[video.depth_frame]
     anchors = [w["anchor"] for w in windows[1:]]
@@ -138,6 +138,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
         "prior": {"name": config.prior, "kind": "metric", "info": video.prior_info, "features": video.feature_shape},
         "windows": {"count": len(windows), "size": config.window, "overlap": config.window_overlap,
                     "anchor_factors": {"min": min(anchors, default=1.0), "max": max(anchors, default=1.0)},
+                    "medea_skipped": sum(1 for w in windows if w.get("medea_skipped")),
                     "each": windows},
         "refine": {"method": config.refine},
         "fusion": fusion_summary(fusion, min_confidence),

@@ -3,9 +3,10 @@ is finished.
 
 The depth frames, in overlapping windows (:func:`recon.stream_plan.plan_windows`), each
 window a :class:`~recon.sequence.Sequence` read back from the frame store: MEDeA (the
-paper's pairs inside the window), anchored to the scale of the surface already fused where
-the window's cameras see it (else to the frames the previous window finished:
-:func:`_anchor`), then the refinement of its new frames (the shared ones are source views
+paper's pairs inside the window; with given poses, skipped in a window whose frames
+contradict them, as in a one-shot run: :func:`_pose_check`), anchored to the scale of the
+surface already fused where the window's cameras see it (else to the frames the previous
+window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones are source views
 only, with the sweep the window before left them). Each finished frame's depth is written
 to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`) and logged,
 and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
@@ -65,6 +66,10 @@ class _WindowRecord:
     # Input frame indices of the window's first and last frame.
     first_frame: int = 0
     last_frame: int = 0
+    # Given poses: the share of the flow that fits them in the window, polished if the polish
+    # took (as MEDeA's gate judges them), and why MEDeA was skipped.
+    pose_fit: float | None = None
+    medea_skipped: str | None = None
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
@@ -78,6 +83,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
 
     from .export import write_depth_frame
     from .fusion import FusionOptions
+    from .poses.polish import fit_in_use
     from .refine import default_min_confidence, fusion_confidence
     from .stages import adjust_with_medea, refine_depth
 
@@ -97,8 +103,10 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         with clock.stage("store"):
             seq, window_shifts = _window_sequence(video, store, pos, undistort, omega, config.rolling_shutter)
         shifts.update(zip(pos.tolist(), window_shifts))
+        with clock.stage("poses"):
+            check = _pose_check(config, plan, seq)
         with clock.stage("medea"):
-            if config.adjust:
+            if config.adjust and not (check or {}).get("disagreement"):
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
             else:
                 adjusted, medea = seq.prior_depth, None
@@ -142,9 +150,12 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),
-                                     int(seq.indices[0]), int(seq.indices[-1])))
+                                     int(seq.indices[0]), int(seq.indices[-1]),
+                                     None if check is None else fit_in_use(check),
+                                     None if check is None else check.get("disagreement")))
     bar.close()
     warn_scale_disagreement(records, config)
+    warn_medea_skipped(records)
     return (volume, options), records, shifts
 
 
@@ -165,6 +176,30 @@ def warn_scale_disagreement(records: list[_WindowRecord], config: PipelineConfig
                 "windows holds for all. Windows that span little camera motion hold their scale poorly%s",
                 len(off), len(records), 100 * (ANCHOR_DISAGREEMENT - 1), worst.first_frame, worst.last_frame,
                 worst.anchor, (": " + " or ".join(hints)) if hints else "")
+
+
+def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict | None:
+    """MEDeA's gate for a window of given poses, as a one-shot run decides it: the polish's
+    info on the window (recon.poses.polish; a streamed run still uses the poses as given),
+    or None where a one-shot run would not polish or gate either (estimated poses,
+    ``polish=False``, ``refine="none"``: the paper's pipeline) or MEDeA is off or ungated."""
+    if plan.estimated or not (config.polish and config.adjust and config.medea_gate) or config.refine == "none":
+        return None
+    from .poses.polish import polish_poses
+
+    return polish_poses(seq.rgb, seq.prior_depth, seq.poses, seq.intrinsics, config.polish_config, progress=False,
+                        device=config.device).info
+
+
+def warn_medea_skipped(records: list[_WindowRecord]) -> None:
+    """One warning for the windows in which the gate skipped MEDeA."""
+    skipped = [r for r in records if r.medea_skipped]
+    if not skipped:
+        return
+    spans = ", ".join(f"{r.first_frame}-{r.last_frame}" for r in skipped[:5]) + (", ..." if len(skipped) > 5 else "")
+    log.warning("MEDeA skipped in %d of %d windows (frames %s): %s; its consistency terms would bend the depth to "
+                "fit them, so the refinement starts from the prior's depth there (--no-medea-gate runs MEDeA anyway)",
+                len(skipped), len(records), spans, skipped[0].medea_skipped)
 
 
 def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:
@@ -244,4 +279,5 @@ def _epochs(medea) -> dict:
     return {name: int(history.epochs) for name, history in medea.history.items()}
 
 
-__all__ = ["SURFACE_ANCHOR_MIN_COVER", "SURFACE_ANCHOR_STEP", "SURFACE_ANCHOR_VIEWS", "depth_windows"]
+__all__ = ["SURFACE_ANCHOR_MIN_COVER", "SURFACE_ANCHOR_STEP", "SURFACE_ANCHOR_VIEWS", "depth_windows",
+           "warn_medea_skipped"]

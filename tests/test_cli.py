@@ -483,9 +483,11 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
 
 
-def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_path, capsys, monkeypatch):
-    """The polish's verdict (recon.poses.polish.pose_disagreement, tested on TUM and 7-Scenes
-    in test_poses_polish) skips MEDeA with a warning; --no-medea-gate runs it anyway."""
+@pytest.mark.parametrize("mode", ["polish", "stream"])
+def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_path, capsys, monkeypatch, mode):
+    """The polish's verdict on the given poses (recon.poses.polish.pose_disagreement, tested on
+    TUM and 7-Scenes in test_poses_polish) skips MEDeA with a warning, in a one-shot run and in
+    each window of a streamed run (which polishes only to judge); --no-medea-gate runs it anyway."""
     import recon.poses.polish as polish
 
     monkeypatch.setattr(polish, "pose_disagreement", lambda info, min_fit: "only 60% of the flow fits")
@@ -494,18 +496,31 @@ def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_p
     common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
               "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0", "--max-frames", "12",
               "--quiet", "--rerun", "off", "--no-npy", "--no-glb"]
+    common += ["--stream", "off" if mode == "polish" else "on"]
     gated = tmp_path / "gated"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(gated), *common]) == 0
     report = json.loads((gated / "report.json").read_text())
-    assert report["medea"] == {"skipped": "the frames contradict the poses: only 60% of the flow fits"}
-    assert report["poses"]["polish"]["disagreement"] == "only 60% of the flow fits"
-    assert report["seconds"]["medea"] == 0.0 and report["refine"]["reconstructed"] > 0.3
-    assert "MEDeA skipped, the frames contradict the poses" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    if mode == "stream":
+        windows = report["windows"]
+        assert windows["medea_skipped"] == windows["count"] >= 1
+        for window in windows["each"]:
+            assert window["medea_skipped"] == "only 60% of the flow fits" and not window["medea_epochs"]
+            assert 0 < window["pose_fit"] <= 1
+        assert f"MEDeA skipped in {windows['count']} of {windows['count']} windows" in err
+    else:
+        assert report["medea"] == {"skipped": "the frames contradict the poses: only 60% of the flow fits"}
+        assert report["poses"]["polish"]["disagreement"] == "only 60% of the flow fits"
+        assert report["seconds"]["medea"] == 0.0 and report["refine"]["reconstructed"] > 0.3
+        assert "MEDeA skipped, the frames contradict the poses" in err
     forced = tmp_path / "forced"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(forced), *common, "--no-medea-gate"]) == 0
     report = json.loads((forced / "report.json").read_text())
-    assert "skipped" not in report["medea"] and report["medea"]["stages"]["stage1"]["epochs"] > 0
     assert report["options"]["medea_gate"] is False
+    if mode == "stream":  # not even checked
+        assert all(w["medea_epochs"] and w["pose_fit"] is None for w in report["windows"]["each"])
+    else:
+        assert "skipped" not in report["medea"] and report["medea"]["stages"]["stage1"]["epochs"] > 0
 
 
 def test_rolling_shutter_resamples_the_frames_and_estimates_the_poses_again(demo, tmp_path, capsys):

@@ -179,6 +179,12 @@ def polish_poses(frames: np.ndarray, prior_depth: np.ndarray, poses: np.ndarray,
     return PolishResult(out, float(report.k1) if cfg.calibrate_lens and accepted else 0.0, info)
 
 
+def fit_in_use(info: dict) -> float | None:
+    """The share of the flow (BA inlier fraction) that fits the poses a polish returned
+    (``PolishResult.info``): the polished ones, or the given ones when it kept them."""
+    return info.get("ba_inlier_fraction" if info.get("polished") else "given_inlier_fraction")
+
+
 def pose_disagreement(info: dict, min_fit: float) -> str | None:
     """Why multi-view depth should not trust the poses a polish returned, or None.
 
@@ -189,11 +195,12 @@ def pose_disagreement(info: dict, min_fit: float) -> str | None:
     would bend the depth to fit them.
     """
     polished = bool(info.get("polished"))
-    fit = info.get("ba_inlier_fraction" if polished else "given_inlier_fraction")
+    fit = fit_in_use(info)
     if fit is None or not np.isfinite(fit) or fit >= min_fit:
         return None
     poses = "the polished poses" if polished else "the given poses, which polishing did not improve"
     return f"only {100 * fit:.0f}% of the flow between the frames fits {poses} (at least {100 * min_fit:.0f}% needed)"
 
 
-__all__ = ["PolishConfig", "PolishResult", "polish_pairs", "polish_poses", "pose_disagreement", "pose_tie"]
+__all__ = ["PolishConfig", "PolishResult", "fit_in_use", "polish_pairs", "polish_poses", "pose_disagreement",
+           "pose_tie"]
