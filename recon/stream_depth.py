@@ -3,7 +3,7 @@ is finished.
 
 The depth frames, in overlapping windows (:func:`recon.stream_plan.plan_windows`), each
 window a :class:`~recon.sequence.Sequence` read back from the frame store: MEDeA (the
-paper's pairs inside the window; with given poses, skipped in a window whose frames
+paper's pairs inside the window; with given poses, skipped when the first window's frames
 contradict them, as in a one-shot run: :func:`_pose_check`), anchored to the scale of the
 surface already fused where the window's cameras see it (else to the frames the previous
 window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones are source views
@@ -66,8 +66,8 @@ class _WindowRecord:
     # Input frame indices of the window's first and last frame.
     first_frame: int = 0
     last_frame: int = 0
-    # Given poses: the share of the flow that fits them in the window, polished if the polish
-    # took (as MEDeA's gate judges them), and why MEDeA was skipped.
+    # Given poses: the share of the flow that fits them, polished if the polish took (as
+    # MEDeA's gate judges them; measured in the first window only), and why MEDeA was skipped.
     pose_fit: float | None = None
     medea_skipped: str | None = None
 
@@ -96,17 +96,20 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
-    volume, records, finished, swept, fused, shifts = None, [], {}, {}, 0, {}
+    volume, records, finished, swept, fused, shifts, verdict = None, [], {}, {}, 0, {}, None
     bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
     for window in windows:
         pos = positions[window.start:window.stop]
         with clock.stage("store"):
             seq, window_shifts = _window_sequence(video, store, pos, undistort, omega, config.rolling_shutter)
         shifts.update(zip(pos.tolist(), window_shifts))
-        with clock.stage("poses"):
-            check = _pose_check(config, plan, seq)
+        check = None
+        if not records:  # one verdict per run, as a one-shot run's single polish gives
+            with clock.stage("poses"):
+                check = verdict = _pose_check(config, plan, seq)
+        skipped = (verdict or {}).get("disagreement")
         with clock.stage("medea"):
-            if config.adjust and not (check or {}).get("disagreement"):
+            if config.adjust and not skipped:
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
             else:
                 adjusted, medea = seq.prior_depth, None
@@ -151,8 +154,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),
                                      int(seq.indices[0]), int(seq.indices[-1]),
-                                     None if check is None else fit_in_use(check),
-                                     None if check is None else check.get("disagreement")))
+                                     None if check is None else fit_in_use(check), skipped))
     bar.close()
     warn_scale_disagreement(records, config)
     warn_medea_skipped(records)
@@ -179,10 +181,13 @@ def warn_scale_disagreement(records: list[_WindowRecord], config: PipelineConfig
 
 
 def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict | None:
-    """MEDeA's gate for a window of given poses, as a one-shot run decides it: the polish's
-    info on the window (recon.poses.polish; a streamed run still uses the poses as given),
-    or None where a one-shot run would not polish or gate either (estimated poses,
-    ``polish=False``, ``refine="none"``: the paper's pipeline) or MEDeA is off or ungated."""
+    """MEDeA's gate for given poses, as a one-shot run decides it: the polish's info on the
+    first window (recon.poses.polish; a streamed run still uses the poses as given), or None
+    where a one-shot run would not polish or gate either (estimated poses, ``polish=False``,
+    ``refine="none"``: the paper's pipeline) or MEDeA is off or ungated. One window, not
+    each: the verdict is the pose source's, and checking every window cost 0.15-0.26 s per
+    depth frame (13-56 % of a 7-Scenes run) where the fits of a recording's windows stayed
+    within 0.06 of each other (docs/benchmarks.md, "The gate in streamed runs")."""
     if plan.estimated or not (config.polish and config.adjust and config.medea_gate) or config.refine == "none":
         return None
     from .poses.polish import polish_poses
@@ -192,14 +197,13 @@ def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict |
 
 
 def warn_medea_skipped(records: list[_WindowRecord]) -> None:
-    """One warning for the windows in which the gate skipped MEDeA."""
-    skipped = [r for r in records if r.medea_skipped]
-    if not skipped:
+    """One warning when the gate skipped MEDeA (in every window: the verdict is the first's)."""
+    if not records or not records[0].medea_skipped:
         return
-    spans = ", ".join(f"{r.first_frame}-{r.last_frame}" for r in skipped[:5]) + (", ..." if len(skipped) > 5 else "")
-    log.warning("MEDeA skipped in %d of %d windows (frames %s): %s; its consistency terms would bend the depth to "
-                "fit them, so the refinement starts from the prior's depth there (--no-medea-gate runs MEDeA anyway)",
-                len(skipped), len(records), spans, skipped[0].medea_skipped)
+    first = records[0]
+    log.warning("MEDeA skipped in every window (%d), %s (judged on frames %d-%d); its consistency terms would bend the "
+                "depth to fit them, so the refinement starts from the prior's depth (--no-medea-gate runs MEDeA "
+                "anyway)", len(records), first.medea_skipped, first.first_frame, first.last_frame)
 
 
 def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:

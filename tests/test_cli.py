@@ -487,7 +487,8 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
 def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_path, capsys, monkeypatch, mode):
     """The polish's verdict on the given poses (recon.poses.polish.pose_disagreement, tested on
     TUM and 7-Scenes in test_poses_polish) skips MEDeA with a warning, in a one-shot run and in
-    each window of a streamed run (which polishes only to judge); --no-medea-gate runs it anyway."""
+    a streamed run (which polishes its first window only to judge); --no-medea-gate runs it
+    anyway."""
     import recon.poses.polish as polish
 
     monkeypatch.setattr(polish, "pose_disagreement", lambda info, min_fit: "only 60% of the flow fits")
@@ -496,18 +497,20 @@ def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_p
     common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
               "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0", "--max-frames", "12",
               "--quiet", "--rerun", "off", "--no-npy", "--no-glb"]
-    common += ["--stream", "off" if mode == "polish" else "on"]
+    common += ["--stream", "off"] if mode == "polish" else ["--stream", "on", "--depth-frames", "all",
+                                                                     "--window", "6", "--window-overlap", "2"]
     gated = tmp_path / "gated"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(gated), *common]) == 0
     report = json.loads((gated / "report.json").read_text())
     err = capsys.readouterr().err
     if mode == "stream":
         windows = report["windows"]
-        assert windows["medea_skipped"] == windows["count"] >= 1
+        assert windows["medea_skipped"] == windows["count"] >= 2
         for window in windows["each"]:
             assert window["medea_skipped"] == "only 60% of the flow fits" and not window["medea_epochs"]
-            assert 0 < window["pose_fit"] <= 1
-        assert f"MEDeA skipped in {windows['count']} of {windows['count']} windows" in err
+        fits = [window["pose_fit"] for window in windows["each"]]
+        assert 0 < fits[0] <= 1 and set(fits[1:]) == {None}  # judged once, on the first window
+        assert f"MEDeA skipped in every window ({windows['count']}), only 60% of the flow fits" in err
     else:
         assert report["medea"] == {"skipped": "the frames contradict the poses: only 60% of the flow fits"}
         assert report["poses"]["polish"]["disagreement"] == "only 60% of the flow fits"
