@@ -233,7 +233,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "frames before MEDeA when refining (recon.poses.polish)")
     g.add_argument("--no-medea-gate", action="store_true",
                    help="run MEDeA even when the polish finds that the frames contradict the given poses (streamed "
-                        "runs polish each window only to judge them); by default MEDeA is then skipped and the "
+                        "runs polish their first window only to judge them); by default MEDeA is then skipped and the "
                         "refinement starts from the prior's depth")
 
     g = parser.add_argument_group("TSDF fusion")

@@ -86,7 +86,7 @@ class PipelineConfig:
     medea_gate: skip MEDeA, and give the refinement the prior's depth, when the polish finds
         that the frames contradict the given poses (recon.poses.polish.pose_disagreement):
         MEDeA would bend the depth to fit them (TUM fr1/rpy: mesh F@5cm 0.009 against 0.128).
-        A streamed run polishes each window to judge it, and uses the poses as given.
+        A streamed run polishes its first window only to judge, and uses the poses as given.
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
     polish: polish given poses against the frames before MEDeA when refining

@@ -91,7 +91,7 @@ class _TrackLoop:
         self.poser = _Poser(config, source, plan, self.intrinsics, store)
         if not plan.estimated and config.refine != "none" and config.polish:
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
-                        "once); MEDeA and the refinement use the poses as given (each window is polished only to "
+                        "once); MEDeA and the refinement use the poses as given (the first window is polished only to "
                         "judge whether MEDeA may trust them)")
         self.select = MotionSelector(config.depth_motion, config.depth_rotation,
                                      parse_depth_frames(config.depth_frames))
