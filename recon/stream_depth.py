@@ -6,10 +6,10 @@ window a :class:`~recon.sequence.Sequence` read back from the frame store: MEDeA
 paper's pairs inside the window; with given poses, skipped when the first window's frames
 contradict them, as in a one-shot run: :func:`_pose_check`), anchored to the scale of the
 surface already fused where the window's cameras see it (else to the frames the previous
-window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones are source views
-only, with the sweep the window before left them). Each finished frame's depth is written
-to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`) and logged,
-and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
+window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones
+are source views only, with the sweep the window before left them). Each finished frame's
+depth is written to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`)
+and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
 """
 
 from __future__ import annotations
@@ -186,7 +186,7 @@ def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict |
     where a one-shot run would not polish or gate either (estimated poses, ``polish=False``,
     ``refine="none"``: the paper's pipeline) or MEDeA is off or ungated. One window, not
     each: the verdict is the pose source's, and checking every window cost 0.15-0.26 s per
-    depth frame (13-56 % of a 7-Scenes run) where the fits of a recording's windows stayed
+    depth frame (13-56 % of a streamed 7-Scenes run's time) where the fits of a recording's windows stayed
     within 0.06 of each other (docs/benchmarks.md, "The gate in streamed runs")."""
     if plan.estimated or not (config.polish and config.adjust and config.medea_gate) or config.refine == "none":
         return None

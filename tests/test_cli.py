@@ -497,8 +497,10 @@ def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_p
     common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
               "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0", "--max-frames", "12",
               "--quiet", "--rerun", "off", "--no-npy", "--no-glb"]
-    common += ["--stream", "off"] if mode == "polish" else ["--stream", "on", "--depth-frames", "all",
-                                                                     "--window", "6", "--window-overlap", "2"]
+    if mode == "polish":
+        common += ["--stream", "off"]
+    else:  # two windows at least, to see that the first one's verdict holds for the next
+        common += ["--stream", "on", "--depth-frames", "all", "--window", "6", "--window-overlap", "2"]
     gated = tmp_path / "gated"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(gated), *common]) == 0
     report = json.loads((gated / "report.json").read_text())
