@@ -60,6 +60,7 @@ from .refine import default_min_confidence, fusion_confidence
 from .report import build_report, fusion_summary
 from .sequence import Sequence
 from .stages import (
+    MEDEA_SKIPPED_BECAUSE,
     adjust_with_medea,
     camera_poses,
     decode,
@@ -221,7 +222,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         seq = seq.with_(intrinsics=tuple(float(v) for v in seq.intrinsics))
         if config.rolling_shutter > 0:
             seq, pose_stage, tracking = _unroll(config, pose_plan, source, seq, pose_stage, tracking, say)
-        if not pose_plan.estimated and config.refine != "none" and config.polish:
+        if pose_plan.polishes(config):
             say("polishing the given poses against the frames")
             pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress, config.device)
             seq = seq.with_(poses=pose_stage.poses)
@@ -239,8 +240,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     disagreement = pose_stage.info.get("polish", {}).get("disagreement")
     if config.adjust and config.medea_gate and disagreement:
         medea_skipped = f"the frames contradict the poses: {disagreement}"
-        log.warning("MEDeA skipped, %s; its consistency terms would bend the depth to fit them, so the refinement "
-                    "starts from the prior's depth (--no-medea-gate runs MEDeA anyway)", medea_skipped)
+        log.warning("MEDeA skipped, %s; %s", medea_skipped, MEDEA_SKIPPED_BECAUSE)
     if config.adjust and medea_skipped is None:
         say("MEDeA depth adjustment")
         with timer.stage("medea"):

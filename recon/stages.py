@@ -207,6 +207,11 @@ class PosePlan:
     def estimated(self) -> bool:
         return self.kind == "estimate"
 
+    def polishes(self, config) -> bool:
+        """Whether a one-shot run with PipelineConfig ``config`` polishes these poses (given
+        ones, when refining, unless ``polish`` is off): where MEDeA's gate has its verdict."""
+        return not self.estimated and config.refine != "none" and config.polish
+
 
 @dataclass
 class PoseStage:
@@ -329,6 +334,11 @@ def shutter_summary(omega: np.ndarray, shifts: np.ndarray, readout_ms: float) ->
     return {"readout_ms": float(readout_ms), "frames_resampled": int((shifts >= MIN_SHIFT_PX).sum()),
             "median_shift_px": float(np.median(shifts)), "max_shift_px": float(shifts.max()),
             "median_turn_deg_per_s": float(np.median(speed))}
+
+
+# What the pipeline and the streamed run say after naming why MEDeA's gate skipped it.
+MEDEA_SKIPPED_BECAUSE = ("its consistency terms would bend the depth to fit them, so the refinement starts from the "
+                         "prior's depth (--no-medea-gate runs MEDeA anyway)")
 
 
 def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:

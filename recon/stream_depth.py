@@ -27,7 +27,7 @@ from .io.frame_store import FrameStore
 from .io.output_folder import OutputFolder
 from .lens import worth_undistorting
 from .sequence import Sequence
-from .stages import PosePlan
+from .stages import MEDEA_SKIPPED_BECAUSE, PosePlan
 from .stream_plan import anchor_factor, anchor_pixels, plan_windows
 from .stream_track import TrackedVideo
 
@@ -103,10 +103,9 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         with clock.stage("store"):
             seq, window_shifts = _window_sequence(video, store, pos, undistort, omega, config.rolling_shutter)
         shifts.update(zip(pos.tolist(), window_shifts))
-        check = None
         if not records:  # one verdict per run, as a one-shot run's single polish gives
             with clock.stage("poses"):
-                check = verdict = _pose_check(config, plan, seq)
+                verdict = _pose_check(config, plan, seq)
         skipped = (verdict or {}).get("disagreement")
         with clock.stage("medea"):
             if config.adjust and not skipped:
@@ -154,7 +153,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),
                                      int(seq.indices[0]), int(seq.indices[-1]),
-                                     None if check is None else fit_in_use(check), skipped))
+                                     fit_in_use(verdict) if verdict and not records else None, skipped))
     bar.close()
     warn_scale_disagreement(records, config)
     warn_medea_skipped(records)
@@ -183,12 +182,12 @@ def warn_scale_disagreement(records: list[_WindowRecord], config: PipelineConfig
 def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict | None:
     """MEDeA's gate for given poses, as a one-shot run decides it: the polish's info on the
     first window (recon.poses.polish; a streamed run still uses the poses as given), or None
-    where a one-shot run would not polish or gate either (estimated poses, ``polish=False``,
-    ``refine="none"``: the paper's pipeline) or MEDeA is off or ungated. One window, not
-    each: the verdict is the pose source's, and checking every window cost 0.15-0.26 s per
-    depth frame (13-56 % of a streamed 7-Scenes run's time) where the fits of a recording's windows stayed
-    within 0.06 of each other (docs/benchmarks.md, "The gate in streamed runs")."""
-    if plan.estimated or not (config.polish and config.adjust and config.medea_gate) or config.refine == "none":
+    where a one-shot run would not polish or gate either (``PosePlan.polishes``) or MEDeA
+    is off or ungated. One window, not each: the verdict is the pose source's, and checking
+    every window cost 0.15-0.26 s per depth frame (13-56 % of a streamed 7-Scenes run's
+    time) where the fits of a recording's windows stayed within 0.06 of each other
+    (docs/benchmarks.md, "The gate in streamed runs")."""
+    if not (plan.polishes(config) and config.adjust and config.medea_gate):
         return None
     from .poses.polish import polish_poses
 
@@ -201,9 +200,8 @@ def warn_medea_skipped(records: list[_WindowRecord]) -> None:
     if not records or not records[0].medea_skipped:
         return
     first = records[0]
-    log.warning("MEDeA skipped in every window (%d), %s (judged on frames %d-%d); its consistency terms would bend the "
-                "depth to fit them, so the refinement starts from the prior's depth (--no-medea-gate runs MEDeA "
-                "anyway)", len(records), first.medea_skipped, first.first_frame, first.last_frame)
+    log.warning("MEDeA skipped in every window (%d), %s (judged on frames %d-%d); %s", len(records),
+                first.medea_skipped, first.first_frame, first.last_frame, MEDEA_SKIPPED_BECAUSE)
 
 
 def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:

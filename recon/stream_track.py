@@ -89,7 +89,7 @@ class _TrackLoop:
                                     features=config.features and config.adjust, align=config.prior_align,
                                     device=config.device, progress=False)
         self.poser = _Poser(config, source, plan, self.intrinsics, store)
-        if not plan.estimated and config.refine != "none" and config.polish:
+        if plan.polishes(config):
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
                         "once); MEDeA and the refinement use the poses as given (the first window is polished only to "
                         "judge whether MEDeA may trust them)")
