@@ -17,6 +17,7 @@ from recon.io.datasets.base import register_depth
 from recon.io.trajectories import write_poses
 from recon.poses.result import invert_poses
 from recon.poses.rigid import make_poses
+from test_io_datasets_new_layouts import make_colmap, make_kitti, make_record3d
 
 from helpers import SHARED_DATA
 
@@ -285,6 +286,9 @@ def test_detection(tmp_path):
         "scannet": make_scannet,
         "arkitscenes": make_arkitscenes,
         "redwood": make_redwood,
+        "record3d": make_record3d,
+        "kitti": make_kitti,
+        "colmap": lambda root: make_colmap(root, ["1 PINHOLE 8 6 10 10 4 3"], [1, 1]),
     }
     assert set(makers) == set(KINDS)
     for kind, make in makers.items():

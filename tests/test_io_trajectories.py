@@ -21,6 +21,7 @@ TARGETS = {
     "nerfstudio": "transforms.json",
     "matrices": "pose",
     "log": "traj.log",
+    "kitti": "poses.txt",
 }
 
 
@@ -175,3 +176,23 @@ def test_tum_file_is_recognised_by_all_its_lines_and_errors_say_the_format(tmp_p
     mixed.write_text("1 2 3\n1 2 3 4 5\n1 2\n")
     with pytest.raises(ReconInputError, match="unknown pose file format"):
         detect_pose_format(mixed)
+
+
+def test_kitti_pose_file(tmp_path):
+    """KITTI's 3x4 row-major camera-to-world per line, as KITTI writes it (%e); detected by
+    its 12-number lines, one odd line named with the format assumed."""
+    poses = random_poses(4)
+    text = "".join(" ".join(f"{v:e}" for v in pose[:3].ravel()) + "\n" for pose in poses)
+    path = _write(tmp_path / "00.txt", text)
+    assert detect_pose_format(path) == "kitti"
+    data = read_poses(path)
+    assert data.fmt == "kitti" and data.timestamps is None and data.names is None
+    np.testing.assert_allclose(data.poses, poses, atol=1e-5)  # %e keeps 7 digits
+    lines = text.splitlines()
+    bad = _write(tmp_path / "bad.txt", "\n".join([*lines[:2], lines[2].rsplit(" ", 1)[0], lines[3]]) + "\n")
+    with pytest.raises(ReconInputError, match=r"bad\.txt:3: expected 12 columns .* \(read as a KITTI pose file: "
+                                              r"3 of 4 lines have 12 numbers\)"):
+        read_poses(bad)
+    scaled = _write(tmp_path / "scaled.txt", "2 0 0 0 0 2 0 0 0 0 2 0\n")
+    with pytest.raises(ReconInputError, match=r"scaled\.txt: line 1: rotation is not orthonormal"):
+        read_poses(scaled)

@@ -5,6 +5,14 @@ takes camera-to-world (N, 4, 4) poses with OpenCV axes, like the other pose form
 :mod:`recon.io.trajectories` (which dispatches ``fmt="colmap"`` here). Binary models need
 pycolmap (an optional dependency); text models are read and written without it.
 Images are ordered by :func:`recon.io.naming.natural_key` of their names.
+
+Camera parameters follow COLMAP's ``models.h``: focal length(s), principal point, then the
+model's distortion terms, which are handed back in OpenCV's order (k1, k2, p1, p2, k3) for
+the models that share OpenCV's pinhole distortion formula (SIMPLE_RADIAL, RADIAL, OPENCV,
+FULL_OPENCV without its rational terms); fisheye and FOV models have none in that form.
+The principal point is passed through as stored (COLMAP puts the centre of the first
+pixel at 0.5, OpenCV at 0; the half pixel is not corrected, so that writing and reading
+a model round-trips).
 """
 
 from __future__ import annotations
@@ -33,6 +41,22 @@ from recon.poses.rigid import matrix_to_quat, quat_to_matrix
 
 # COLMAP camera models whose first parameters are (f, cx, cy) rather than (fx, fy, cx, cy).
 _COLMAP_SINGLE_FOCAL = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"}
+# Parameter count of each COLMAP camera model (models.h).
+COLMAP_PARAM_COUNTS = {
+    "SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "OPENCV_FISHEYE": 8,
+    "FULL_OPENCV": 12, "FOV": 5, "SIMPLE_RADIAL_FISHEYE": 4, "RADIAL_FISHEYE": 5, "THIN_PRISM_FISHEYE": 12,
+    "RAD_TAN_THIN_PRISM_FISHEYE": 16,
+}
+# Where a model's distortion terms go in OpenCV's (k1, k2, p1, p2, k3): parameter index -> slot.
+# Models absent here (fisheye, FOV) distort differently from OpenCV's pinhole model.
+_OPENCV_SLOTS = {
+    "SIMPLE_PINHOLE": {},
+    "PINHOLE": {},
+    "SIMPLE_RADIAL": {3: 0},
+    "RADIAL": {3: 0, 4: 1},
+    "OPENCV": {4: 0, 5: 1, 6: 2, 7: 3},
+    "FULL_OPENCV": {4: 0, 5: 1, 6: 2, 7: 3, 8: 4},
+}
 
 
 def _import_pycolmap(required: bool):
@@ -60,11 +84,25 @@ def colmap_model_dir(path) -> Path | None:
     return None
 
 
+def opencv_distortion(model: str, params) -> tuple[float, ...] | None:
+    """OpenCV's (k1, k2, p1, p2, k3) of a COLMAP camera's parameters; zeros for a pinhole
+    model, None for one whose distortion OpenCV's pinhole model cannot express."""
+    slots = _OPENCV_SLOTS.get(model)
+    # FULL_OPENCV's k4..k6 are the rational model's denominator, which 5 terms cannot hold.
+    if slots is None or (model == "FULL_OPENCV" and any(float(v) for v in params[9:12])):
+        return None
+    out = [0.0] * 5
+    for index, slot in slots.items():
+        out[slot] = float(params[index])
+    return tuple(out)
+
+
 def _colmap_intrinsics(model: str, width: int, height: int, params) -> dict:
-    """fx fy cx cy width height of a COLMAP camera (distortion parameters are dropped)."""
+    """fx fy cx cy width height, model and OpenCV distortion (see opencv_distortion) of a COLMAP camera."""
     p = [float(v) for v in params]
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if model in _COLMAP_SINGLE_FOCAL else (p[0], p[1], p[2], p[3])
-    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": int(width), "height": int(height), "model": model}
+    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": int(width), "height": int(height), "model": model,
+            "distortion": opencv_distortion(model, p)}
 
 
 def _read_colmap_pycolmap(pycolmap, model_dir: Path):
@@ -98,6 +136,11 @@ def _read_colmap_text(model_dir: Path):
         if len(tokens) < 5:
             raise input_error(cam_path, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]", lineno)
         vals = parse_floats(cam_path, lineno, [tokens[0], *tokens[2:]])
+        expected = COLMAP_PARAM_COUNTS.get(tokens[1])
+        if expected is None:
+            raise input_error(cam_path, f"unknown camera model {tokens[1]!r}", lineno)
+        if len(vals) - 3 != expected:
+            raise input_error(cam_path, f"{tokens[1]} has {expected} parameters, got {len(vals) - 3}", lineno)
         cams[int(vals[0])] = _colmap_intrinsics(tokens[1], vals[1], vals[2], vals[3:])
     img_path = model_dir / "images.txt"
     lines = read_text(img_path).splitlines()
@@ -123,7 +166,9 @@ def _read_colmap_text(model_dir: Path):
 def read_colmap(path) -> PoseData:
     """COLMAP sparse model (binary or text; project, sparse/ or sparse/0 folder) -> PoseData.
 
-    Images are sorted by name; intrinsics are those of the first image's camera.
+    Images are sorted by name; intrinsics are those of the first image's camera. When the
+    images use more than one camera, ``frame_intrinsics`` and ``frame_distortion`` hold
+    each image's.
     """
     path = Path(path)
     model_dir = colmap_model_dir(path)
@@ -148,7 +193,12 @@ def read_colmap(path) -> PoseData:
     missing = [c for c in cam_ids if c not in cams]
     if missing:
         raise input_error(model_dir, f"image refers to camera {missing[0]} missing from cameras file")
-    return PoseData(poses, "colmap", model_dir, names=names, intrinsics=dict(cams[cam_ids[0]]), valid=valid)
+    frame_intrinsics = frame_distortion = None
+    if len(set(cam_ids)) > 1:
+        frame_intrinsics = np.array([[cams[c][k] for k in ("fx", "fy", "cx", "cy")] for c in cam_ids])
+        frame_distortion = np.array([cams[c]["distortion"] or (np.nan,) * 5 for c in cam_ids], dtype=np.float64)
+    return PoseData(poses, "colmap", model_dir, names=names, intrinsics=dict(cams[cam_ids[0]]), valid=valid,
+                    frame_intrinsics=frame_intrinsics, frame_distortion=frame_distortion)
 
 
 def _colmap_text_model(poses: np.ndarray, names: Sequence[str], intr: dict) -> dict[str, str]:

@@ -79,13 +79,13 @@ def _read_depth_image(path: Path) -> np.ndarray:
         image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
     except cv2.error:
         image = None
+    if image is None and path.suffix.lower() == ".exr" and path.is_file():
+        # Some OpenCV wheels ship without an EXR codec at all (e.g. opencv-python 5.0).
+        from recon.io.exr import read_exr
+
+        return read_exr(path)
     if image is None:
-        hint = ""
-        if path.suffix.lower() == ".exr":
-            # Some OpenCV wheels ship without an EXR codec at all (e.g. opencv-python 5.0).
-            hint = (" (this OpenCV build has no EXR reader, or OPENCV_IO_ENABLE_OPENEXR=1 was not set before cv2"
-                    " was imported; convert to .npy, .pfm or float .tiff)")
-        raise ReconInputError(f"{path}: OpenCV cannot read this depth file{hint}")
+        raise ReconInputError(f"{path}: OpenCV cannot read this depth file")
     if image.ndim == 3:
         # Multi-channel float images (EXR/PFM) written from a depth map repeat it per channel.
         if not np.allclose(image[..., 0], image[..., -1], equal_nan=True):

@@ -30,8 +30,14 @@ class PoseData:
     ``poses``: (N, 4, 4) float64, camera-to-world, OpenCV axes; NaN where ``valid`` is False.
     ``names``: (N,) frame names (image file names, per-frame file stems) or None.
     ``timestamps``: (N,) float64 seconds or None.
-    ``intrinsics``: ``{"fx", "fy", "cx", "cy", "width", "height"}`` (first camera) or None.
+    ``intrinsics``: ``{"fx", "fy", "cx", "cy", "width", "height"}`` (first camera) or None;
+    COLMAP adds ``"model"`` and ``"distortion"`` (OpenCV's (k1, k2, p1, p2, k3), zeros for a
+    pinhole camera, None for a lens model OpenCV's cannot express, e.g. a fisheye).
     ``valid``: (N,) bool, False for poses the file marks invalid.
+    ``frame_intrinsics``: (N, 4) per-frame (fx, fy, cx, cy) when the frames have different
+    cameras (a COLMAP model with a camera per image), else None.
+    ``frame_distortion``: (N, 5) per-frame distortion as ``intrinsics["distortion"]``, with
+    ``frame_intrinsics``; NaN rows for cameras whose distortion is None.
     """
 
     poses: np.ndarray
@@ -41,6 +47,8 @@ class PoseData:
     timestamps: np.ndarray | None = None
     intrinsics: dict | None = None
     valid: np.ndarray | None = field(default=None)
+    frame_intrinsics: np.ndarray | None = None
+    frame_distortion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.valid is None:

@@ -24,6 +24,9 @@ Formats (the ``fmt`` names):
   ScanNet ``pose/0.txt``), camera-to-world; rows of -inf/nan mark an invalid pose.
 * ``"log"``: Open3D / Redwood trajectory ``.log``: per pose one line of 3 integers of
   metadata, then the 4 rows of the camera-to-world matrix.
+* ``"kitti"``: KITTI odometry ground truth (``poses/00.txt``): per frame one line of the 12
+  numbers of the 3x4 camera-to-world matrix, row-major, no timestamps (line i is frame i).
+  KITTI's cameras look along +z with y down: already OpenCV axes.
 """
 
 from __future__ import annotations
@@ -51,8 +54,9 @@ from recon.io.pose_files import (
 )
 from recon.poses.rigid import make_poses, matrix_to_quat, opencv_to_opengl, opengl_to_opencv, quat_to_matrix
 
-FORMATS = ("tum", "colmap", "nerfstudio", "matrices", "log")
-FORMAT_NAMES = {"tum": "a TUM trajectory", "matrices": "a 4x4 matrix file", "log": "an Open3D .log trajectory"}
+FORMATS = ("tum", "colmap", "nerfstudio", "matrices", "log", "kitti")
+FORMAT_NAMES = {"tum": "a TUM trajectory", "matrices": "a 4x4 matrix file", "log": "an Open3D .log trajectory",
+                "kitti": "a KITTI pose file"}
 
 _TUM_COLUMNS = "timestamp tx ty tz qx qy qz qw"
 
@@ -191,6 +195,30 @@ def write_log(path, poses: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------------------
+# KITTI odometry poses
+# --------------------------------------------------------------------------------------
+
+_KITTI_COLUMNS = "r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz"
+
+
+def read_kitti(path) -> PoseData:
+    """KITTI pose file (12 numbers a line: 3x4 camera-to-world, row-major) -> PoseData."""
+    path = Path(path)
+    table, linenos = parse_table(path, 12, _KITTI_COLUMNS)
+    poses = np.tile(np.eye(4), (len(table), 1, 1))
+    poses[:, :3, :] = table.reshape(-1, 3, 4)
+    check_poses(poses, path, [f"line {n}" for n in linenos])
+    return PoseData(poses, "kitti", path)
+
+
+def write_kitti(path, poses: np.ndarray) -> None:
+    """Write (N, 4, 4) camera-to-world poses as a KITTI pose file (KITTI's own %e precision is
+    not enough for a round trip, so 11 significant digits)."""
+    rows = np.asarray(poses, dtype=np.float64)[:, :3, :].reshape(-1, 12)
+    atomic_write_text(Path(path), "".join(" ".join(f"{v:.10e}" for v in r) + "\n" for r in rows))
+
+
+# --------------------------------------------------------------------------------------
 # nerfstudio transforms.json
 # --------------------------------------------------------------------------------------
 
@@ -305,14 +333,17 @@ def _text_format(path: Path) -> tuple[str, str]:
     eights = sum(w == 8 for w in widths)
     if eights * 2 >= len(widths):
         return "tum", f"{eights} of {len(widths)} lines have 8 numbers"
+    twelves = sum(w == 12 for w in widths)
+    if twelves * 2 >= len(widths):
+        return "kitti", f"{twelves} of {len(widths)} lines have 12 numbers"
     if widths[0] == 3 and len(widths) % 5 == 0 and all(w == 4 for k, w in enumerate(widths) if k % 5):
         return "log", "blocks of a 3-number line and four 4-number lines"
     fours = sum(w == 4 for w in widths)
     if len(widths) <= 5 and fours * 2 >= len(widths):
         return "matrices", f"{fours} of {len(widths)} lines have 4 numbers"
     counts = ", ".join(f"{widths.count(w)} lines of {w}" for w in sorted(set(widths)))
-    raise input_error(path, f"unknown pose file format ({counts} numbers; TUM has 8 per line, a 4x4 matrix file 4 "
-                            "lines of 4, an Open3D .log blocks of 3 + 4x4)")
+    raise input_error(path, f"unknown pose file format ({counts} numbers; TUM has 8 per line, KITTI 12, a 4x4 "
+                            "matrix file 4 lines of 4, an Open3D .log blocks of 3 + 4x4)")
 
 
 def read_poses(path, fmt: str | None = None) -> PoseData:
@@ -327,6 +358,7 @@ def read_poses(path, fmt: str | None = None) -> PoseData:
         "nerfstudio": read_nerfstudio,
         "matrices": read_matrix_folder,
         "log": read_log,
+        "kitti": read_kitti,
     }
     if fmt not in readers:
         raise ValueError(f"unknown pose format {fmt!r}; expected one of {FORMATS}")
@@ -369,5 +401,7 @@ def write_poses(path, poses, fmt: str, names=None, timestamps=None, intrinsics=N
         write_matrix_folder(path, poses, names)
     elif fmt == "log":
         write_log(path, poses)
+    elif fmt == "kitti":
+        write_kitti(path, poses)
     else:
         raise ValueError(f"unknown pose format {fmt!r}; expected one of {FORMATS}")

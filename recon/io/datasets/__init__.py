@@ -3,10 +3,13 @@
 Owns layout detection (:func:`detect_kind`, :func:`detect_dataset`) and the single entry
 point :func:`open_dataset`. Each layout has its own module: ``tum`` (TUM RGB-D),
 ``sevenscenes`` (Microsoft 7-Scenes), ``scannet`` (ScanNet SensReader exports),
-``arkitscenes`` (ARKitScenes low-res frames), ``redwood`` (Open3D / Redwood RGB-D).
+``arkitscenes`` (ARKitScenes low-res frames), ``record3d`` (Record3D iPhone LiDAR exports),
+``kitti`` (KITTI odometry sequences), ``colmap_project`` (a COLMAP project: images/ and a
+sparse model; kind ``colmap``), ``redwood`` (Open3D / Redwood RGB-D).
 
 All readers return camera-to-world poses with OpenCV camera axes, depth in metres (0 =
-invalid) and intrinsics in pixels of the images ``rgb(i)`` returns.
+invalid) and intrinsics in pixels of the images ``rgb(i)`` returns. KITTI and COLMAP
+projects have no depth.
 """
 
 from __future__ import annotations
@@ -18,17 +21,24 @@ from recon.errors import ReconInputError
 
 from .arkitscenes import is_arkitscenes, open_arkitscenes
 from .base import RGBDDataset
+from .colmap_project import is_colmap, open_colmap
+from .kitti import is_kitti, open_kitti
+from .record3d import is_record3d, open_record3d
 from .redwood import is_redwood, open_redwood
 from .scannet import is_scannet, open_scannet
 from .sevenscenes import is_7scenes, open_7scenes
 from .tum import is_tum, open_tum
 
-# Order matters: ScanNet's color/ + depth/ would also pass the generic Redwood test.
+# Order matters: ScanNet's color/ + depth/ and Record3D's rgb/ + depth/ would also pass the
+# generic Redwood test, so Redwood comes last.
 READERS: dict[str, tuple[Callable[[Path], bool], Callable[..., RGBDDataset]]] = {
     "7scenes": (is_7scenes, open_7scenes),
     "scannet": (is_scannet, open_scannet),
     "arkitscenes": (is_arkitscenes, open_arkitscenes),
     "tum": (is_tum, open_tum),
+    "record3d": (is_record3d, open_record3d),
+    "kitti": (is_kitti, open_kitti),
+    "colmap": (is_colmap, open_colmap),
     "redwood": (is_redwood, open_redwood),
 }
 KINDS = tuple(READERS)
@@ -81,7 +91,10 @@ __all__ = [
     "detect_kind",
     "open_7scenes",
     "open_arkitscenes",
+    "open_colmap",
     "open_dataset",
+    "open_kitti",
+    "open_record3d",
     "open_redwood",
     "open_scannet",
     "open_tum",

@@ -3,7 +3,11 @@
 This module owns :class:`RGBDDataset` (frame list, intrinsics, poses, lazy image/depth
 loading, frame selection) and the small checks that turn missing or unreadable files into
 one-line :class:`~recon.errors.ReconInputError` messages. Layout-specific parsing lives in
-the reader modules (``tum``, ``sevenscenes``, ``scannet``, ``arkitscenes``, ``redwood``).
+the reader modules (``tum``, ``sevenscenes``, ``scannet``, ``arkitscenes``, ``record3d``,
+``kitti``, ``colmap_project``, ``redwood``).
+
+Depth files are 16-bit PNGs (raw units, ``depth_scale`` of them per metre) or float maps
+(EXR, PFM, TIFF, .npy: metres times ``depth_scale``; non-finite and <= 0 are invalid).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import cv2
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.io.depth_maps import read_depth_file
 from recon.io.naming import natural_key
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -29,19 +34,22 @@ class RGBDDataset:
 
     Images are loaded lazily by :meth:`rgb` / :meth:`depth`; everything else is in memory.
 
-    kind: layout name ("tum", "7scenes", "scannet", "arkitscenes", "redwood").
+    kind: layout name ("tum", "7scenes", "scannet", "arkitscenes", "record3d", "kitti",
+        "colmap", "redwood").
     name: sequence name (usually the root folder name).
     root: the folder that was opened.
     frame_ids: (N,) frame identifiers (file stems or timestamps as text).
     intrinsics: (fx, fy, cx, cy) in pixels of the images as returned by ``rgb(i)``.
     width, height: size of the returned rgb/depth images.
     rgb_paths: (N,) colour image files.
-    depth_paths: (N,) depth PNG files, or None when the dataset has no depth.
+    depth_paths: (N,) depth files (16-bit PNG, or float EXR/PFM/TIFF/.npy), or None when the
+        dataset has no depth.
     poses: (N, 4, 4) float64 camera-to-world (OpenCV axes), NaN where pose_valid is False;
         None when the dataset has no poses.
     pose_valid: (N,) bool, or None with poses.
     timestamps: (N,) float64 seconds, or None.
-    depth_scale: raw depth units per metre (1000 for millimetres, 5000 for TUM).
+    depth_scale: raw depth units per metre (1000 for millimetres, 5000 for TUM, 1 for float
+        files in metres).
     depth_invalid: raw depth values that mark an invalid pixel (besides 0).
     frame_intrinsics: (N, 4) per-frame (fx, fy, cx, cy) when they vary (ARKit), else None.
     distortion: lens distortion (k1, k2, p1, p2, k3) of the colour images when known; the
@@ -50,6 +58,9 @@ class RGBDDataset:
     depth_intrinsics: (fx, fy, cx, cy) of the depth camera when its images are not registered
         to the colour camera (7-Scenes); ``depth(i)`` then re-registers them into the colour
         camera (:func:`register_depth`). None: depth is already pixel-aligned with colour.
+    depth_resize: depth is stored on a coarser grid covering the same field of view as the
+        colour image (Record3D's LiDAR depth); ``depth(i)`` scales it up to ``shape`` by
+        nearest neighbour (:func:`upscale_nearest`), so it agrees with ``intrinsics``.
     """
 
     kind: str
@@ -70,6 +81,7 @@ class RGBDDataset:
     distortion: tuple[float, ...] | None = None
     resize_rgb: bool = False
     depth_intrinsics: tuple[float, float, float, float] | None = None
+    depth_resize: bool = False
 
     def __post_init__(self) -> None:
         n = len(self.frame_ids)
@@ -134,7 +146,9 @@ class RGBDDataset:
         """Depth of frame i: (H, W) float32 metres, 0 = invalid; None without depth."""
         if self.depth_paths is None:
             return None
-        depth = read_depth_png(self.depth_paths[i], self.depth_scale, self.depth_invalid)
+        depth = read_depth(self.depth_paths[i], self.depth_scale, self.depth_invalid)
+        if self.depth_resize and depth.shape != (self.height, self.width):
+            depth = upscale_nearest(depth, (self.height, self.width), self.depth_paths[i])
         if depth.shape != (self.height, self.width):
             raise ReconInputError(
                 f"{self.depth_paths[i]}: depth is {depth.shape[1]}x{depth.shape[0]}, "
@@ -202,6 +216,29 @@ class RGBDDataset:
             f"size={self.width}x{self.height}, intrinsics={tuple(round(v, 3) for v in self.intrinsics)}, "
             f"depth={'yes' if self.has_depth else 'no'}, poses={poses})"
         )
+
+
+def upscale_nearest(depth: np.ndarray, shape: tuple[int, int], path: Path | None = None) -> np.ndarray:
+    """Depth (h, w) -> (H, W) by nearest neighbour with pixel centres aligned, the field of
+    view unchanged: output pixel u takes input pixel floor((u + 0.5) * w / W). Nearest keeps
+    holes as holes and never blends a foreground and a background depth."""
+    (h, w), (big_h, big_w) = depth.shape, shape
+    # Another aspect ratio would mean another field of view: scaling could not register it.
+    if h > big_h or w > big_w or abs(h - w * big_h / big_w) > 0.5:
+        where = f"{path}: " if path is not None else ""
+        raise ReconInputError(f"{where}depth is {w}x{h}, not a smaller copy of the {big_w}x{big_h} colour image "
+                              "(larger, or another aspect ratio)")
+    rows, cols = _nearest_index((h, w), (big_h, big_w))
+    return depth[rows[:, None], cols[None, :]]
+
+
+@functools.lru_cache(maxsize=8)
+def _nearest_index(small: tuple[int, int], large: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(rows (H,), cols (W,)): the source index of each output row and column of upscale_nearest."""
+    # cv2.INTER_NEAREST takes floor(u * w / W), which shifts the map by up to half an input pixel.
+    rows = ((np.arange(large[0]) + 0.5) * small[0] / large[0]).astype(np.int64)
+    cols = ((np.arange(large[1]) + 0.5) * small[1] / large[1]).astype(np.int64)
+    return rows, cols
 
 
 def register_depth(depth: np.ndarray, depth_k, colour_k) -> np.ndarray:
@@ -276,6 +313,21 @@ def read_depth_png(path: Path, scale: float, invalid: Sequence[int] = ()) -> np.
     depth = raw.astype(np.float32) / np.float32(scale)
     if len(invalid):
         depth[np.isin(raw, np.asarray(invalid, dtype=np.uint16))] = 0.0
+    return depth
+
+
+def read_depth(path: Path, scale: float, invalid: Sequence[int] = ()) -> np.ndarray:
+    """(H, W) float32 metres of a depth file: a 16-bit PNG (read_depth_png) or a float map
+    (EXR, PFM, TIFF, .npy) in units of 1 / `scale` metres, its non-finite and <= 0 values -> 0."""
+    if path.suffix.lower() == ".png":
+        return read_depth_png(path, scale, invalid)
+    if not path.is_file():
+        raise ReconInputError(f"{path}: depth file not found")
+    depth = read_depth_file(path)
+    if scale != 1.0:
+        depth = depth / np.float32(scale)
+    # Float maps mark "no measurement" with NaN, inf or 0 (and sometimes negative values).
+    depth[~((depth > 0) & np.isfinite(depth))] = 0.0
     return depth
 
 
