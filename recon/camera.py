@@ -40,3 +40,46 @@ def intrinsics_from_fov(fov_deg: float, height: int, width: int) -> tuple[float,
         raise ReconInputError(f"field of view must be between 0 and 180 degrees, got {fov_deg}")
     f = 0.5 * width / math.tan(math.radians(float(fov_deg)) / 2.0)
     return (f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+
+# OpenCV's distortion model, in its order: radial k1, k2, tangential p1, p2, radial k3.
+DISTORTION_TERMS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def check_distortion(values, where: str = "--distortion") -> tuple[float, ...]:
+    """OpenCV distortion coefficients k1,k2,p1,p2[,k3] as a tuple of 4 or 5 floats, or a
+    one-line ReconInputError."""
+    coefficients = tuple(float(v) for v in values)
+    if len(coefficients) not in (4, 5) or not all(math.isfinite(v) for v in coefficients):
+        raise ReconInputError(f"{where}: expected 4 or 5 finite numbers k1,k2,p1,p2[,k3] (OpenCV's model), got "
+                              f"{','.join(str(v) for v in values)}")
+    return coefficients
+
+
+def is_pinhole(distortion) -> bool:
+    """True when there is no distortion to undo (None, or every coefficient 0)."""
+    return distortion is None or not any(float(v) for v in distortion)
+
+
+def undistortion_maps(intrinsics, distortion, shape: tuple[int, int]):
+    """(map_x, map_y) float32 (H, W) for ``cv2.remap``: for every pixel of the pinhole image
+    with the same intrinsics, where the lens recorded it (OpenCV's model; the coefficients
+    act on normalised coordinates, so they hold at any image size). intrinsics: (fx, fy,
+    cx, cy) in pixels of an image of `shape` (H, W)."""
+    import cv2
+    import numpy as np
+
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return cv2.initUndistortRectifyMap(K, np.asarray(distortion, np.float64), None, K, (shape[1], shape[0]),
+                                       cv2.CV_32FC1)
+
+
+def largest_lens_shift(maps) -> float:
+    """The largest distance (pixels) between a pinhole pixel and where the lens recorded it,
+    from :func:`undistortion_maps`."""
+    import numpy as np
+
+    map_x, map_y = maps
+    v, u = np.mgrid[0:map_x.shape[0], 0:map_x.shape[1]]
+    return float(np.sqrt((map_x - u) ** 2 + (map_y - v) ** 2).max())

@@ -100,14 +100,17 @@ def resolve_device(name: str) -> str:
 # --------------------------------------------------------------------------- shared options
 
 
-def _numbers(text: str, count: int, what: str) -> tuple[float, ...]:
+def _numbers(text: str, count: int | tuple[int, ...], what: str) -> tuple[float, ...]:
+    """`count` numbers (or one of the counts of a tuple) separated by commas."""
+    counts = (count,) if isinstance(count, int) else count
     parts = [p for p in text.replace(",", " ").split() if p]
     try:
         values = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != count:
-        raise ReconInputError(f"{what}: expected {count} numbers separated by commas, got {text!r}")
+    if len(values) not in counts:
+        expected = " or ".join(str(c) for c in counts)
+        raise ReconInputError(f"{what}: expected {expected} numbers separated by commas, got {text!r}")
     return values
 
 
@@ -185,6 +188,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
                    help="pinhole intrinsics in pixels of the input as decoded (pixel centres at integers)")
     g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
+    g.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]",
+                   help="the lens' distortion, OpenCV's model, for the camera of --intrinsics or --fov (default: "
+                        "a dataset's published coefficients with its calibration, else none); the frames are "
+                        "resampled into the pinhole camera before any other stage")
     g.add_argument("--rolling-shutter", type=float, default=d.rolling_shutter, metavar="MS",
                    help="the camera's rolling-shutter readout time in milliseconds (phones and webcams: about 10-30; "
                         "0: a global shutter, default). Each frame is resampled to one instant with the camera's "
@@ -228,13 +235,21 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--refine-option", action=_RefineOptionAction, default=[], metavar="KEY=VALUE",
                    help="change a refinement setting (mvs_core.MvsConfig), e.g. num_sources=4, hypotheses=16 "
                         "(repeatable); `--refine-option list` prints every setting with its default")
-    g.add_argument("--no-polish", action="store_true",
-                   help="use given poses (dataset, pose file) as they are; by default they are polished against the "
-                        "frames before MEDeA when refining (recon.poses.polish)")
-    g.add_argument("--no-medea-gate", action="store_true",
-                   help="run MEDeA even when the polish finds that the frames contradict the given poses (streamed "
-                        "runs polish their first window only to judge them); by default MEDeA is then skipped and the "
-                        "refinement starts from the prior's depth")
+    polish = g.add_mutually_exclusive_group()
+    polish.add_argument("--polish", action="store_true",
+                        help="polish given poses (dataset, pose file) against the frames before MEDeA when refining "
+                             "(recon.poses.polish; one-shot runs); off by default: given poses are used as given")
+    polish.add_argument("--no-polish", action="store_true",
+                        help="use given poses as they are (the default; kept for scripts that say so)")
+    g.add_argument("--polish-option", action=_PolishOptionAction, default=[], metavar="KEY=VALUE",
+                   help="change a setting of the polish (recon.poses.polish.PolishConfig), e.g. calibrate_lens=true "
+                        "(repeatable); `--polish-option list` prints every setting with its default")
+    gate = g.add_mutually_exclusive_group()
+    gate.add_argument("--medea-gate", action="store_true",
+                      help="skip MEDeA, and refine from the prior's depth, when the given poses contradict the "
+                           "frames (every run with given poses checks them and warns; off by default: on TUM's "
+                           "motion capture it made the mesh better and the depth worse)")
+    gate.add_argument("--no-medea-gate", action="store_true", help="run MEDeA whatever the check says (the default)")
 
     g = parser.add_argument_group("TSDF fusion")
     g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
@@ -284,20 +299,57 @@ class _PoseOptionAction(argparse.Action):
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
 
 
-class _RefineOptionAction(argparse.Action):
-    """Collects --refine-option values; `list` prints the settings and exits while parsing."""
+class _FieldOptionAction(argparse.Action):
+    """Collects KEY=VALUE values of one config's fields; `list` prints the settings and exits
+    while parsing. Subclasses name the config (``config()``) and how the table is headed."""
+
+    heading = ""
+
+    @staticmethod
+    def config():
+        raise NotImplementedError
 
     def __call__(self, parser, namespace, values, option_string=None):
         if values == "list":
-            from mvs_core import MvsConfig
-
             from .options import option_table
 
-            print("refinement options (--refine-option KEY=VALUE): name, type, default; their meaning is in the "
-                  "docstring of mvs_core.MvsConfig")
-            print(option_table(MvsConfig))
+            print(self.heading)
+            print(option_table(self.config()))
             parser.exit()
+        # Not append: the default list would be shared between parses.
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
+class _RefineOptionAction(_FieldOptionAction):
+    heading = ("refinement options (--refine-option KEY=VALUE): name, type, default; their meaning is in the "
+               "docstring of mvs_core.MvsConfig")
+
+    @staticmethod
+    def config():
+        from mvs_core import MvsConfig
+
+        return MvsConfig
+
+
+class _PolishOptionAction(_FieldOptionAction):
+    heading = ("pose polish options (--polish-option KEY=VALUE, with --polish): name, type, default; their meaning "
+               "is in the docstring of recon.poses.polish.PolishConfig")
+
+    @staticmethod
+    def config():
+        from .poses.polish import PolishConfig
+
+        return PolishConfig
+
+
+def polish_config_from_args(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from .options import parse_field_option
+    from .poses.polish import PolishConfig
+
+    values = dict(parse_field_option(text, PolishConfig, "polish option") for text in args.polish_option)
+    return replace(PolishConfig(), **values)
 
 
 def mvs_config_from_args(args: argparse.Namespace):
@@ -341,12 +393,14 @@ def pipeline_config_from_args(args: argparse.Namespace):
         mesh_every=args.mesh_every,
         width=args.width or None, fps=args.fps,
         intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
+        distortion=_numbers(args.distortion, (4, 5), "--distortion") if args.distortion else None,
         rolling_shutter=args.rolling_shutter,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
         prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
-        refine=args.refine, mvs=mvs_config_from_args(args), polish=not args.no_polish,
-        medea_gate=not args.no_medea_gate,
+        refine=args.refine, mvs=mvs_config_from_args(args),
+        polish=args.polish, polish_config=polish_config_from_args(args),
+        medea_gate=args.medea_gate,
         fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
         progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
     )

@@ -16,6 +16,7 @@ import numpy as np
 from medea_core import MedeaConfig
 from mvs_core import MvsConfig
 
+from .camera import check_distortion
 from .choices import (
     DEVICE_PATTERN,
     DEVICE_SPELLINGS,
@@ -63,7 +64,12 @@ class PipelineConfig:
         fused frames (0: only at the end).
     width: working width in pixels (None: the input's own); fps: frame rate of an image folder.
     intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal field
-        of view in degrees (used when intrinsics are not given).
+        of view in degrees (used when intrinsics are not given). Given intrinsics are used as
+        given: no lens is estimated on top of them (``FrontendConfig.calibrate_lens``).
+    distortion: the lens of those intrinsics (or of the fov's camera), OpenCV's k1, k2, p1,
+        p2[, k3]; None: a dataset's published coefficients when its calibration is used,
+        else a pinhole camera. The frames are resampled into the pinhole camera as they are
+        decoded (recon.io.source.FrameSource.to_pinhole).
     poses: "auto", "gt" (dataset ground truth), "estimate", or a pose file / folder
         (TUM, COLMAP, nerfstudio, 7-Scenes/ScanNet matrices, Open3D .log).
     rolling_shutter: the camera's rolling-shutter readout time in milliseconds (0: a global
@@ -83,14 +89,17 @@ class PipelineConfig:
         dataset's depth). Metric models are used as they are.
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
-    medea_gate: skip MEDeA, and give the refinement the prior's depth, when the polish finds
-        that the frames contradict the given poses (recon.poses.polish.pose_disagreement):
-        MEDeA would bend the depth to fit them (TUM fr1/rpy: mesh F@5cm 0.009 against 0.128).
-        A streamed run polishes its first window only to judge, and uses the poses as given.
+    medea_gate: skip MEDeA, and give the refinement the prior's depth, when given poses
+        contradict the frames (recon.poses.pose_check, run on every run with given poses:
+        one warning either way). Off by default: on TUM fr1/rpy's motion capture, skipping
+        it raised the mesh's F@5cm (0.05 -> 0.10) but lowered the depth's accuracy (abs rel
+        0.33 -> 0.36), docs/benchmarks.md, "The gate on given poses".
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
-    polish: polish given poses against the frames before MEDeA when refining
-        (recon.poses.polish); polish_config: its settings.
+    polish: polish given poses against the frames before MEDeA when refining (one-shot
+        runs; recon.poses.polish); off: given poses are used as given. On held-out
+        recordings the polish made good poses worse (7-Scenes F@5cm 0.55 -> 0.15, issue 44);
+        the validation table is in docs/benchmarks.md. polish_config: its settings.
     fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
     rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
         OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.
@@ -117,6 +126,7 @@ class PipelineConfig:
     fps: float | None = None
     intrinsics: tuple[float, float, float, float] | None = None
     fov: float | None = None
+    distortion: tuple[float, ...] | None = None
     rolling_shutter: float = 0.0
     poses: str = "auto"
     pose_method: str = "auto"
@@ -127,11 +137,11 @@ class PipelineConfig:
     weights: Path | None = None
     features: bool = True
     adjust: bool = True
-    medea_gate: bool = True
+    medea_gate: bool = False
     medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
     refine: str = "mvs"
     mvs: MvsConfig = field(default_factory=MvsConfig)
-    polish: bool = True
+    polish: bool = False
     polish_config: PolishConfig = field(default_factory=PolishConfig)
     fusion: FusionOptions = field(default_factory=FusionOptions)
     rerun: str = "off"
@@ -162,6 +172,8 @@ class PipelineConfig:
             if k.shape != (4,) or not np.isfinite(k).all() or k[0] <= 0 or k[1] <= 0:
                 raise ReconInputError(
                     f"intrinsics must be four numbers fx,fy,cx,cy with fx, fy > 0, got {self.intrinsics}")
+        if self.distortion is not None:
+            check_distortion(self.distortion)
         if not (0.0 <= self.rolling_shutter <= MAX_READOUT_MS):
             raise ReconInputError(f"rolling-shutter readout must be between 0 and {MAX_READOUT_MS:g} ms (one frame "
                                   f"at 10 fps), got {self.rolling_shutter:g}")

@@ -15,17 +15,17 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
 ``prior``      per-frame metric depth (FastDepth by default; sensor depth; a depth folder; a
                local Hugging Face model, its disparity aligned to FastDepth or sensor depth);
                the network is loaded before the frames are decoded;
-``poses``      camera-to-world poses: a pose file, the dataset's ground truth, or estimated
-               (frames the quality gate drops leave the sequence here); with a rolling-shutter
-               readout given, the frames are resampled to one instant each with the poses'
-               turn rate (:mod:`recon.rolling_shutter`) and estimated poses estimated again on
-               them; given poses are polished against the frames when the refinement runs
-               (:mod:`recon.poses.polish`: multi-view stereo needs sub-pixel agreement that
-               given poses rarely have);
+``poses``      camera-to-world poses: a pose file, the dataset's ground truth (both used as
+               given), or estimated (frames the quality gate drops leave the sequence here);
+               with a rolling-shutter readout given, the frames are resampled to one instant
+               each with the poses' turn rate (:mod:`recon.rolling_shutter`) and estimated
+               poses estimated again on them; given poses are polished against the frames
+               only with ``polish`` (:mod:`recon.poses.polish`), and checked against them
+               (:mod:`recon.poses.pose_check`: a warning when the frames contradict them);
 ``undistort``  frames, prior and features resampled into the pinhole camera when the poses
                came with a lens term (:mod:`recon.lens`);
-``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``, and when the
-               polish finds that the frames contradict the given poses, ``medea_gate``);
+``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``, and with
+               ``medea_gate`` when the frames contradict the given poses);
 ``refine``     per-pixel multi-view stereo around MEDeA's depth, with a confidence per pixel
                (``refine="mvs"``, :mod:`recon.refine`; ``"none"`` keeps the paper's pipeline);
 ``fusion``     TSDF fusion of the final depth with colour (only the pixels the refinement
@@ -60,18 +60,19 @@ from .refine import default_min_confidence, fusion_confidence
 from .report import build_report, fusion_summary
 from .sequence import Sequence
 from .stages import (
-    MEDEA_SKIPPED_BECAUSE,
     adjust_with_medea,
     camera_poses,
     decode,
     default_intrinsics,
     given_intrinsics,
+    judge_given_poses,
     plan_poses,
     polished_poses,
     prior_function,
     refine_depth,
     select_frames,
     tracking_states,
+    undistort_known_lens,
     unrolled_frames,
 )
 
@@ -180,6 +181,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
                                start_time=config.start_time, end_time=config.end_time, width=config.width,
                                fps=config.fps, frame_budget=config.frame_budget if config.stream == "off" else None)
         intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
+        undistort_known_lens(source, intrinsics, intrinsics_from, config.distortion)
         out = OutputFolder(config.output, config.overwrite)
         pose_plan = plan_poses(config.poses, source)
         say(f"input: {source.description}")
@@ -237,10 +239,11 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         timer.seconds["undistort"] = 0.0
 
     medea_result, medea_skipped = None, None
-    disagreement = pose_stage.info.get("polish", {}).get("disagreement")
-    if config.adjust and config.medea_gate and disagreement:
-        medea_skipped = f"the frames contradict the poses: {disagreement}"
-        log.warning("MEDeA skipped, %s; %s", medea_skipped, MEDEA_SKIPPED_BECAUSE)
+    if not pose_plan.estimated:
+        with timer.stage("poses"):
+            check, medea_skipped = judge_given_poses(seq.rgb, seq.poses, seq.intrinsics,
+                                                     config.medea_gate and config.adjust)
+        pose_stage = replace(pose_stage, info={**pose_stage.info, "check": check})
     if config.adjust and medea_skipped is None:
         say("MEDeA depth adjustment")
         with timer.stage("medea"):

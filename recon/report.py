@@ -68,6 +68,12 @@ def _input_section(config, source) -> dict:
             "native_size": _wh(source.native_shape), "fps": source.fps}
 
 
+def _intrinsics_section(values, source_of_values: str, source) -> dict:
+    """The camera used: its intrinsics at working size and where they came from, and the
+    known lens the frames were resampled for (``FrameSource.to_pinhole``; None: none)."""
+    return {"values": [float(v) for v in values], "source": source_of_values, "undistorted": source.undistorted}
+
+
 def versions() -> dict:
     import open3d
     import rerun
@@ -89,7 +95,7 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
         "input": _input_section(config, source),
         "frames": {"count": len(seq), "indices": seq.indices.tolist(), "names": list(seq.names),
                    "working_size": _wh(source.shape)},
-        "intrinsics": {"values": list(seq.intrinsics), "source": intrinsics_from},
+        "intrinsics": _intrinsics_section(seq.intrinsics, intrinsics_from, source),
         "poses": {"source": pose_stage.source, **pose_stage.info, "lens_k1": pose_stage.lens_k1,
                   "frames_undistorted": undistorted},
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,
@@ -133,7 +139,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                    "depth_frames": len(depth_idx), "depth_indices": depth_idx.tolist(),
                    "depth_names": [video.names[k] for k in np.flatnonzero(video.depth_frame)],
                    "working_size": _wh(video.size), "depth_frames_rule": config.depth_frames},
-        "intrinsics": {"values": list(video.intrinsics), "source": video.intrinsics_from},
+        "intrinsics": _intrinsics_section(video.intrinsics, video.intrinsics_from, source),
         "poses": {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1},
         "prior": {"name": config.prior, "kind": "metric", "info": video.prior_info, "features": video.feature_shape},
         "windows": {"count": len(windows), "size": config.window, "overlap": config.window_overlap,

@@ -90,6 +90,26 @@ def given_intrinsics(source: FrameSource, intrinsics=None, fov: float | None = N
     return None, "unknown"
 
 
+def undistort_known_lens(source: FrameSource, intrinsics, intrinsics_from: str, distortion=None) -> dict | None:
+    """Resample the source's frames into the pinhole camera when its lens is known: the
+    coefficients given (`distortion`, OpenCV's k1, k2, p1, p2[, k3]; they need intrinsics
+    known before the poses), else a dataset's published ones when its calibration is the
+    camera used. A lens belongs to the calibration it came with: intrinsics given on the
+    command line take no dataset coefficients. Returns what the source reports of it
+    (``FrameSource.to_pinhole``), or None for a pinhole camera."""
+    from .camera import is_pinhole
+
+    known_from = "given"
+    if distortion is None and intrinsics_from == "dataset calibration":
+        distortion, known_from = source.distortion, "dataset calibration"
+    if is_pinhole(distortion):
+        return None
+    if intrinsics is None:
+        raise ReconInputError("--distortion needs the camera it belongs to: give --intrinsics or --fov too (or a "
+                              "dataset folder with its calibration)")
+    return source.to_pinhole(intrinsics, distortion, known_from)
+
+
 def default_intrinsics(height: int, width: int) -> tuple[float, float, float, float]:
     """The fallback camera: NYU Depth v2's field of view (what FastDepth was trained on)."""
     from .priors.fastdepth import assumed_intrinsics
@@ -209,7 +229,7 @@ class PosePlan:
 
     def polishes(self, config) -> bool:
         """Whether a one-shot run with PipelineConfig ``config`` polishes these poses (given
-        ones, when refining, unless ``polish`` is off): where MEDeA's gate has its verdict."""
+        ones, when refining, with ``polish`` on)."""
         return not self.estimated and config.refine != "none" and config.polish
 
 
@@ -338,7 +358,31 @@ def shutter_summary(omega: np.ndarray, shifts: np.ndarray, readout_ms: float) ->
 
 # What the pipeline and the streamed run say after naming why MEDeA's gate skipped it.
 MEDEA_SKIPPED_BECAUSE = ("its consistency terms would bend the depth to fit them, so the refinement starts from the "
-                         "prior's depth (--no-medea-gate runs MEDeA anyway)")
+                         "prior's depth (without --medea-gate MEDeA runs anyway)")
+
+
+def judge_given_poses(rgb: np.ndarray, poses: np.ndarray, intrinsics, gate: bool) -> tuple[dict, str | None]:
+    """The epipolar check of given poses against their frames (recon.poses.pose_check; rgb
+    (N, H, W, 3) and poses (N, 4, 4) of neighbouring frames in order, intrinsics of a pinhole
+    camera): (what report.json says of it, why MEDeA is skipped or None). Poses the frames
+    contradict are said in one warning; MEDeA is skipped for them only with `gate`
+    (--medea-gate): on TUM fr1/rpy's motion capture, MEDeA's depth scored better than the
+    prior's (abs rel 0.33 against 0.36) and its mesh worse (F@5cm 0.05 against 0.10), so
+    neither choice is right for every user (docs/benchmarks.md, "The gate on given poses")."""
+    from .poses.pose_check import check_given_poses
+
+    check = check_given_poses(rgb, poses, intrinsics)
+    if check.disagreement is None:
+        return check.to_dict(), None
+    if gate:
+        log.warning("MEDeA skipped, the frames contradict the given poses: %s; %s", check.disagreement,
+                    MEDEA_SKIPPED_BECAUSE)
+        return check.to_dict(), f"the frames contradict the given poses: {check.disagreement}"
+    log.warning("the frames contradict the given poses: %s. MEDeA's consistency terms bend the depth to fit such "
+                "poses (on TUM fr1/rpy's motion capture its depth scored better and its mesh worse than the "
+                "prior's): --medea-gate skips MEDeA for them, --polish fits the poses to the frames",
+                check.disagreement)
+    return check.to_dict(), None
 
 
 def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:

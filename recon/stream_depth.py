@@ -3,8 +3,8 @@ is finished.
 
 The depth frames, in overlapping windows (:func:`recon.stream_plan.plan_windows`), each
 window a :class:`~recon.sequence.Sequence` read back from the frame store: MEDeA (the
-paper's pairs inside the window; with given poses, skipped when the first window's frames
-contradict them, as in a one-shot run: :func:`_pose_check`), anchored to the scale of the
+paper's pairs inside the window; with given poses and ``medea_gate``, skipped when the
+first frames contradict them, as the tracking pass judged), anchored to the scale of the
 surface already fused where the window's cameras see it (else to the frames the previous
 window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones
 are source views only, with the sweep the window before left them). Each finished frame's
@@ -27,7 +27,7 @@ from .io.frame_store import FrameStore
 from .io.output_folder import OutputFolder
 from .lens import worth_undistorting
 from .sequence import Sequence
-from .stages import MEDEA_SKIPPED_BECAUSE, PosePlan
+from .stages import PosePlan
 from .stream_plan import anchor_factor, anchor_pixels, plan_windows
 from .stream_track import TrackedVideo
 
@@ -66,9 +66,7 @@ class _WindowRecord:
     # Input frame indices of the window's first and last frame.
     first_frame: int = 0
     last_frame: int = 0
-    # Given poses: the share of the flow that fits them, polished if the polish took (as
-    # MEDeA's gate judges them; measured in the first window only), and why MEDeA was skipped.
-    pose_fit: float | None = None
+    # Why MEDeA was skipped (--medea-gate and given poses the frames contradict).
     medea_skipped: str | None = None
 
 
@@ -83,7 +81,6 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
 
     from .export import write_depth_frame
     from .fusion import FusionOptions
-    from .poses.polish import fit_in_use
     from .refine import default_min_confidence, fusion_confidence
     from .stages import adjust_with_medea, refine_depth
 
@@ -96,17 +93,14 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
-    volume, records, finished, swept, fused, shifts, verdict = None, [], {}, {}, 0, {}, None
+    volume, records, finished, swept, fused, shifts = None, [], {}, {}, 0, {}
+    skipped = video.medea_skipped
     bar = tqdm(total=len(positions), desc="depth and fusion", unit="frame", disable=not config.progress)
     for window in windows:
         pos = positions[window.start:window.stop]
         with clock.stage("store"):
             seq, window_shifts = _window_sequence(video, store, pos, undistort, omega, config.rolling_shutter)
         shifts.update(zip(pos.tolist(), window_shifts))
-        if not records:  # one verdict per run, as a one-shot run's single polish gives
-            with clock.stage("poses"):
-                verdict = _pose_check(config, plan, seq)
-        skipped = (verdict or {}).get("disagreement")
         with clock.stage("medea"):
             if config.adjust and not skipped:
                 adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
@@ -152,11 +146,9 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),
-                                     int(seq.indices[0]), int(seq.indices[-1]),
-                                     fit_in_use(verdict) if verdict and not records else None, skipped))
+                                     int(seq.indices[0]), int(seq.indices[-1]), skipped))
     bar.close()
     warn_scale_disagreement(records, config)
-    warn_medea_skipped(records)
     return (volume, options), records, shifts
 
 
@@ -177,31 +169,6 @@ def warn_scale_disagreement(records: list[_WindowRecord], config: PipelineConfig
                 "windows holds for all. Windows that span little camera motion hold their scale poorly%s",
                 len(off), len(records), 100 * (ANCHOR_DISAGREEMENT - 1), worst.first_frame, worst.last_frame,
                 worst.anchor, (": " + " or ".join(hints)) if hints else "")
-
-
-def _pose_check(config: PipelineConfig, plan: PosePlan, seq: Sequence) -> dict | None:
-    """MEDeA's gate for given poses, as a one-shot run decides it: the polish's info on the
-    first window (recon.poses.polish; a streamed run still uses the poses as given), or None
-    where a one-shot run would not polish or gate either (``PosePlan.polishes``) or MEDeA
-    is off or ungated. One window, not each: the verdict is the pose source's, and checking
-    every window cost 0.15-0.26 s per depth frame (13-56 % of a streamed 7-Scenes run's
-    time) where the fits of a recording's windows stayed within 0.06 of each other
-    (docs/benchmarks.md, "The gate in streamed runs")."""
-    if not (plan.polishes(config) and config.adjust and config.medea_gate):
-        return None
-    from .poses.polish import polish_poses
-
-    return polish_poses(seq.rgb, seq.prior_depth, seq.poses, seq.intrinsics, config.polish_config, progress=False,
-                        device=config.device).info
-
-
-def warn_medea_skipped(records: list[_WindowRecord]) -> None:
-    """One warning when the gate skipped MEDeA (in every window: the verdict is the first's)."""
-    if not records or not records[0].medea_skipped:
-        return
-    first = records[0]
-    log.warning("MEDeA skipped in every window (%d), %s (judged on frames %d-%d); %s", len(records),
-                first.medea_skipped, first.first_frame, first.last_frame, MEDEA_SKIPPED_BECAUSE)
 
 
 def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray]) -> tuple[float, str]:
@@ -281,5 +248,4 @@ def _epochs(medea) -> dict:
     return {name: int(history.epochs) for name, history in medea.history.items()}
 
 
-__all__ = ["SURFACE_ANCHOR_MIN_COVER", "SURFACE_ANCHOR_STEP", "SURFACE_ANCHOR_VIEWS", "depth_windows",
-           "warn_medea_skipped"]
+__all__ = ["SURFACE_ANCHOR_MIN_COVER", "SURFACE_ANCHOR_STEP", "SURFACE_ANCHOR_VIEWS", "depth_windows"]

@@ -25,7 +25,7 @@ from .io.frame_store import FrameStore
 from .io.pose_matching import frame_names, match_pose_file
 from .io.source import FrameSource
 from .sequence import Sequence
-from .stages import PosePlan, default_intrinsics, gate_estimate, ground_truth_kept, prior_function
+from .stages import PosePlan, default_intrinsics, gate_estimate, ground_truth_kept, judge_given_poses, prior_function
 from .stream_plan import MotionSelector, parse_depth_frames
 
 log = logging.getLogger(__name__)
@@ -56,6 +56,8 @@ class TrackedVideo:
     depth_sample: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     prior_info: dict = field(default_factory=dict)
     feature_shape: list | None = None
+    # Given poses: why MEDeA is skipped (--medea-gate and the frames contradict them), else None.
+    medea_skipped: str | None = None
 
 
 
@@ -91,8 +93,11 @@ class _TrackLoop:
         self.poser = _Poser(config, source, plan, self.intrinsics, store)
         if plan.polishes(config):
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
-                        "once); MEDeA and the refinement use the poses as given (the first window is polished only to "
-                        "judge whether MEDeA may trust them)")
+                        "once); MEDeA and the refinement use the poses as given")
+        # Given poses are checked against the first frames, as they come (recon.poses.pose_check).
+        self.to_check: list[tuple[np.ndarray, np.ndarray]] | None = None if plan.estimated else []
+        self.pose_check: dict | None = None
+        self.medea_skipped: str | None = None
         self.select = MotionSelector(config.depth_motion, config.depth_rotation,
                                      parse_depth_frames(config.depth_frames))
         self.names_of = _frame_namer(source)
@@ -118,6 +123,8 @@ class _TrackLoop:
             with self.clock.stage("poses"):
                 poses = self.poser.batch(positions, batch, None)
             take = np.array([self.select(pose) for pose in poses], bool)
+            with self.clock.stage("poses"):
+                self._check(batch, poses)
             rows = np.flatnonzero(take)
             out = self._prior(batch.take(rows), positions[rows]) if len(rows) else None
             if out is not None:
@@ -141,6 +148,22 @@ class _TrackLoop:
         self.live += list(poses)
         self.chosen += list(take)
         self._log(batch, poses)
+
+    def _check(self, batch: Sequence | None, poses: np.ndarray | None) -> None:
+        """Collect the first frames with given poses; judge them once there are enough (or,
+        with batch None, at the end of a shorter video)."""
+        from .poses.pose_check import PoseCheckConfig
+
+        if self.to_check is None:
+            return
+        wanted = PoseCheckConfig().max_pairs + 1
+        if batch is not None:
+            self.to_check += [(batch.rgb[k], pose) for k, pose in enumerate(poses)][:wanted - len(self.to_check)]
+        if len(self.to_check) >= wanted or (batch is None and len(self.to_check) >= 2):
+            rgb, given = (np.stack(x) for x in zip(*self.to_check))
+            self.pose_check, self.medea_skipped = judge_given_poses(
+                rgb, given, self.intrinsics, self.config.medea_gate and self.config.adjust)
+            self.to_check = None
 
     def _prior(self, batch: Sequence, positions: np.ndarray):
         with self.clock.stage("prior"):
@@ -166,6 +189,7 @@ class _TrackLoop:
                                   f"({self.source.selection.describe()})")
         indices, stamps = np.asarray(self.indices, np.int64), np.asarray(self.stamps, np.float64)
         with self.clock.stage("poses"):
+            self._check(None, None)
             closed = self.poser.close(self.store, indices, stamps, np.asarray(self.live))
         keep = np.isfinite(closed.poses).all(axis=(1, 2))
         if closed.dropped_note:
@@ -184,7 +208,9 @@ class _TrackLoop:
             depth_frame=np.asarray(self.chosen, bool) & keep, intrinsics=tuple(float(v) for v in camera),
             intrinsics_from=self.intrinsics_from if self.intrinsics is not None else camera_from,
             size=tuple(self.source.shape), lens_k1=closed.lens_k1, pose_source=closed.source,
-            pose_info=closed.info, depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
+            pose_info=closed.info if self.pose_check is None else {**closed.info, "check": self.pose_check},
+            depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
+            medea_skipped=self.medea_skipped,
         )
 
 

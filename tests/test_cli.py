@@ -46,8 +46,8 @@ def test_demo_writes_every_output(demo):
     depth_m = np.load(npys[3])
     assert depth_m.shape == (HEIGHT, WIDTH) and (depth_m > 0).all()
     np.testing.assert_allclose(read_depth_png_mm(pngs[3]), depth_m, atol=0.0006)
-    # Trajectory: the ground-truth poses that went in come out (TUM, camera-to-world): they
-    # agree with the rendered frames, so the polish leaves them as they are.
+    # Trajectory: the ground-truth poses that went in come out (TUM, camera-to-world): given
+    # poses are used as given.
     written = read_poses(out / "trajectory.txt").poses
     given = read_poses(out / "input/poses_gt.txt").poses
     np.testing.assert_allclose(written, given, atol=1e-5)
@@ -56,7 +56,12 @@ def test_demo_writes_every_output(demo):
     assert report["frames"]["count"] == FRAMES and report["input"]["kind"] == "video"
     assert set(report["seconds"]) == {"decode", "prior", "poses", "undistort", "medea", "refine", "fusion", "export",
                                      "logging"}
-    assert report["poses"]["polish"]["polished"] is False and report["poses"]["polish"]["cost_gain"] < 1.5
+    # ... and checked against the frames, which they fit (recon.poses.pose_check); not polished.
+    check = report["poses"]["check"]
+    assert "polish" not in report["poses"] and check["disagreement"] is None and check["median_px"] < 0.3
+    # Given intrinsics are used as given: no lens is fitted on top of them, no frame resampled.
+    assert report["poses"]["lens_k1"] == 0.0 and report["poses"]["frames_undistorted"] is False
+    assert report["intrinsics"]["undistorted"] is None
     assert report["refine"]["method"] == "mvs" and 0.5 < report["refine"]["reconstructed"] <= 1.0
     assert all(v >= 0 for v in report["seconds"].values()) and report["seconds"]["medea"] > 0
     stage1 = report["medea"]["stages"]["stage1"]
@@ -287,7 +292,7 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     assert exit_info.value.code == 0
     rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
     assert rows["window"][1:3] == ["int", str(FrontendConfig().window)]
-    assert rows["calibrate_lens"][3:] == ["FrontendConfig,", "SfMConfig"]
+    assert rows["calibrate_lens"][-2:] == ["FrontendConfig,", "SfMConfig"]
     assert "torch_threads" in rows and "mapper" in rows and "flow" not in rows
 
 
@@ -483,49 +488,78 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
 
 
-@pytest.mark.parametrize("mode", ["polish", "stream"])
-def test_medea_is_skipped_when_the_frames_contradict_the_given_poses(demo, tmp_path, capsys, monkeypatch, mode):
-    """The polish's verdict on the given poses (recon.poses.polish.pose_disagreement, tested on
-    TUM and 7-Scenes in test_poses_polish) skips MEDeA with a warning, in a one-shot run and in
-    a streamed run (which polishes its first window only to judge); --no-medea-gate runs it
-    anyway."""
-    import recon.poses.polish as polish
+@pytest.mark.parametrize("mode", ["one-shot", "stream"])
+def test_given_poses_the_frames_contradict_are_said_and_gated_on_request(demo, tmp_path, capsys, monkeypatch,
+                                                                         mode):
+    """The epipolar check's verdict on the given poses (recon.poses.pose_check, tested on TUM
+    and 7-Scenes in test_pose_check) is said in one warning and recorded; MEDeA still runs,
+    unless --medea-gate skips it, in a one-shot run and in every window of a streamed run
+    (which judges the first frames as they come)."""
+    import recon.poses.pose_check as pose_check
 
-    monkeypatch.setattr(polish, "pose_disagreement", lambda info, min_fit: "only 60% of the flow fits")
+    real = pose_check.check_given_poses
+
+    def contradicted(*args, **kwargs):
+        check = real(*args, **kwargs)
+        check.disagreement = "the flow misses the epipolar lines by 2.00 px"
+        return check
+
+    monkeypatch.setattr(pose_check, "check_given_poses", contradicted)
     out, _ = demo
     k = json.loads((out / "intrinsics.json").read_text())
     common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
               "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--width", "0", "--max-frames", "12",
               "--quiet", "--rerun", "off", "--no-npy", "--no-glb"]
-    if mode == "polish":
+    if mode == "one-shot":
         common += ["--stream", "off"]
-    else:  # two windows at least, to see that the first one's verdict holds for the next
+    else:  # two windows at least, to see that the verdict holds for the next
         common += ["--stream", "on", "--depth-frames", "all", "--window", "6", "--window-overlap", "2"]
+    said = tmp_path / "said"
+    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(said), *common]) == 0
+    report = json.loads((said / "report.json").read_text())
+    err = capsys.readouterr().err
+    assert report["poses"]["check"]["disagreement"] == "the flow misses the epipolar lines by 2.00 px"
+    assert report["poses"]["check"]["judged"] >= 4 and report["options"]["medea_gate"] is False
+    assert err.count("the frames contradict the given poses") == 1 and "--medea-gate" in err
+    if mode == "stream":
+        assert all(w["medea_epochs"] and not w["medea_skipped"] for w in report["windows"]["each"])
+    else:
+        assert report["medea"]["stages"]["stage1"]["epochs"] > 0
     gated = tmp_path / "gated"
-    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(gated), *common]) == 0
+    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(gated), *common, "--medea-gate"]) == 0
     report = json.loads((gated / "report.json").read_text())
     err = capsys.readouterr().err
+    assert "MEDeA skipped, the frames contradict the given poses" in err
+    skipped = "the frames contradict the given poses: the flow misses the epipolar lines by 2.00 px"
     if mode == "stream":
         windows = report["windows"]
         assert windows["medea_skipped"] == windows["count"] >= 2
-        for window in windows["each"]:
-            assert window["medea_skipped"] == "only 60% of the flow fits" and not window["medea_epochs"]
-        fits = [window["pose_fit"] for window in windows["each"]]
-        assert 0 < fits[0] <= 1 and set(fits[1:]) == {None}  # judged once, on the first window
-        assert f"MEDeA skipped in every window ({windows['count']}), only 60% of the flow fits" in err
+        assert all(w["medea_skipped"] == skipped and not w["medea_epochs"] for w in windows["each"])
     else:
-        assert report["medea"] == {"skipped": "the frames contradict the poses: only 60% of the flow fits"}
-        assert report["poses"]["polish"]["disagreement"] == "only 60% of the flow fits"
+        assert report["medea"] == {"skipped": skipped}
         assert report["seconds"]["medea"] == 0.0 and report["refine"]["reconstructed"] > 0.3
-        assert "MEDeA skipped, the frames contradict the poses" in err
-    forced = tmp_path / "forced"
-    assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(forced), *common, "--no-medea-gate"]) == 0
-    report = json.loads((forced / "report.json").read_text())
-    assert report["options"]["medea_gate"] is False
-    if mode == "stream":  # not even checked
-        assert all(w["medea_epochs"] and w["pose_fit"] is None for w in report["windows"]["each"])
-    else:
-        assert "skipped" not in report["medea"] and report["medea"]["stages"]["stage1"]["epochs"] > 0
+
+
+def test_a_known_lens_is_undone_before_every_stage(demo, tmp_path, capsys):
+    """--distortion (OpenCV's k1,k2,p1,p2[,k3]) with the camera it belongs to: the frames are
+    resampled into the pinhole camera as they are decoded (report.json says with what); the
+    coefficients alone, with no camera, are refused."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    video = str(out / "input/synthetic.mp4")
+    common = ["--poses", str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path",
+              str(out / "input/prior"), "--width", "0", "--max-frames", "4", "--no-medea", "--refine", "none",
+              "--quiet", "--rerun", "off", "--no-npy", "--no-glb"]
+    lens = tmp_path / "lens"
+    assert main(["run", video, "-o", str(lens), *common, "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}",
+                 "--distortion", "0.1,0,0,0"]) == 0
+    undistorted = json.loads((lens / "report.json").read_text())["intrinsics"]["undistorted"]
+    assert undistorted["distortion"] == [0.1, 0.0, 0.0, 0.0] and undistorted["source"] == "given"
+    assert undistorted["max_shift_px"] > 1.0
+    _run_fails(capsys, ["run", video, "-o", str(tmp_path / "no_camera"), *common, "--distortion", "0.1,0,0,0"],
+               "--distortion needs the camera")
+    _run_fails(capsys, ["run", video, "-o", str(tmp_path / "bad"), *common, "--distortion", "0.1,0"],
+               "--distortion", "4 or 5 numbers")
 
 
 def test_rolling_shutter_resamples_the_frames_and_estimates_the_poses_again(demo, tmp_path, capsys):

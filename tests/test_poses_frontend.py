@@ -36,19 +36,22 @@ def test_frontend_synthetic_accuracy_and_metric_scale(pose_room):
 
 
 def test_frontend_calibrates_a_barrel_lens(pose_room):
-    """The room filmed through a barrel lens (k1 = -0.1, 4 % at the corners): the front end
-    finds k1 and keeps the path and scale; as a pinhole camera the scale is 19 % off."""
+    """The room filmed through a barrel lens (k1 = -0.1, 4 % at the corners): asked to, the
+    front end finds k1 and keeps the path and scale; with the intrinsics given and nothing
+    asked, the calibration is used as given (no lens on top of it: a pinhole camera, whose
+    scale here is 19 % off)."""
     seq, prior = pose_room
     rgb = distort_images(seq.rgb, seq.intrinsics, -0.1)
     depth = distort_images(prior, seq.intrinsics, -0.1, nearest=True)
     length = path_length(seq.poses)
-    res = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False)
+    res = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False,
+                         config=replace(FrontendConfig(), calibrate_lens=True))
     assert abs(res.diagnostics["lens_k1"] + 0.1) < 0.02, res.diagnostics["lens_k1"]
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * length
     assert scale_error(res.poses, seq.poses) <= 0.10
-    pinhole = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False,
-                             config=replace(FrontendConfig(), calibrate_lens=False))
-    assert scale_error(pinhole.poses, seq.poses) > 0.10
+    given = estimate_poses(rgb, depth, seq.intrinsics, method="frontend", progress=False)
+    assert given.diagnostics["lens_k1"] == 0.0 and given.intrinsics == pytest.approx(seq.intrinsics)
+    assert scale_error(given.poses, seq.poses) > 0.10
 
 
 def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room, caplog):
@@ -63,44 +66,49 @@ def test_frontend_estimates_focal_length_when_intrinsics_are_withheld(pose_room,
     # The room's textured walls break its edges: no lens is claimed, the search is a pinhole one.
     assert res.diagnostics["plumb_line"]["trusted"] is False and "k1" not in res.diagnostics["plumb_line"]
     # ... and too few of its edges are straight to agree on vanishing points: the flow's value stands.
-    assert res.diagnostics["vanishing_points"]["used"] is False and res.diagnostics["focal_source"] == "flow"
+    assert res.diagnostics["focal_source"] == "flow" and res.diagnostics["focal"]["focal"] == res.intrinsics[0]
     said = [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
     assert len(said) == 1 and f"{res.intrinsics[0]:.1f} px" in said[0] and "--fov or --intrinsics" in said[0]
     length = path_length(seq.poses)
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.02 * length
 
 
-def _with_vanishing_focal(pose_room, caplog, monkeypatch, share_of_true: float):
+def _with_vanishing_focal(pose_room, caplog, monkeypatch, share_of_true: float, agreeing: float = 0.6):
     """The room tracked without intrinsics while the vanishing points report a trusted focal
-    length of `share_of_true` x the true one: (that focal length, the result, the focal
-    warnings)."""
+    length of `share_of_true` x the true one, `agreeing` of the frames agreeing on it: (that
+    focal length, the result, the focal warnings)."""
     from recon.poses import vanishing
 
     seq, prior = pose_room
     f_vp = share_of_true * seq.intrinsics[0]
-    monkeypatch.setattr(vanishing, "estimate_focal_vp",
-                        lambda frames, lens=None, cfg=None: vanishing.VanishingFocal(f_vp, 0.6, 24, 36, 40, True))
+    found = vanishing.VanishingFocal(f_vp, agreeing, int(40 * agreeing), 36, 40, True)
+    monkeypatch.setattr(vanishing, "estimate_focal_vp", lambda frames, lens=None, cfg=None: found)
     with caplog.at_level(logging.WARNING, logger="recon"):
         res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
     return f_vp, res, [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]
 
 
-def test_a_trusted_vanishing_point_focal_replaces_the_search(pose_room, caplog, monkeypatch):
-    """Where the vanishing points give a trusted focal length near the search's, tracking
-    runs with it, and the warning says where it came from."""
+def test_vanishing_points_most_frames_agree_on_replace_the_search(pose_room, caplog, monkeypatch):
+    """Where most frames agree on the vanishing points, tracking runs with their focal
+    length, near the search's or not (then the warning gives the range they leave open),
+    and the warning says where it came from."""
     f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.97)
     assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal_source"] == "vanishing points"
-    assert res.diagnostics["vanishing_points"]["used"] is True
-    assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0]
-
-
-def test_vanishing_points_far_from_the_search_leave_it_standing(pose_room, caplog, monkeypatch):
-    """A trusted vanishing-point value outside the window: one of the two estimates has
-    failed, so the search's value stands and the warning gives both."""
+    assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0] and "open" not in said[0]
+    caplog.clear()
     f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.6)
-    assert res.diagnostics["focal_source"] == "flow" and res.diagnostics["vanishing_points"]["used"] is False
+    assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal"]["disagree"]
+    searched = res.diagnostics["focal_search"]["focal"]
+    assert len(said) == 1 and f"{f_vp:.0f}-{searched:.0f} px open" in said[0]
+
+
+def test_vanishing_points_few_frames_agree_on_leave_the_search_standing(pose_room, caplog, monkeypatch):
+    """A vanishing-point value a minority of the frames agree on does not replace the
+    search's; it widens the range the warning gives."""
+    f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.6, agreeing=0.3)
+    assert res.diagnostics["focal_source"] == "flow"
     assert res.intrinsics[0] == pytest.approx(res.diagnostics["focal_search"]["focal"])
-    assert len(said) == 1 and f"vanishing points put it at {f_vp:.1f} px" in said[0]
+    assert len(said) == 1 and f"{f_vp:.0f}-" in said[0] and res.diagnostics["focal"]["low"] == pytest.approx(f_vp)
 
 
 def test_focal_search_through_the_measured_lens(pose_room):

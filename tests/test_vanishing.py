@@ -8,9 +8,7 @@ from recon.lens import distort_images
 from recon.poses.plumb_line import estimate_lens
 from recon.poses.vanishing import (
     VanishingConfig,
-    VanishingFocal,
     agreeing_group,
-    agrees_with_search,
     curve_peak,
     estimate_focal_vp,
 )
@@ -114,15 +112,3 @@ def test_curve_peak_and_agreeing_group():
     assert curve_peak(np.ones_like(focals), focals, 0.02) is None
     group = agreeing_group(np.array([500.0, 510.0, 495.0, 800.0, 300.0, 505.0]), 0.05)
     assert group.tolist() == [True, True, True, False, False, True]
-
-
-def test_only_a_trusted_estimate_near_the_search_replaces_it():
-    """Within the window of the search's usual error a trusted estimate replaces it; beyond
-    it one of the two has failed, and an untrusted estimate never replaces it."""
-    window = (0.8, 1.25)
-    trusted = VanishingFocal(500.0, 0.5, 20, 30, 40, True)
-    assert agrees_with_search(trusted, 600.0, window)
-    assert agrees_with_search(trusted, 420.0, window)
-    assert not agrees_with_search(trusted, 640.0, window)
-    assert not agrees_with_search(trusted, 380.0, window)
-    assert not agrees_with_search(VanishingFocal(500.0, 0.1, 4, 30, 40, False), 560.0, window)

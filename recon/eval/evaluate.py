@@ -6,7 +6,9 @@ folder read back by :func:`recon.io.output_folder.load_output`:
 * depth (DeepVideoMVS protocol, as in the MEDeA paper): ground truth resized to the output
   depth's resolution by nearest neighbour (never blending valid and invalid pixels), pixels
   with ground truth in ``[min_depth, max_depth]``; metric (no alignment), and median-scaled
-  per frame and per sequence;
+  per frame and per sequence. When the run resampled its frames into the pinhole camera of
+  a known lens (TUM's published distortion), the ground truth is resampled the same way
+  (:func:`in_run_camera`), for the depth scores and the reference mesh;
 * trajectory: ATE RMSE after SE(3) and Sim(3) Umeyama alignment, RPE, scale error;
 * mesh: accuracy, completeness, chamfer, precision, recall, F-score at 5 cm against a
   reference mesh: a given mesh file, or a TSDF of the sensor depth fused with the
@@ -15,6 +17,10 @@ folder read back by :func:`recon.io.output_folder.load_output`:
   camera orientations and centres (``mesh_align="auto"``; see
   :func:`recon.eval.trajectory.pose_alignment`), optionally refined by ICP onto the
   reference surface (``"sim3+icp"``).
+
+A dataset without sensor depth (KITTI, a COLMAP project) still scores the trajectory; the
+depth and (unless a reference mesh file is given) mesh sections are replaced by notes,
+``"depth_missing"`` and ``"mesh_missing"``, saying why.
 """
 
 from __future__ import annotations
@@ -85,10 +91,11 @@ def evaluate_trajectory(poses: np.ndarray, gt_poses: np.ndarray) -> dict:
 
 
 def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, max_depth: float, progress: bool,
-                        depth: np.ndarray | None = None):
+                        depth: np.ndarray | None = None, intrinsics=None):
     """TSDF mesh of the dataset's sensor depth with its ground-truth poses over `indices`.
 
-    depth: that sensor depth (len(indices), H, W) when the caller has already read it.
+    depth: that sensor depth (len(indices), H, W) when the caller has already read it, with
+    its `intrinsics` (default: the dataset's).
     """
     from recon.fusion import FusionOptions, fuse
 
@@ -99,14 +106,35 @@ def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, 
     if depth is None:
         depth = dataset.load_depth_batch(indices)
     options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress)
-    return fuse(depth, None, dataset.poses[indices], dataset.intrinsics, options).mesh
+    camera = dataset.intrinsics if intrinsics is None else intrinsics
+    return fuse(depth, None, dataset.poses[indices], camera, options).mesh
+
+
+def in_run_camera(gt_depth: np.ndarray, report: dict) -> tuple[np.ndarray, tuple | None]:
+    """Sensor depth (N, H, W) as the run saw its frames: when the run resampled them into the
+    pinhole camera of a known lens (report.json ``intrinsics.undistorted``), the depth at the
+    working size resampled the same way (nearest neighbour), with the run's intrinsics;
+    otherwise unchanged, with None (the dataset's own intrinsics hold)."""
+    camera = report.get("intrinsics", {})
+    lens = camera.get("undistorted")
+    if not lens:
+        return gt_depth, None
+    from recon.camera import undistortion_maps
+    from recon.io.source import resize_depth
+
+    width, height = report["frames"]["working_size"]
+    maps = undistortion_maps(camera["values"], lens["distortion"], (height, width))
+    moved = np.stack([cv2.remap(resize_depth(d, (height, width)), *maps, cv2.INTER_NEAREST,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0) for d in gt_depth])
+    return moved, tuple(camera["values"])
 
 
 def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict:
     """Evaluate an output folder of `recon run` against the dataset at `gt_path`.
 
     Returns a JSON-ready dict with "depth", "trajectory" and "mesh" sections (each present
-    when the output and the dataset have what it needs) and "frames", "dataset".
+    when the output and the dataset have what it needs) and "frames", "dataset"; a
+    "depth_missing" or "mesh_missing" note says why the output's depth or mesh was not scored.
     """
     options = options or EvalOptions()
     out = load_output(output)
@@ -121,8 +149,12 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
                     "frames": int(len(out.indices)),
                     "options": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(options).items()}}
     gt_depth = dataset.load_depth_batch(out.indices) if dataset.has_depth and out.depth is not None else None
+    gt_camera = None
     if gt_depth is not None:
+        gt_depth, gt_camera = in_run_camera(gt_depth, out.report)
         result["depth"] = evaluate_depth(out.depth, gt_depth, options)
+    elif out.depth is not None:
+        result["depth_missing"] = f"{gt_path} ({dataset.kind}) has no sensor depth: the depth maps are not scored"
     alignment, by_icp = None, False
     if out.poses is not None and dataset.has_poses:
         result["trajectory"] = evaluate_trajectory(out.poses, dataset.poses[out.indices])
@@ -140,14 +172,19 @@ def evaluate_output(output, gt_path, options: EvalOptions | None = None) -> dict
                             "%.0f%% of the camera centres' spread, too little to give a scale", out.path,
                             alignment["fitted_scale"], 100 * max(alignment["explained"], 0.0))
         result["mesh_align"] = mode
-    if out.mesh is not None and len(out.mesh.triangles) > 0:
+    has_mesh = out.mesh is not None and len(out.mesh.triangles) > 0
+    if has_mesh and options.reference_mesh is None and not dataset.has_depth:
+        result["mesh_missing"] = (f"{gt_path} ({dataset.kind}) has no sensor depth to fuse a reference mesh from: "
+                                  "the mesh is not scored (pass --reference-mesh to score it)")
+    elif has_mesh:
         if options.reference_mesh is not None:
             reference = o3d.io.read_triangle_mesh(str(options.reference_mesh))
             if len(reference.triangles) == 0:
                 raise ReconInputError(f"{options.reference_mesh}: no triangles in the reference mesh")
         else:
             voxel = out.report.get("fusion", {}).get("voxel_size")
-            reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth)
+            reference = reference_tsdf_mesh(dataset, out.indices, voxel, options.max_depth, options.progress, gt_depth,
+                                            gt_camera)
         mesh = (move_points(out.mesh.vertices, alignment), np.asarray(out.mesh.triangles))
         if by_icp:
             # The trajectory's alignment alone is scored too: both protocols from one
@@ -191,6 +228,8 @@ def format_evaluation(result: dict) -> str:
                       f"{icp['rotation_deg']:.2f} deg, translation {icp['translation_m']:.3f} m{verdict}; "
                       f"F-score@{result['mesh_before_icp']['threshold'] * 100:.0f}cm before ICP "
                       f"{result['mesh_before_icp']['fscore']:.4f}"]
+    if "depth_missing" in result:
+        lines += ["", f"depth: {result['depth_missing']}"]
     if "mesh_missing" in result:
         lines += ["", f"mesh: {result['mesh_missing']}"]
     return "\n".join(lines)

@@ -150,7 +150,7 @@ class ImageFolderSource(FrameSource):
             f"-> {self.count} frames at {wxh(self.shape)}, {self.selection.describe()}"
         )
 
-    def __iter__(self) -> Iterator[Frame]:
+    def _frames(self) -> Iterator[Frame]:
         for i in self.selected:
             path = self.files[i]
             rgb = read_image(path)
@@ -211,6 +211,14 @@ class DatasetSource(FrameSource):
     def intrinsics(self) -> tuple[float, float, float, float]:
         return resize_intrinsics(self.full.intrinsics, self.native_shape, self.shape)
 
+    @property
+    def distortion(self) -> tuple[float, ...] | None:
+        """The published lens of the dataset's calibration (None when it has none or it is 0)."""
+        from recon.camera import is_pinhole
+
+        lens = self.full.distortion
+        return None if is_pinhole(lens) else tuple(float(v) for v in lens)
+
     def intrinsics_of(self, k: int) -> tuple[float, float, float, float]:
         """(fx, fy, cx, cy) of the k-th selected frame at working size."""
         return resize_intrinsics(self.dataset.intrinsics_of(k), self.native_shape, self.shape)
@@ -229,9 +237,10 @@ class DatasetSource(FrameSource):
         return self.dataset.pose_valid
 
     def depth(self, k: int) -> np.ndarray | None:
-        """Sensor depth (H, W) float32 metres of the k-th selected frame at working size."""
+        """Sensor depth (H, W) float32 metres of the k-th selected frame at working size (in
+        the pinhole camera after ``to_pinhole``)."""
         depth = self.dataset.depth(k)
-        return None if depth is None else resize_depth(depth, self._shape)
+        return None if depth is None else self.pinhole(resize_depth(depth, self._shape), nearest=True)
 
     def load_depth(self) -> np.ndarray | None:
         """(M, H, W) float32 sensor depth of all selected frames at working size, or None."""
@@ -242,7 +251,7 @@ class DatasetSource(FrameSource):
             out[k] = self.depth(k)
         return out
 
-    def __iter__(self) -> Iterator[Frame]:
+    def _frames(self) -> Iterator[Frame]:
         for k, i in enumerate(self.selected):
             yield Frame(int(i), float(self.timestamps[k]), resize_rgb(self.dataset.rgb(k), self._shape))
 

@@ -145,7 +145,13 @@ class FrameSource(ABC):
 
     Properties: ``count`` (selected frames; an estimate for videos, see ``count_is_exact``),
     ``fps``, ``shape`` (H, W) after resizing, ``native_shape`` (H, W) before, ``description``,
-    ``intrinsics`` (scaled to ``shape``; None when the source does not know them).
+    ``intrinsics`` (scaled to ``shape``; None when the source does not know them),
+    ``distortion`` (the lens of those intrinsics, OpenCV's k1, k2, p1, p2[, k3]; None when
+    the source knows none).
+
+    After :meth:`to_pinhole` every frame (and a dataset's sensor depth) comes resampled into
+    the pinhole camera of the same intrinsics, so that every later stage sees a pinhole
+    camera; subclasses yield the frames as recorded from ``_frames``.
     """
 
     kind: str = ""
@@ -156,6 +162,8 @@ class FrameSource(ABC):
     _fps: float
     _shape: tuple[int, int]  # (H, W) at working size
     selected: np.ndarray  # (count,) indices of the selected frames, where known up front
+    _lens_maps: tuple[np.ndarray, np.ndarray] | None = None  # set by to_pinhole
+    undistorted: dict | None = None  # what to_pinhole did, for the report
 
     @property
     def fps(self) -> float:
@@ -182,8 +190,38 @@ class FrameSource(ABC):
     def intrinsics(self) -> tuple[float, float, float, float] | None:
         return None
 
+    @property
+    def distortion(self) -> tuple[float, ...] | None:
+        return None
+
+    def to_pinhole(self, intrinsics, distortion, known_from: str = "given") -> dict:
+        """From now on, resample every frame into the pinhole camera of `intrinsics` (fx, fy,
+        cx, cy at working size) whose lens has OpenCV's `distortion` coefficients (known_from:
+        where they came from). Returns what report.json says of it, also kept as
+        ``undistorted``: the coefficients, their source and the largest shift (pixels) that
+        moves a pixel. Pixels the lens did not record come out black (depth 0)."""
+        from recon.camera import largest_lens_shift, undistortion_maps
+
+        self._lens_maps = undistortion_maps(intrinsics, distortion, self.shape)
+        self.undistorted = {"distortion": [float(v) for v in distortion], "source": known_from,
+                            "max_shift_px": largest_lens_shift(self._lens_maps)}
+        return self.undistorted
+
+    def pinhole(self, image: np.ndarray, nearest: bool = False) -> np.ndarray:
+        """`image` (H, W[, C]) at working size as the pinhole camera sees it (unchanged when no
+        lens is set); nearest: no interpolation (depth, where blending invents surfaces)."""
+        if self._lens_maps is None:
+            return image
+        mode = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+        return cv2.remap(image, *self._lens_maps, mode, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for frame in self._frames():
+            yield frame if self._lens_maps is None else frame._replace(rgb=self.pinhole(frame.rgb))
+
     @abstractmethod
-    def __iter__(self) -> Iterator[Frame]: ...
+    def _frames(self) -> Iterator[Frame]:
+        """The selected frames at working size, as recorded."""
 
     def count_at_least(self, n: int) -> int:
         """min(n, number of selected frames) (sources with an exact count need no scan)."""

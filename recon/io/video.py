@@ -182,7 +182,7 @@ class VideoSource(FrameSource):
             taken += 1
             yield index, t
 
-    def __iter__(self) -> Iterator[Frame]:
+    def _frames(self) -> Iterator[Frame]:
         cap = _capture(self.path)
         try:
             for index, t in self._selected(cap):

@@ -22,7 +22,6 @@ makes the median keyframe depth agree with the prior across keyframes.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -36,7 +35,8 @@ from recon.errors import ReconInputError
 from recon.poses import ba, backend, filler, plumb_line, vanishing
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
-from recon.poses.frontend_config import FrontendConfig, make_geometry
+from recon.poses.focal_choice import choose_focal
+from recon.poses.frontend_config import FrontendConfig, calibrates_lens, make_geometry
 from recon.poses.result import (
     PoseResult,
     PriorSource,
@@ -75,9 +75,10 @@ class StreamingFrontend:
     """
 
     def __init__(self, intrinsics, prior, config: FrontendConfig | None = None):
-        self.cfg = config or FrontendConfig()
         self.prior = prior if isinstance(prior, PriorSource) else PriorSource(prior)
         self.intrinsics = parse_intrinsics(intrinsics)
+        config = config or FrontendConfig()
+        self.cfg = replace(config, calibrate_lens=calibrates_lens(config.calibrate_lens, self.intrinsics))
         self.diagnostics: dict = {"method": "frontend"}
         self.state: TrackState | None = None
         self.tracker: Tracker | None = None
@@ -185,38 +186,24 @@ class StreamingFrontend:
             self.diagnostics["plumb_line"] = lens.to_dict()
             lens = lens if lens.trusted else None
         search = estimate_focal(frames, self.prior, self.cfg, lens)
-        focal, source, vp = search.focal, "flow", None
         self.diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
                                             "evaluations": search.evaluations}
+        vp = None
         if self.cfg.vanishing_points:
             vp = vanishing.estimate_focal_vp(frames, lens)
-            used = vanishing.agrees_with_search(vp, search.focal, self.cfg.vanishing_window)
-            self.diagnostics["vanishing_points"] = {**vp.to_dict(), "used": used}
-            if used:
-                focal, source = vp.focal, "vanishing points"
+            self.diagnostics["vanishing_points"] = vp.to_dict()
+        choice = choose_focal(search, vp, self.cfg)
+        focal = choice.focal
         self.intrinsics = (focal, focal, (width - 1) / 2.0, (height - 1) / 2.0)
-        self.diagnostics["focal_source"] = source
+        self.diagnostics["focal"] = choice.to_dict()
+        self.diagnostics["focal_source"] = choice.source
         if lens is not None:
             # Tracking starts from the lens the focal length was found with; the BA refines it.
             self.cfg = replace(self.cfg, lens_k1=lens.k1(focal))
             self.diagnostics["plumb_line"]["k1"] = self.cfg.lens_k1
-        fov = math.degrees(2 * math.atan(width / (2 * focal)))
-        # A warning, not a detail: the mesh's size and shape follow the focal length, and both
-        # estimates have known errors (docs/benchmarks.md, "The focal length from vanishing
-        # points" and "The lens from straight edges before the focal search").
-        if source == "vanishing points":
-            log.warning("focal length estimated from the video's vanishing points: %.1f px (horizontal field of "
-                        "view %.1f deg; the flow-based search gave %.1f px); on the real recordings' clips measured "
-                        "this came within 5 %% of the camera's: pass --fov or --intrinsics if the camera is known",
-                        focal, fov, search.focal)
-        else:
-            disagree = (f" The vanishing points put it at {vp.focal:.1f} px: one of the two estimates has failed."
-                        if vp is not None and vp.trusted else "")
-            log.warning("focal length estimated from the video: %.1f px (horizontal field of view %.1f deg); on the "
-                        "real recordings' clips measured this search was off by up to 17 %% (once 39 %%; a rolling "
-                        "shutter and lens distortion bend the flow as another focal length does), which changes the "
-                        "mesh's size and shape: pass --fov or --intrinsics if the camera is known.%s", focal, fov,
-                        disagree)
+        # A warning, not a detail: the mesh's size and shape follow the focal length, and the
+        # estimates have known errors (docs/benchmarks.md, "The focal length from nothing").
+        log.warning(choice.warning(width))
         for i, frame in enumerate(frames):
             self._track(i, frame)
 

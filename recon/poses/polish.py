@@ -4,7 +4,9 @@ Poses that come with a video (a dataset's ground truth, ARKit, a pose file) are 
 overall but rarely right to the pixel for the colour camera: 7-Scenes' are the depth
 camera's, tracked by KinectFusion, and under them the colour frames disagree with their
 epipolar geometry by 1.5-2 px (median, frames 16 apart); TUM's come from motion capture.
-Multi-view stereo needs sub-pixel agreement, so before it the poses are polished: the same
+Multi-view stereo needs sub-pixel agreement, so the poses can be polished (``--polish``;
+off by default: on held-out recordings it made good poses worse, and it moved Record3D's
+ARKit poses by up to 38 cm, docs/benchmarks.md, "The validation table"): the same
 dense flow bundle adjustment as the front end (``recon.poses.ba``, DROID-SLAM style), over
 a graph of each frame's temporal neighbours and its best stereo partners, with every pose
 tied to its given value (``ba.PosePrior``). The tie is weak: it holds what flow cannot see
@@ -55,13 +57,17 @@ class PolishConfig:
         that cost at least min_gain times, so poses that already agree with the frames (a
         rendered sequence, a good SfM model) are left exactly as given: polishing is
         limited by the flow's own noise.
-    calibrate_lens: estimate the lens' radial term k1 as well.
+    calibrate_lens: estimate the lens' radial term k1 as well; off by default, since the
+        poses come with intrinsics (a calibration a fitted lens would override: on
+        held-out recordings it came out at k1 = +0.2 for 7-Scenes' and +0.5, its bound,
+        for TUM's calibrated camera, issue 44).
     min_fit: the share of the flow (BA inlier fraction) the poses that come out of the
-        polish (polished, or kept as given) must explain for multi-view depth to trust
-        them (``pose_disagreement``). Under TUM fr1/rpy's motion capture, kept as given,
-        0.65-0.71 of the flow fits and MEDeA's mesh scores F@5cm 0.009-0.049 where the
-        refinement on the prior scores 0.097-0.136; polished TUM 0.80, polished 7-Scenes
-        0.90-0.95 (docs/benchmarks.md, "Given poses that disagree with the frames").
+        polish (polished, or kept as given) should explain; below it ``info["disagreement"]``
+        says so (``pose_disagreement``; report.json only: MEDeA's gate judges the poses in
+        use with ``recon.poses.pose_check``, which needs no polish). Under TUM fr1/rpy's
+        motion capture, kept as given, 0.65-0.71 of the flow fits; polished 7-Scenes
+        0.90-0.95, ScanNet's keyframes 0.50-0.58 (wide baselines: the flow fails, not the
+        poses).
     flow: the DIS flow settings.
     """
 
@@ -73,7 +79,7 @@ class PolishConfig:
     iters: int = 6
     depth_iters: int = 3
     min_gain: float = 1.5
-    calibrate_lens: bool = True
+    calibrate_lens: bool = False
     min_fit: float = 0.75
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
 

@@ -40,7 +40,7 @@ from recon.poses import flow as fl
 from recon.poses import sfm_keyframes as skf
 from recon.poses import sfm_model as sm
 from recon.poses.filler import align_to_keyframes
-from recon.poses.frontend_config import FrontendConfig, make_geometry
+from recon.poses.frontend_config import FrontendConfig, calibrates_lens, make_geometry
 from recon.poses.result import (
     TRUSTED_STATES,
     PoseResult,
@@ -93,7 +93,9 @@ class SfMConfig:
     correction_grid: (rows, cols) of the per-keyframe prior correction from SfM points
         (the keyframe depth used to register the other frames).
     calibrate_lens: estimate the radial term k1 in COLMAP's bundle adjustment (reported as
-        ``lens_k1``, used to register the other frames and by the pipeline to undistort).
+        ``lens_k1``, used to register the other frames and by the pipeline to undistort);
+        None (default): only when the focal length is unknown too
+        (``frontend_config.calibrates_lens``).
     frontend: flow / alignment settings used to choose keyframes (its flow settings,
         ``min_match_correlation`` and ``min_edge_weight`` decide which steps the flow can
         follow) and to register the remaining frames (``lost_inlier`` and the rest).
@@ -112,7 +114,7 @@ class SfMConfig:
     min_registered: float = 0.8
     num_threads: int = 2
     correction_grid: tuple[int, int] = (3, 4)
-    calibrate_lens: bool = True
+    calibrate_lens: bool | None = None
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
 
 
@@ -170,7 +172,7 @@ def _colmap_pipeline(pycolmap, frames, kf_ids, intrinsics, cfg: SfMConfig, workd
         names.append(name)
     height, width = frames[0].shape[:2]
     db = workdir / "database.db"
-    reader, lens = _reader_options(pycolmap, intrinsics, cfg.calibrate_lens)
+    reader, lens = _reader_options(pycolmap, intrinsics, calibrates_lens(cfg.calibrate_lens, intrinsics))
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = max(width, height)

@@ -23,8 +23,8 @@ directions through a video). This module owns that estimate on ordinary frames:
    whose peaks come from a wrong triad scatter and do not form the group.
 
 The principal point is the image centre, as the focal search assumes. The result is
-trusted only when enough frames agree; the front end also checks it against its flow-based
-search (:func:`agrees_with_search`, used by ``recon.poses.frontend``).
+trusted only when enough frames agree; whether the front end takes it over its flow-based
+search is ``recon.poses.focal_choice``'s rule.
 """
 
 from __future__ import annotations
@@ -228,11 +228,5 @@ def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None,
                           trusted)
 
 
-def agrees_with_search(estimate: VanishingFocal, searched: float, window: tuple[float, float]) -> bool:
-    """Whether a trusted estimate lies within ``window`` (low, high) times the focal length
-    `searched` by the flow (``recon.poses.calib``), and so may replace it."""
-    return estimate.trusted and window[0] <= estimate.focal / searched <= window[1]
-
-
-__all__ = ["VanishingConfig", "VanishingFocal", "agreeing_group", "agrees_with_search", "candidate_focals",
+__all__ = ["VanishingConfig", "VanishingFocal", "agreeing_group", "candidate_focals",
            "curve_peak", "estimate_focal_vp", "line_segments", "manhattan_support"]

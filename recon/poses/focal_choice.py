@@ -1,0 +1,95 @@
+"""The focal length of a camera nobody calibrated: the choice between the estimates, the
+range they leave open, and what the user is told.
+
+Two estimates come from the first frames of a video (``recon.poses.frontend`` makes them
+before tracking): the flow-based search (``calib.estimate_focal``: the focal length under
+which a bundle adjustment of the first keyframes fits best) and, in scenes built along
+three orthogonal directions, the vanishing points of the frames' straight edges
+(``vanishing.estimate_focal_vp``). :func:`choose_focal` owns the rule, chosen on every
+recording with published intrinsics (``benchmarks/focal.py``; docs/benchmarks.md, "The
+focal length from nothing"):
+
+* Vanishing points on which at least ``FrontendConfig.vanishing_min_share`` of the frames
+  agree are taken: on the 9 of 19 clips where they were, they came within 3.4 % of the
+  camera's focal length (7-Scenes, the phone's images and video), while the search erred
+  by up to 48 % on the same clips. Below that share they were as often 50-66 % wrong
+  (Record3D) as right.
+* Otherwise the search's value stands (its error: -54 % to +61 %, within 10 % on 10 of
+  the 19 clips).
+* The range the evidence leaves open: with the vanishing points taken, theirs and the
+  search's value; with the search's, every focal length it scored within ``FLAT_SCORE``
+  of its best (a flat score: the frames do not fix f) and the vanishing points' value,
+  trusted or not. Where its ends differ by more than ``DISAGREEMENT`` the warning gives it
+  (report.json: ``poses.diagnostics.focal``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+from recon.poses.calib import FocalSearch
+from recon.poses.vanishing import VanishingFocal
+
+# A range whose ends differ by more than this factor is said in the warning.
+DISAGREEMENT = 1.10
+# Focal lengths whose search score is within this factor of the best one are not ruled out.
+FLAT_SCORE = 1.02
+
+
+@dataclass(frozen=True)
+class FocalChoice:
+    """focal: the value tracking starts from (pixels); source: which estimate it is; low,
+    high: the range the estimates leave open (pixels); candidates: {estimate: focal} of
+    every estimate made (the vanishing points' also when not trusted)."""
+
+    focal: float
+    source: str
+    low: float
+    high: float
+    candidates: dict
+
+    @property
+    def disagree(self) -> bool:
+        return self.high > DISAGREEMENT * self.low
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "disagree": self.disagree}
+
+    def warning(self, width: int) -> str:
+        """The one warning a run with an estimated focal length gives (frames `width` px wide)."""
+        def fov(f: float) -> float:
+            return math.degrees(2 * math.atan(width / (2 * f)))
+
+        text = (f"focal length estimated from the video ({self.source}): {self.focal:.1f} px (horizontal field of "
+                f"view {fov(self.focal):.1f} deg)")
+        if self.disagree:
+            text += (f"; the estimates leave {self.low:.0f}-{self.high:.0f} px open ({fov(self.high):.0f}-"
+                     f"{fov(self.low):.0f} deg), and the frames do not tell where in it the camera is")
+        return (text + ". The mesh's size and shape follow the focal length: pass --fov or --intrinsics if the "
+                "camera is known")
+
+
+def flat_range(search: FocalSearch, flat: float = FLAT_SCORE) -> tuple[float, float]:
+    """(low, high): the focal lengths the search scored within `flat` times its best score."""
+    best = min(score for _, score in search.evaluations) if search.evaluations else math.inf
+    near = [f for f, score in search.evaluations if score <= flat * best] or [search.focal]
+    return min(near), max(near)
+
+
+def choose_focal(search: FocalSearch, vp: VanishingFocal | None, cfg) -> FocalChoice:
+    """The focal length to track with (module docstring), from the flow search's result and
+    the vanishing points' estimate `vp` (None when not made); cfg: the FrontendConfig
+    (``vanishing_min_share``)."""
+    candidates = {"flow": float(search.focal)}
+    if vp is not None and vp.focal > 0:
+        candidates["vanishing points"] = float(vp.focal)
+        if vp.trusted and vp.share >= cfg.vanishing_min_share:
+            values = candidates.values()
+            return FocalChoice(float(vp.focal), "vanishing points", min(values), max(values), candidates)
+    low, high = flat_range(search)
+    values = [low, high, *candidates.values()]
+    return FocalChoice(float(search.focal), "flow", float(min(values)), float(max(values)), candidates)
+
+
+__all__ = ["DISAGREEMENT", "FLAT_SCORE", "FocalChoice", "choose_focal", "flat_range"]
