@@ -48,6 +48,17 @@ def table(headers: list[str], rows: list[list]) -> str:
     return "\n".join([fmt(headers), "|" + "|".join("-" * (w + 2) for w in widths) + "|", *map(fmt, cells)])
 
 
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """A command-line variant "LABEL=RECON RUN ARGS" as (label, argument list)."""
+    import argparse
+    import shlex
+
+    label, _, args = text.partition("=")
+    if not label:
+        raise argparse.ArgumentTypeError(f"expected LABEL=ARGS, got {text!r}")
+    return label, shlex.split(args)
+
+
 def write_json(name: str, payload: dict) -> Path:
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"

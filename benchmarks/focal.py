@@ -1,15 +1,17 @@
-"""The focal length of a video without intrinsics, measured on the real recordings' clips.
+"""The focal length of footage without intrinsics, measured on every recording with known
+intrinsics.
 
-For each clip (the first 80 frames from a start frame: what the front end buffers for its
-focal search, ``8 * calib_keyframes``) this runs what ``recon.poses.frontend`` runs before
-tracking: the lens from straight edges (``plumb_line``), the flow-based focal search
-through it (``calib.estimate_focal``), the focal length from vanishing points
-(``vanishing.estimate_focal_vp``) and the front end's choice between the two
-(``vanishing.agrees_with_search`` with ``FrontendConfig.vanishing_window``); each against
-the focal length the dataset's reader gives (7-Scenes' colour camera ~525 px, TUM fr1's
-calibration 517.3 px). The search's depth prior is FastDepth's, run at the reader's focal
-length. Clips start every 50 frames of 7-Scenes redkitchen 0-399 (and at 320) and at 0,
-10 and 20 of TUM fr1/rpy.
+For each clip (up to 80 frames from a start frame: what the front end buffers for its
+focal search, ``8 * calib_keyframes``; fewer where the recording or segment is shorter)
+this runs what ``recon.poses.frontend`` runs before tracking: the lens from straight edges
+(``plumb_line``), the flow-based focal search through it (``calib.estimate_focal``), the
+focal length from vanishing points (``vanishing.estimate_focal_vp``) and the front end's
+choice between them (``recon.poses.focal_choice``); each against the focal length the
+recording publishes (7-Scenes' colour camera ~525 px, TUM fr1's calibration, ScanNet's,
+Record3D's ARKit K, KITTI's P0, the phone model's median COLMAP camera), at the working
+width of 640 px the pipeline uses. The frames are the recordings' own images (the phone
+video's decoded frames for ``phone-video``), resized to that width. The search's depth
+prior is FastDepth's.
 
 Usage: python benchmarks/focal.py [--clips 7scenes@0 tum@10 ...] [--json focal]
 Prints a table, writes benchmarks/results/<json>.json.
@@ -30,23 +32,47 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import machine, say, table, write_json  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-RECORDINGS = {"7scenes": DATA / "7scenes-redkitchen", "tum": DATA / "tum-fr1-rpy"}
-CLIPS = [f"7scenes@{s}" for s in (0, 50, 100, 150, 200, 250, 300, 320)] + [f"tum@{s}" for s in (0, 10, 20)]
+WIDTH = 640
+# recording: (dataset folder, footage: None = the dataset's images, else a video under DATA)
+RECORDINGS = {"7scenes": ("7scenes-redkitchen", None), "tum": ("tum-fr1-rpy", None),
+              "scannet": ("scannet-scene0005_00", None), "record3d": ("record3d-door-handle", None),
+              "kitti": ("kitti-odometry-seq1", None), "phone": ("phone-beer", None),
+              "phone-video": ("phone-beer", "phone-beer/Beer.mp4")}
+# recording@start[+frames]: at most 80 frames (the focal search's buffer) unless told.
+CLIPS = ([f"7scenes@{s}" for s in (0, 100, 200, 300)] + ["tum@0", "tum@20", "scannet@0+29", "scannet@29+29"]
+         + [f"record3d@{s}" for s in (0, 100, 200)] + ["kitti@0+25", "kitti@25+26", "phone@0+35", "phone@35+36"]
+         + [f"phone-video@{s}" for s in (0, 200, 400, 600)])
+
+
+def clip_frames(recording: str, start: int, count: int) -> tuple[list[np.ndarray], float]:
+    """The clip's frames at the working width and the published focal length at that width."""
+    from recon.io.datasets import open_dataset
+    from recon.io.frames import open_source
+    from recon.io.source import resize_rgb, size_at_width
+
+    folder, video = RECORDINGS[recording]
+    dataset = open_dataset(DATA / folder)
+    true_f = float(dataset.intrinsics[0]) * WIDTH / dataset.width
+    if video is not None:
+        source = open_source(DATA / video, width=WIDTH)
+        frames = [f.rgb for _, f in zip(range(start + count), source)][start:]
+        return frames, true_f
+    shape = size_at_width(dataset.height, dataset.width, WIDTH)
+    stop = min(start + count, len(dataset))
+    return [resize_rgb(dataset.rgb(i), shape) for i in range(start, stop)], true_f
 
 
 def measure_clip(name: str, prior_model) -> dict:
-    from recon.io.datasets import open_dataset
-    from recon.poses import vanishing
+    from recon.poses import focal_choice, vanishing
     from recon.poses.calib import estimate_focal
     from recon.poses.frontend_config import FrontendConfig
     from recon.poses.plumb_line import estimate_lens
     from recon.poses.result import PriorSource
 
-    recording, start = name.split("@")
-    dataset = open_dataset(RECORDINGS[recording])
+    recording, _, span = name.partition("@")
+    start, _, count = span.partition("+")
     cfg = FrontendConfig()
-    frames = [dataset.rgb(i) for i in range(int(start), min(int(start) + 8 * cfg.calib_keyframes, len(dataset)))]
-    true_f = float(dataset.intrinsics[0])
+    frames, true_f = clip_frames(recording, int(start), int(count) if count else 8 * cfg.calib_keyframes)
     height, width = frames[0].shape[:2]
     prior = PriorSource(prior_model(np.stack(frames), np.array((true_f, true_f, (width - 1) / 2, (height - 1) / 2)))
                         .depth)
@@ -57,16 +83,17 @@ def measure_clip(name: str, prior_model) -> dict:
     t2 = time.perf_counter()
     vp = vanishing.estimate_focal_vp(frames, lens)
     t3 = time.perf_counter()
-    used = vanishing.agrees_with_search(vp, search.focal, cfg.vanishing_window)
-    chosen = vp.focal if used else search.focal
+    choice = focal_choice.choose_focal(search, vp, cfg)
 
     def error(f: float) -> float | None:
         return 100.0 * (f / true_f - 1.0) if f > 0 else None
 
     return {"clip": name, "frames": len(frames), "true_focal": true_f, "lens_corner_shift": lens.corner_shift,
             "lens_trusted": lens.trusted, "search_focal": search.focal, "search_error_pct": error(search.focal),
-            "vp_focal": vp.focal, "vp_error_pct": error(vp.focal), "vp": vp.to_dict(), "vp_used": used,
-            "chosen_focal": chosen, "chosen_error_pct": error(chosen),
+            "search_evaluations": search.evaluations,
+            "vp_focal": vp.focal, "vp_error_pct": error(vp.focal), "vp": vp.to_dict(), "choice": choice.to_dict(),
+            "chosen_focal": choice.focal, "chosen_error_pct": error(choice.focal),
+            "range_holds_truth": choice.low <= true_f <= choice.high,
             "seconds": {"lens": t1 - t0, "search": t2 - t1, "vanishing_points": t3 - t2}}
 
 
@@ -75,7 +102,7 @@ def main() -> None:
     parser.add_argument("--clips", nargs="*", default=CLIPS)
     parser.add_argument("--json", default="focal")
     args = parser.parse_args()
-    missing = [str(p) for p in RECORDINGS.values() if not p.is_dir()]
+    missing = [folder for folder, _ in RECORDINGS.values() if not (DATA / folder).is_dir()]
     if missing:
         sys.exit(f"focal.py: needs the recordings in ../shared/data; missing: {', '.join(missing)}")
     from recon.priors import make_prior
@@ -90,11 +117,12 @@ def main() -> None:
     def pct(v: float | None) -> str:
         return "-" if v is None else f"{v:+.1f} %"
 
-    print(table(["clip", "flow search", "vanishing points", "agreeing frames", "trusted", "used", "chosen",
-                 "s (lens / search / vp)"],
+    print(table(["clip", "flow search", "vanishing points", "agreeing frames", "trusted", "chosen", "from",
+                 "range (true in it)", "s (lens / search / vp)"],
                 [[r["clip"], pct(r["search_error_pct"]), pct(r["vp_error_pct"]),
                   f"{r['vp']['agreeing']} / {r['vp']['frames']} ({r['vp']['share']:.2f})", r["vp"]["trusted"],
-                  r["vp_used"], pct(r["chosen_error_pct"]),
+                  pct(r["chosen_error_pct"]), r["choice"]["source"],
+                  f"{r['choice']['low']:.0f}-{r['choice']['high']:.0f} ({r['range_holds_truth']})",
                   " / ".join(f"{v:.1f}" for v in r["seconds"].values())] for r in rows]))
     path = write_json(args.json, {"machine": machine(), "rows": rows})
     print(f"wrote {path}")

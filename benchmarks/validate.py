@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import subprocess
 import sys
 import time
@@ -40,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import machine, say, table, write_json  # noqa: E402
+from benchmarks.common import machine, parse_variant, say, table, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -173,7 +172,8 @@ def recon(*args: str, code: Path | None = None, timeout: float = RUN_TIMEOUT_S) 
     import os
 
     cmd = [str(Path(sys.executable).with_name("recon")), *args]
-    env = dict(os.environ, PYTHONPATH=str(code)) if code is not None else None
+    # A crash (issue 46 saw a segmentation fault now and then) leaves the Python stack on stderr.
+    env = dict(os.environ, PYTHONFAULTHANDLER="1", **({"PYTHONPATH": str(code)} if code is not None else {}))
     try:
         # Not from this checkout's folder, which would come first on the import path.
         return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd="/")
@@ -254,7 +254,9 @@ def run_one(rec: Recording, mode: str, segment: int, variant: list[str], work: P
     row = {"recording": rec.name, "mode": mode, "segment": f"{first}-{first + count - 1}", "exit": done.returncode,
            "wall_s": time.perf_counter() - t0, "warnings": warnings_of(done.stderr), "args": args[1:]}
     if done.returncode != 0:
-        row["error"] = (done.stderr.strip().splitlines() or ["?"])[-1]
+        lines = done.stderr.strip().splitlines() or ["?"]
+        row["error"] = f"signal {-done.returncode}" if done.returncode < 0 else lines[-1]
+        row["stderr_tail"] = lines[-40:]
         return row
     row.update(scores(rec, mode, out))
     return row
@@ -302,13 +304,6 @@ def comparison(rows: list[dict], baseline: str) -> list[str]:
                      f"{np.mean(da) if da else 0:+.4f} on average, at most {max(da, default=0):+.4f}; runs that fail "
                      f"only here: {broke or 'none'}")
     return lines
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    label, _, args = text.partition("=")
-    if not label:
-        raise argparse.ArgumentTypeError(f"expected LABEL=ARGS, got {text!r}")
-    return label, shlex.split(args)
 
 
 def main() -> None:

@@ -26,14 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import subprocess
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import machine, table, write_json  # noqa: E402
+from benchmarks.common import machine, parse_variant, table, write_json  # noqa: E402
 from benchmarks.stream import ping_pong_video  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,13 +79,6 @@ def run_clip(video: Path, dataset: Path, selection: list[str], variant: list[str
             "fscore_icp": scores["mesh"]["fscore"], "icp": scores.get("mesh_icp"),
             "trajectory_scale": trajectory.get("scale"), "ate_sim3": trajectory.get("rmse"),
             "focal": report["intrinsics"]["values"][0], "lens_k1": report["poses"].get("lens_k1")}
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    label, _, args = text.partition("=")
-    if not label:
-        raise argparse.ArgumentTypeError(f"expected LABEL=ARGS, got {text!r}")
-    return label, shlex.split(args)
 
 
 def main() -> None:
