@@ -198,6 +198,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
            "peak_rss_mb": report.get("memory", {}).get("peak_rss_mb"),
            "focal": report["intrinsics"]["values"][0], "focal_source": report["intrinsics"]["source"],
            "focal_error_pct": 100.0 * (report["intrinsics"]["values"][0] / true_focal(rec, width) - 1.0),
+           **focal_range(report, true_focal(rec, width)),
            "lens_k1": report.get("poses", {}).get("lens_k1"),
            "medea_skipped": report.get("medea", {}).get("skipped") or report.get("windows", {}).get("medea_skipped"),
            "polished": report.get("poses", {}).get("polish", {}).get("polished")}
@@ -230,6 +231,16 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
                    scale_error=t["scale_error"] if rec.metric else None,
                    **(moved(estimated, given) if estimated.shape == given.shape else {}))
     return row
+
+
+def focal_range(report: dict, truth: float) -> dict:
+    """The range an estimated focal length's warning gives (recon.poses.focal_choice), and
+    whether it holds the true value: the acceptance of a focal length off by more than 10 %."""
+    choice = report.get("poses", {}).get("diagnostics", {}).get("focal")
+    if not choice:
+        return {}
+    return {"focal_range": [choice["low"], choice["high"]], "focal_range_said": choice["disagree"],
+            "focal_range_holds": bool(choice["disagree"] and choice["low"] <= truth <= choice["high"])}
 
 
 def moved(estimated: np.ndarray, given: np.ndarray) -> dict:
@@ -273,6 +284,16 @@ HEADERS = ["recording", "mode", "frames", "variant", "exit", "F@5cm", "(+ICP)", 
            "ATE Sim3 %path", "scale err", "focal err % / poses moved", "s/frame", "poses s/fr", "peak MB", "warn"]
 
 
+def focal_cell(r: dict) -> str:
+    """The focal error, and where it is over 10 %, whether the warning's range holds the truth."""
+    error = r.get("focal_error_pct")
+    if error is None or abs(error) <= 10:
+        return fmt(error, "+.1f")
+    verdict = ("range holds it" if r.get("focal_range_holds") else
+               "range misses it" if r.get("focal_range_said") else "no range said")
+    return f"{error:+.1f} ({verdict})"
+
+
 def table_row(r: dict) -> list[str]:
     if r["exit"] != 0:
         return [r["recording"], r["mode"], r["segment"], r["variant"], str(r["exit"]), r.get("error", "")[:60],
@@ -280,7 +301,7 @@ def table_row(r: dict) -> list[str]:
     return [r["recording"], r["mode"], r["segment"], r["variant"], "0", fmt(r.get("fscore"), ".3f"),
             fmt(r.get("fscore_icp"), ".3f"), fmt(r.get("abs_rel"), ".4f"), fmt(r.get("ate_se3"), ".3f"),
             fmt(r.get("ate_sim3_pct"), ".1f"), fmt(r.get("scale_error"), ".3f"),
-            fmt(r.get("focal_error_pct"), "+.1f") if r["mode"] == "nothing" else
+            focal_cell(r) if r["mode"] == "nothing" else
             f"{fmt(r.get('trajectory_moved_m'), '.3f')} m {fmt(r.get('trajectory_turned_deg'), '.2f')} deg",
             fmt(r.get("s_per_frame"), ".3f"), fmt(r.get("pose_s_per_frame"), ".3f"),
             fmt(r.get("peak_rss_mb"), ".0f"), str(len(r["warnings"]))]
