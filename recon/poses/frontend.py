@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler, plumb_line, vanishing
+from recon.poses import ba, backend, filler, plumb_line, scale_watch, vanishing
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
@@ -224,13 +224,17 @@ class StreamingFrontend:
         for k, i in enumerate(g.frames):
             s.frame_T[i] = g.poses([k])[0]
         scale = backend.metric_rescale(s)
+        prior, prior_w = g.priors()
+        watch = scale_watch.watch_scale(g.disps().numpy(), prior.numpy(), (prior_w > 0).numpy(), g.frames)
+        if watch.breaks:
+            log.warning(watch.describe())
         T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),
             keyframes=np.array(g.frames, dtype=np.int64),
             seconds=0.0,
-            diagnostics={**self.diagnostics, **self._diagnostics(scale)},
+            diagnostics={**self.diagnostics, **self._diagnostics(scale), "scale_watch": watch.to_dict()},
             keyframe_depth=(1.0 / g.disps()).float().numpy(),
         )
 

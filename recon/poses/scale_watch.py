@@ -1,0 +1,195 @@
+"""Where a monocular trajectory's scale breaks: the map's depth against the metric prior's,
+keyframe by keyframe.
+
+A monocular front end has two independent measures of how far things are: the bundle
+adjustment's depth of its keyframes (scale-free, carried from keyframe to keyframe by the
+flow) and the depth network's prior (metric, but noisy frame by frame). While tracking
+holds, their ratio wanders only by the prior's own noise; where the map's scale slips (a
+textureless stretch, a fast turn, a rotation without parallax), the ratio steps or drifts
+and stays there, because everything the map builds after that inherits the slip. The
+metric rescale (``backend.metric_rescale``) can take out one global factor, not a step:
+the trajectory then comes back with one stretch at the right size and another at a
+fraction of it. This is the check ORB-SLAM and DROID-SLAM users do by hand when they plot
+the map's depth against a depth sensor; here the depth prior stands in for the sensor.
+
+:func:`keyframe_log_ratios` measures the ratio per keyframe (robust median over its
+pixels); :func:`find_breaks` finds the steps that the prior's noise cannot explain (a
+change-point test on running medians, in the spirit of CUSUM-style monitoring) and
+:func:`watch_scale` returns both, with each keyframe's ratio against the run's median, for
+the report and the viewer's timeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+# The standard error of a median of n samples of a normal variable is about this many
+# standard deviations over sqrt(n).
+_MEDIAN_EFFICIENCY = 1.2533
+# MAD to standard deviation for normal data.
+_MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class ScaleWatchConfig:
+    """window: keyframes on each side of a candidate step whose medians are compared;
+    min_step: the smallest step (as a factor) called a break, whatever the noise: a few
+        percent of scale change over a video is within what the prior's scale error does;
+    z: how many standard errors the step must exceed (the prior's noise measured on the run
+        itself, from keyframe to keyframe);
+    min_keyframes: fewer keyframes than this are not judged (too little to tell noise from a
+        step)."""
+
+    window: int = 8
+    min_step: float = 1.25
+    z: float = 5.0
+    min_keyframes: int = 16
+
+
+@dataclass(frozen=True)
+class ScaleBreak:
+    """A step in the map-to-prior depth ratio: between keyframes ``before`` and ``after``
+    (frame indices), the map's depth changes by ``factor`` relative to the prior's (< 1: the
+    map shrinks after it); ``z``: the step in standard errors of the prior's noise."""
+
+    before: int
+    after: int
+    factor: float
+    z: float
+
+
+@dataclass
+class ScaleWatch:
+    """What report.json says: per keyframe (``frames``) the map's depth against the prior's,
+    divided by the run's median (1 = at the run's scale); ``noise``: the prior's scale noise
+    from keyframe to keyframe (standard deviation of the log ratio); ``breaks``; ``judged``:
+    whether there were enough keyframes to judge."""
+
+    frames: list[int]
+    ratio: list[float]
+    noise: float
+    breaks: list[ScaleBreak] = field(default_factory=list)
+    judged: bool = True
+
+    def to_dict(self) -> dict:
+        return {"frames": self.frames, "ratio": [round(r, 4) for r in self.ratio], "noise": self.noise,
+                "breaks": [asdict(b) for b in self.breaks], "judged": self.judged}
+
+    def frame_verdicts(self, count: int) -> list[str]:
+        """Per frame of a run of `count` frames: "ok", or "after break N" from the first frame
+        after break N on (N = 1, 2, ...), so that a viewer or a report can colour the stretches."""
+        verdict = ["ok"] * count
+        for n, b in enumerate(self.breaks, start=1):
+            for i in range(b.after, count):
+                verdict[i] = f"after break {n}"
+        return verdict
+
+    def describe(self) -> str:
+        """One sentence naming the breaks' frames and factors (empty without breaks)."""
+        if not self.breaks:
+            return ""
+        steps = ", ".join(f"x{b.factor:.2f} between frames {b.before} and {b.after}" for b in self.breaks[:4])
+        more = f" and {len(self.breaks) - 4} more" if len(self.breaks) > 4 else ""
+        return (f"the map's scale against the depth prior's steps {steps}{more}, beyond the prior's own noise "
+                f"({100 * self.noise:.0f} % a keyframe): the trajectory's stretches on either side are at different "
+                f"scales")
+
+
+def keyframe_log_ratios(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """log(prior depth / map depth) per keyframe, the median over its valid pixels.
+
+    map_disp, prior_disp: (K, h, w) inverse depths of the keyframes (the map's and the
+    prior's); valid: (K, h, w) bool, pixels where the prior has depth. Returns (K,) float64,
+    NaN for a keyframe without valid pixels."""
+    ratio = np.log(np.asarray(map_disp, np.float64) / np.asarray(prior_disp, np.float64))
+    ratio = np.where(np.asarray(valid, bool) & np.isfinite(ratio), ratio, np.nan)
+    flat = ratio.reshape(len(ratio), -1)
+    out = np.full(len(flat), np.nan)
+    has = ~np.isnan(flat).all(axis=1)
+    out[has] = np.nanmedian(flat[has], axis=1)
+    return out
+
+
+def log_noise(log_ratio: np.ndarray) -> float:
+    """Standard deviation of the prior's per-keyframe scale noise, robustly from the
+    differences of neighbouring keyframes (a step adds one outlier difference, not a bias)."""
+    diffs = np.diff(log_ratio[np.isfinite(log_ratio)])
+    if diffs.size == 0:
+        return float("nan")
+    return float(_MAD_TO_SIGMA * np.median(np.abs(diffs - np.median(diffs))) / np.sqrt(2.0))
+
+
+def step_statistics(log_ratio: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """(steps, positions): for each k with ``window`` keyframes on each side, the median of
+    log_ratio[k:k+window] minus that of log_ratio[k-window:k]. log_ratio: (K,) without NaN."""
+    K = len(log_ratio)
+    positions = np.arange(window, K - window + 1)
+    if positions.size == 0:
+        return np.zeros(0), positions
+    windows = np.lib.stride_tricks.sliding_window_view(log_ratio, window)  # (K - window + 1, window)
+    medians = np.median(windows, axis=1)
+    return medians[positions] - medians[positions - window], positions
+
+
+def split_point(log_ratio: np.ndarray, k: int, window: int) -> int:
+    """Where exactly a step found at k lies: medians of windows move only once half a window
+    has crossed the step, so several k around it score alike. The split of
+    log_ratio[k-window : k+window] into two runs that fits them best (least absolute
+    deviations from each run's median) names the first keyframe after the step."""
+    lo = max(k - window, 0)
+    span = log_ratio[lo: k + window]
+    costs = [np.abs(span[:c] - np.median(span[:c])).sum() + np.abs(span[c:] - np.median(span[c:])).sum()
+             for c in range(1, len(span))]
+    return lo + 1 + int(np.argmin(costs))
+
+
+def find_breaks(log_ratio: np.ndarray, frames: np.ndarray, cfg: ScaleWatchConfig, noise: float) -> list[ScaleBreak]:
+    """Steps of log_ratio (K,) larger than ``cfg.min_step`` and ``cfg.z`` standard errors of
+    `noise`, one per run of significant positions (at its largest step), greedily from the
+    largest. frames: (K,) frame index of each keyframe."""
+    steps, positions = step_statistics(log_ratio, cfg.window)
+    if steps.size == 0:
+        return []
+    std_error = _MEDIAN_EFFICIENCY * max(noise, 1e-6) * np.sqrt(2.0 / cfg.window)
+    z = np.abs(steps) / std_error
+    significant = (z >= cfg.z) & (np.abs(steps) >= np.log(cfg.min_step))
+    breaks = []
+    taken = np.zeros(len(steps), dtype=bool)
+    for n in np.argsort(-np.abs(steps)):
+        if not significant[n] or taken[max(0, n - cfg.window + 1): n + cfg.window].any():
+            continue
+        taken[n] = True
+        k = split_point(log_ratio, int(positions[n]), cfg.window)
+        breaks.append(ScaleBreak(before=int(frames[k - 1]), after=int(frames[k]), factor=float(np.exp(-steps[n])),
+                                 z=float(z[n])))
+    return sorted(breaks, key=lambda b: b.after)
+
+
+def watch_scale(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray, frames,
+                cfg: ScaleWatchConfig | None = None) -> ScaleWatch:
+    """The scale check of a front-end map (module docstring).
+
+    map_disp, prior_disp, valid: (K, h, w) as in :func:`keyframe_log_ratios`; frames: (K,)
+    the keyframes' frame indices, increasing. A break's factor is how the map's depth
+    changes against the prior's across it: x0.5 means everything after it is mapped at half
+    the size of what came before."""
+    cfg = cfg or ScaleWatchConfig()
+    frames = np.asarray(frames, dtype=np.int64)
+    log_ratio = keyframe_log_ratios(map_disp, prior_disp, valid)
+    ok = np.isfinite(log_ratio)
+    frames, log_ratio = frames[ok], log_ratio[ok]
+    if log_ratio.size == 0:
+        return ScaleWatch([], [], float("nan"), judged=False)
+    noise = log_noise(log_ratio)
+    # The ratio is reported as the map's size against the prior's: exp(-log(prior/map)).
+    centred = np.exp(-(log_ratio - np.median(log_ratio)))
+    watch = ScaleWatch(frames.tolist(), centred.tolist(), noise, judged=log_ratio.size >= cfg.min_keyframes)
+    if watch.judged:
+        watch.breaks = find_breaks(log_ratio, frames, cfg, noise)
+    return watch
+
+
+__all__ = ["ScaleBreak", "ScaleWatch", "ScaleWatchConfig", "find_breaks", "keyframe_log_ratios", "log_noise",
+           "split_point", "step_statistics", "watch_scale"]

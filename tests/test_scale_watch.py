@@ -1,0 +1,82 @@
+"""The map-against-prior scale check (recon.poses.scale_watch): a step the prior's noise
+cannot explain is found where it is, with its factor; noise alone, a constant offset or a
+short run is not called a break."""
+
+import numpy as np
+import pytest
+
+from recon.poses.scale_watch import ScaleWatchConfig, keyframe_log_ratios, log_noise, watch_scale
+
+
+def _keyframes(log_scale: np.ndarray, seed: int = 0, noise: float = 0.08, shape=(12, 16)):
+    """Map and prior inverse depths of K keyframes: the prior a room's depth with a per-keyframe
+    log-normal scale error (`noise`) and per-pixel error; the map the true depth divided by
+    exp(log_scale[k]) (its scale against the truth, per keyframe)."""
+    rng = np.random.default_rng(seed)
+    K = len(log_scale)
+    depth = rng.uniform(1.0, 4.0, (K, *shape))
+    prior = depth * np.exp(rng.normal(0, noise, (K, 1, 1)) + rng.normal(0, 0.15, (K, *shape)))
+    mapped = depth * np.exp(np.asarray(log_scale))[:, None, None]
+    valid = rng.uniform(size=(K, *shape)) > 0.1
+    return 1.0 / mapped, 1.0 / prior, valid
+
+
+def test_the_ratio_is_the_median_over_valid_pixels():
+    map_disp = np.full((2, 3, 3), 2.0)
+    prior_disp = np.ones((2, 3, 3))
+    prior_disp[0, 0, 0] = 1e-3  # an outlier pixel: the median ignores it
+    valid = np.ones((2, 3, 3), bool)
+    valid[1] = False
+    ratio = keyframe_log_ratios(map_disp, prior_disp, valid)
+    assert ratio[0] == pytest.approx(np.log(2.0)) and np.isnan(ratio[1])
+
+
+def test_a_step_is_found_where_it_is_with_its_factor():
+    """The HoloLens walk-through's second stretch came back at 0.66 of the first's scale."""
+    log_scale = np.r_[np.zeros(30), np.full(30, np.log(0.66))]
+    frames = np.arange(60) * 4 + 10
+    watch = watch_scale(*_keyframes(log_scale), frames)
+    assert watch.judged and len(watch.breaks) == 1
+    b = watch.breaks[0]
+    assert b.after == frames[30] and b.before == frames[29] and b.factor == pytest.approx(0.66, rel=0.08)
+    assert 0.04 < watch.noise < 0.14  # the prior's 8 % per keyframe, measured from the run
+    verdicts = watch.frame_verdicts(frames[-1] + 1)
+    assert verdicts[b.before] == "ok" and verdicts[b.after] == "after break 1" and verdicts[-1] == "after break 1"
+    assert "x0.6" in watch.describe() and str(b.after) in watch.describe()
+
+
+def test_two_steps_both_ways():
+    """Scale 1 -> 0.66 -> 7.1 -> 0.5 (the walk-through's stretches): three breaks, in order."""
+    log_scale = np.log(np.r_[np.ones(20), np.full(15, 0.66), np.full(15, 4.7), np.full(20, 2.4)])
+    watch = watch_scale(*_keyframes(log_scale, seed=3), np.arange(70))
+    assert [b.after for b in watch.breaks] == pytest.approx([20, 35, 50], abs=2)
+    assert [b.factor for b in watch.breaks] == pytest.approx([0.66, 4.7 / 0.66, 2.4 / 4.7], rel=0.1)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noise_and_a_constant_offset_are_no_break(seed):
+    """A map at a constant 0.4 of the prior's scale (the rescale takes that out) with the
+    prior's per-keyframe noise: no break, on any of five draws."""
+    watch = watch_scale(*_keyframes(np.full(80, np.log(0.4)), seed=seed, noise=0.12), np.arange(80))
+    assert watch.breaks == [] and np.median(watch.ratio) == pytest.approx(1.0, rel=1e-3)
+
+
+def test_a_small_step_is_no_break_however_clean():
+    """A 10 % step is within what the prior's scale error does over a video: not a break,
+    even without noise."""
+    watch = watch_scale(*_keyframes(np.r_[np.zeros(30), np.full(30, np.log(0.9))], noise=0.0), np.arange(60))
+    assert watch.breaks == []
+
+
+def test_too_few_keyframes_are_not_judged():
+    watch = watch_scale(*_keyframes(np.r_[np.zeros(7), np.full(7, np.log(0.3))]), np.arange(14))
+    assert not watch.judged and watch.breaks == []
+    assert watch_scale(*_keyframes(np.zeros(40)), np.arange(40), ScaleWatchConfig(min_keyframes=50)).judged is False
+
+
+def test_noise_is_measured_from_neighbouring_keyframes():
+    rng = np.random.default_rng(1)
+    steady = rng.normal(0, 0.1, 2000)
+    assert log_noise(steady) == pytest.approx(0.1, rel=0.08)
+    stepped = steady + np.r_[np.zeros(1000), np.full(1000, 1.0)]
+    assert log_noise(stepped) == pytest.approx(0.1, rel=0.08)  # one step, one outlier difference
