@@ -303,11 +303,19 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what
     report.json says of it, and the note naming the frames left out ("" when none)."""
     from .poses.quality import gate_trajectory
+    from .poses.scale_watch import ScaleWatch
 
     gate = gate_trajectory(result)
+    names = [int(i) for i in frame_indices]
+    diagnostics = {k: v for k, v in result.diagnostics.items() if k != "scale_watch"}
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
-            "diagnostics": {k: v for k, v in result.diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
-            "quality": gate.summary([int(i) for i in frame_indices])}
+            "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
+            "quality": gate.summary(names)}
+    if "scale_watch" in result.diagnostics:
+        watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
+        info["scale_watch"] = {**watch.renumbered(names).to_dict(), "frame_verdicts": watch.frame_verdicts(len(names))}
+        if watch.breaks:
+            log.warning("%s (report.json: poses.scale_watch)", watch.renumbered(names).describe())
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
@@ -335,7 +343,11 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
     if not status:
         return None
     why = {d["frame"]: d["reason"] for d in stage.info.get("quality", {}).get("dropped_frames", [])}
-    return [(int(i), f"dropped: {why[int(i)]}" if int(i) in why else state, stage.poses[k])
+    # The scale check's verdict rides along, so that the timeline shows which stretch a
+    # frame's pose belongs to when the trajectory's scale breaks (recon.poses.scale_watch).
+    scale = stage.info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * len(status)
+    return [(int(i), (f"dropped: {why[int(i)]}" if int(i) in why else state)
+             + ("" if scale[k] == "ok" else f"; scale {scale[k]}"), stage.poses[k])
             for k, (i, state) in enumerate(zip(seq.indices, status))]
 
 

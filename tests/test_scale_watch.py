@@ -80,3 +80,30 @@ def test_noise_is_measured_from_neighbouring_keyframes():
     assert log_noise(steady) == pytest.approx(0.1, rel=0.08)
     stepped = steady + np.r_[np.zeros(1000), np.full(1000, 1.0)]
     assert log_noise(stepped) == pytest.approx(0.1, rel=0.08)  # one step, one outlier difference
+
+
+def test_the_pipeline_says_a_break_in_the_videos_frame_numbers(caplog):
+    """recon.stages.gate_estimate renames the front end's frame positions to the video's frame
+    numbers (a run from frame 100, every 2nd frame), warns once, and puts each frame's verdict
+    in report.json and on the tracking timeline."""
+    import logging
+    from types import SimpleNamespace
+
+    from recon.poses.result import PoseResult
+    from recon.stages import PoseStage, gate_estimate, tracking_states
+
+    n = 60
+    watch = watch_scale(*_keyframes(np.r_[np.zeros(30), np.full(30, np.log(0.5))]), np.arange(n))
+    result = PoseResult(np.tile(np.eye(4), (n, 1, 1)), (500.0, 500.0, 320.0, 240.0), np.arange(n), 1.0,
+                        {"method": "frontend", "frame_status": ["tracked"] * n, "scale_watch": watch.to_dict()})
+    video_frames = np.arange(100, 100 + 2 * n, 2)
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        kept, info, _ = gate_estimate(result, video_frames)
+    said = [r.getMessage() for r in caplog.records if "scale" in r.getMessage()]
+    assert kept.all() and len(said) == 1 and "between frames 158 and 160" in said[0]
+    assert "scale_watch" not in info["diagnostics"]
+    assert info["scale_watch"]["breaks"][0]["after"] == 160 and info["scale_watch"]["frames"][0] == 100
+    assert info["scale_watch"]["frame_verdicts"][29:31] == ["ok", "after break 1"]
+    stage = PoseStage(result.poses, result.intrinsics, "estimated", {**info, "frame_status": ["tracked"] * n})
+    states = tracking_states(stage, SimpleNamespace(indices=video_frames))
+    assert states[29][1] == "tracked" and states[30][:2] == (160, "tracked; scale after break 1")

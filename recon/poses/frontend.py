@@ -225,9 +225,8 @@ class StreamingFrontend:
             s.frame_T[i] = g.poses([k])[0]
         scale = backend.metric_rescale(s)
         prior, prior_w = g.priors()
+        # Said by the caller, which knows the video's frame numbers (recon.stages.gate_estimate).
         watch = scale_watch.watch_scale(g.disps().numpy(), prior.numpy(), (prior_w > 0).numpy(), g.frames)
-        if watch.breaks:
-            log.warning(watch.describe())
         T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
         return PoseResult(
             poses=invert_poses(T_cw),

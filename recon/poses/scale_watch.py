@@ -21,7 +21,7 @@ the report and the viewer's timeline.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -77,13 +77,24 @@ class ScaleWatch:
         return {"frames": self.frames, "ratio": [round(r, 4) for r in self.ratio], "noise": self.noise,
                 "breaks": [asdict(b) for b in self.breaks], "judged": self.judged}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "ScaleWatch":
+        return cls(list(d["frames"]), list(d["ratio"]), d["noise"], [ScaleBreak(**b) for b in d["breaks"]],
+                   d["judged"])
+
+    def renumbered(self, names) -> "ScaleWatch":
+        """The same with frame positions (0..N-1 of the frames tracked) replaced by names[i]
+        (the video's frame numbers)."""
+        return ScaleWatch([int(names[i]) for i in self.frames], self.ratio, self.noise,
+                          [replace(b, before=int(names[b.before]), after=int(names[b.after])) for b in self.breaks],
+                          self.judged)
+
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or "after break N" from the first frame
         after break N on (N = 1, 2, ...), so that a viewer or a report can colour the stretches."""
         verdict = ["ok"] * count
         for n, b in enumerate(self.breaks, start=1):
-            for i in range(b.after, count):
-                verdict[i] = f"after break {n}"
+            verdict[b.after:] = [f"after break {n}"] * max(count - b.after, 0)
         return verdict
 
     def describe(self) -> str:
