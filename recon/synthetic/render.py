@@ -30,6 +30,12 @@ _AMBIENT = 0.35
 _CHUNK_PIXELS = 1_250_000  # pixels ray-cast and shaded per batch: ~150 MB of temporaries
 
 
+def room_lights(centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The room's ceiling lights for a room whose floor centre is `centre` (3,): positions
+    (3, 3) float32 and powers (3,) float32."""
+    return _LIGHTS + np.asarray(centre, dtype=np.float32), _LIGHT_POWER.copy()
+
+
 @dataclass
 class SyntheticSequence:
     """A rendered sequence with its ground truth.
@@ -112,12 +118,12 @@ def _pick(axis: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.n
     return np.where(axis == 0, x, np.where(axis == 1, y, z))
 
 
-def _irradiance(px, py, pz, axis, facing, p_axis) -> np.ndarray:
+def _irradiance(px, py, pz, axis, facing, p_axis, lights=_LIGHTS, powers=_LIGHT_POWER) -> np.ndarray:
     """Lambertian irradiance (P,) from ambient light and point lights at points (px, py, pz)
     on axis-aligned faces whose visible normal is `facing` (+1/-1) along `axis`; p_axis is
-    the points' coordinate along that axis."""
+    the points' coordinate along that axis. lights: (L, 3) float32 positions, powers (L,)."""
     irradiance = np.full(len(px), _AMBIENT, dtype=np.float32)
-    for light, power in zip(_LIGHTS, _LIGHT_POWER):
+    for light, power in zip(lights, powers):
         dist2 = np.square(light[0] - px)
         dist2 += np.square(light[1] - py)
         dist2 += np.square(light[2] - pz)
@@ -161,13 +167,21 @@ def _encode(linear: np.ndarray) -> np.ndarray:
 _SHADE_BLOCK = 16384
 
 
-class _Renderer:
-    """Renders frames of one scene; holds the ray-casting scene, per-triangle data and textures."""
+class Renderer:
+    """Renders frames of one scene; holds the ray-casting scene, per-triangle data and textures.
+
+    lights: point lights as positions (L, 3) and powers (L,), default the room's three
+    ceiling lights (recon.synthetic.walkthrough lights several rooms).
+    """
 
     def __init__(
-        self, vertices, triangles, triangle_materials, materials: Materials, pyramid, intrinsics, width, height
+        self, vertices, triangles, triangle_materials, materials: Materials, pyramid, intrinsics, width, height,
+        lights: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         self.scene = raycasting_scene(vertices, triangles)
+        positions, powers = (_LIGHTS, _LIGHT_POWER) if lights is None else lights
+        self.lights = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        self.light_powers = np.asarray(powers, dtype=np.float32).reshape(-1)
         corners = vertices[triangles]
         normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         self.triangle_axis = np.abs(normals).argmax(axis=1).astype(np.int64)
@@ -223,7 +237,7 @@ class _Renderer:
         cos = np.abs(d_axis) / self.ray_norm[pix]
         params = np.take(self.triangle_params_t, prim, axis=1)  # (12, P)
         tex = self._texture(px, py, pz, axis, params, depth * self.footprint[pix], cos)
-        irradiance = _irradiance(px, py, pz, axis, facing, _pick(axis, px, py, pz))
+        irradiance = _irradiance(px, py, pz, axis, facing, _pick(axis, px, py, pz), self.lights, self.light_powers)
         rgb = np.empty((len(px), 3), dtype=np.uint8)
         for c, albedo in enumerate(_albedo(params, tex)):
             np.clip(albedo, 0.02, 1.0, out=albedo)
@@ -299,8 +313,8 @@ def render_sequence(
     # Sub-frame times, frame-major: blur steps evenly over the exposure around each frame.
     offsets = (np.arange(blur) + 0.5) / blur - 0.5 if blur > 1 else np.zeros(1)
     sub_poses = camera_path(0, seed, times=(times[:, None] + offsets * exposure * float(speed)).reshape(-1))
-    renderer = _Renderer(vertices, triangles, triangle_materials, materials, texture_pyramid(seed), intrinsics, width,
-                         height)
+    renderer = Renderer(vertices, triangles, triangle_materials, materials, texture_pyramid(seed), intrinsics, width,
+                        height)
     rgb = np.empty((num_frames, height, width, 3), dtype=np.uint8)
     depth = np.empty((num_frames, height, width), dtype=np.float32)
     threads = max(1, int(threads))

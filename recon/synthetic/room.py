@@ -3,6 +3,8 @@
 This module owns the room's layout (furniture boxes against the walls, pictures, a rug
 and a coffee table in the middle), the per-material albedo parameters drawn for it, and
 the mesh and ray-casting scene made of it. All of it is deterministic from the seed.
+recon.synthetic.walkthrough furnishes several such rooms (doorways kept free) and builds
+their mesh with the same MeshBuilder.
 
 World frame: metres, **y points down** (gravity) so that a level camera looking along +z
 has the identity rotation in OpenCV axes. The room spans x in [-3, 3], z in [-2.5, 2.5];
@@ -268,6 +270,17 @@ def _pictures(rng, length: float, blocked: list[tuple[float, float]]):
     return parts
 
 
+def _fit(cursor: float, width: float, length: float, doors: list[tuple[float, float]]) -> float | None:
+    """Where along a wall of `length` a piece `width` wide goes at or after `cursor`: moved
+    past any door interval it would overlap; None if it no longer fits. The last 0.9 m of
+    each wall is the next wall's corner (its furniture is <= 0.87 m deep)."""
+    start = cursor
+    for a0, a1 in sorted(doors):
+        if start < a1 and start + width > a0:
+            start = a1
+    return start if start + width <= length - 0.9 else None
+
+
 def _middle_pieces(rng):
     """World boxes (lo, hi, part) of a rug and a low coffee table in the middle of the room;
     the camera walks above them."""
@@ -284,12 +297,19 @@ def _middle_pieces(rng):
     return pieces
 
 
-def scene_layout(seed: int) -> tuple[list[Box], Materials, dict[str, int]]:
+def scene_layout(seed: int, doors: dict[int, list[tuple[float, float]]] | None = None,
+                 ) -> tuple[list[Box], Materials, dict[str, int]]:
     """Furniture boxes, materials and the room surfaces' material ids, deterministic from seed.
 
     Furniture stands against the walls (at most 0.87 m deep, so the middle of the room,
     |x| < 2.1 m and |z| < 1.6 m, is free for the camera), pictures hang on the walls, and
     a rug with a low (< 0.45 m) coffee table lies in the middle.
+
+    doors: wall index (0-3, as in the mesh: wall0 at z = +ROOM_HALF_Z, wall1 at -Z, wall2
+    at x = +ROOM_HALF_X, wall3 at -X) -> intervals (a0, a1) along that wall (metres from
+    its start, see _wall_frames) kept free of furniture and pictures, for doorways (used by
+    recon.synthetic.walkthrough). A piece that would overlap one is moved past it; without
+    doors the layout is exactly the single room's.
     """
     rng = np.random.default_rng([seed, 1])
     book = _MaterialBook(rng)
@@ -305,19 +325,20 @@ def scene_layout(seed: int) -> tuple[list[Box], Materials, dict[str, int]]:
     cursor = [rng.uniform(0.05, 0.5) for _ in walls]
     tall: list[list[tuple[float, float]]] = [[] for _ in walls]
     boxes: list[Box] = []
+    doors = doors or {}
     for i, kind in enumerate(kinds):
         w, _, parts = _FURNITURE[kind](rng)
         # Try walls in a seed-dependent order; an item that fits nowhere is dropped.
         for k in (i + rng.permutation(4)) % 4:
-            # The last 0.9 m of each wall is the next wall's corner (its furniture is <= 0.87 m deep).
-            if cursor[k] + w <= walls[k][3] - 0.9:
-                _add_piece(boxes, book, parts, walls[k], cursor[k])
+            start = _fit(cursor[k], w, walls[k][3], doors.get(k, []))
+            if start is not None:
+                _add_piece(boxes, book, parts, walls[k], start)
                 if max(part[5] for part in parts) > 1.1:
-                    tall[k].append((cursor[k], cursor[k] + w))
-                cursor[k] += w + rng.uniform(0.1, 0.6)
+                    tall[k].append((start, start + w))
+                cursor[k] = start + (w + rng.uniform(0.1, 0.6))  # summed as before: bit-identical layouts
                 break
     for k, wall in enumerate(walls):
-        _add_piece(boxes, book, _pictures(rng, wall[3], tall[k]), wall, 0.0)
+        _add_piece(boxes, book, _pictures(rng, wall[3], tall[k] + list(doors.get(k, []))), wall, 0.0)
     middle = _middle_pieces(rng)
     rug = book.add("fabric", checker=0.0, stripes=0.5)
     table = book.add("wood", stripes=0.3)
@@ -345,9 +366,51 @@ def _quad(axis: int, level: float, lo2, hi2, outward: float):
     return corners, tris
 
 
-def _on_room_boundary(axis: int, level: float) -> bool:
+def on_room_boundary(axis: int, level: float, centre=(0.0, 0.0, 0.0)) -> bool:
+    """Whether the plane at `level` along `axis` is a wall, the floor or the ceiling of the
+    room whose floor centre is `centre` (3,) (the origin for the single room)."""
     bounds = {0: (-ROOM_HALF_X, ROOM_HALF_X), 1: (-ROOM_HEIGHT, 0.0), 2: (-ROOM_HALF_Z, ROOM_HALF_Z)}[axis]
+    level = level - centre[axis]
     return min(abs(level - bounds[0]), abs(level - bounds[1])) < 1e-9
+
+
+class MeshBuilder:
+    """Collects axis-aligned quads and boxes into one triangle soup with per-triangle materials."""
+
+    def __init__(self):
+        self.verts: list[np.ndarray] = []
+        self.tris: list[np.ndarray] = []
+        self.mats: list[np.ndarray] = []
+        self.count = 0
+
+    def add(self, corners: np.ndarray, tris: np.ndarray, material: int) -> None:
+        """Corners (k, 3), triangles (t, 3) indexing them, one material id."""
+        self.tris.append(tris + self.count)
+        self.verts.append(corners)
+        self.mats.append(np.full(len(tris), material))
+        self.count += len(corners)
+
+    def add_quad(self, axis: int, level: float, lo2, hi2, outward: float, material: int) -> None:
+        """A rectangle normal to `axis` at `level` spanning lo2..hi2 (2,) in the other two
+        axes (in increasing order), visible side `outward` (+1/-1) along `axis`."""
+        self.add(*_quad(axis, level, lo2, hi2, outward), material)
+
+    def add_boxes(self, boxes: list[Box], hidden=lambda axis, level: False) -> None:
+        """Outward faces of closed boxes, less each box's ``skip`` faces and those for which
+        ``hidden(axis, level)`` is true (faces flush with a wall, floor or ceiling)."""
+        for box in boxes:
+            lo, hi = np.array(box.lo), np.array(box.hi)
+            for axis in range(3):
+                u, v = [a for a in range(3) if a != axis]
+                for side, level in enumerate((lo[axis], hi[axis])):
+                    if (axis, side) in box.skip or hidden(axis, level):
+                        continue
+                    self.add_quad(axis, level, (lo[u], lo[v]), (hi[u], hi[v]), 1.0 if side else -1.0, box.material)
+
+    def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Vertices (V, 3) float64, triangles (F, 3) int64, per-triangle material ids (F,) int64."""
+        return (np.concatenate(self.verts), np.concatenate(self.tris).astype(np.int64),
+                np.concatenate(self.mats).astype(np.int64))
 
 
 def scene_mesh(boxes: list[Box], room: dict[str, int]):
@@ -356,13 +419,7 @@ def scene_mesh(boxes: list[Box], room: dict[str, int]):
     Box faces lying on the floor or a wall are hidden and left out. Returns vertices
     (V, 3) float64, triangles (F, 3) int64 and per-triangle material ids (F,) int64.
     """
-    verts, tris, mats = [], [], []
-
-    def add(corners, t, material):
-        tris.append(t + sum(len(v) for v in verts))
-        verts.append(corners)
-        mats.append(np.full(len(t), material))
-
+    mesh = MeshBuilder()
     lo_room = np.array([-ROOM_HALF_X, -ROOM_HEIGHT, -ROOM_HALF_Z]) - _ROOM_OVERLAP
     hi_room = np.array([ROOM_HALF_X, 0.0, ROOM_HALF_Z]) + _ROOM_OVERLAP
     room_faces = {(1, 1): "floor", (1, 0): "ceiling", (2, 1): "wall0", (2, 0): "wall1",
@@ -370,18 +427,10 @@ def scene_mesh(boxes: list[Box], room: dict[str, int]):
     for (axis, side), name in room_faces.items():
         level = (0.0, -ROOM_HEIGHT)[1 - side] if axis == 1 else (-1, 1)[side] * (ROOM_HALF_X, 0, ROOM_HALF_Z)[axis]
         u, v = [a for a in range(3) if a != axis]
-        corners, t = _quad(axis, level, (lo_room[u], lo_room[v]), (hi_room[u], hi_room[v]), -1.0 if side else 1.0)
-        add(corners, t, room[name])
-    for box in boxes:
-        lo, hi = np.array(box.lo), np.array(box.hi)
-        for axis in range(3):
-            u, v = [a for a in range(3) if a != axis]
-            for side, level in enumerate((lo[axis], hi[axis])):
-                if (axis, side) in box.skip or _on_room_boundary(axis, level):
-                    continue
-                corners, t = _quad(axis, level, (lo[u], lo[v]), (hi[u], hi[v]), 1.0 if side else -1.0)
-                add(corners, t, box.material)
-    return np.concatenate(verts), np.concatenate(tris).astype(np.int64), np.concatenate(mats).astype(np.int64)
+        mesh.add_quad(axis, level, (lo_room[u], lo_room[v]), (hi_room[u], hi_room[v]), -1.0 if side else 1.0,
+                      room[name])
+    mesh.add_boxes(boxes, on_room_boundary)
+    return mesh.build()
 
 
 def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
