@@ -107,3 +107,51 @@ def test_the_pipeline_says_a_break_in_the_videos_frame_numbers(caplog):
     stage = PoseStage(result.poses, result.intrinsics, "estimated", {**info, "frame_status": ["tracked"] * n})
     states = tracking_states(stage, SimpleNamespace(indices=video_frames))
     assert states[29][1] == "tracked" and states[30][:2] == (160, "tracked; scale after break 1")
+
+
+def test_a_stretch_after_a_break_is_brought_to_the_scale_before_it():
+    """recon.poses.backend.rescale_stretches: a camera walking 1 m a frame along x, mapped at
+    half that after frame 9 (turned 30 degrees, which the rescale keeps), comes back at 1 m a
+    frame throughout; the keyframes' depth after the break doubles with it, the rest stays."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from recon.poses import backend
+    from recon.poses.graph import FrameGraph
+
+    def T_cw(centre, yaw):
+        c, s = np.cos(yaw), np.sin(yaw)
+        R = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)  # camera-to-world rotation
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3], T[:3, 3] = R.T, -R.T @ torch.tensor(centre, dtype=torch.float64)
+        return T
+
+    x = np.where(np.arange(20) <= 9, np.arange(20), 9 + 0.5 * (np.arange(20) - 9))
+    yaw = np.where(np.arange(20) <= 9, 0.0, np.pi / 6)
+    graph = FrameGraph((2, 2))
+    frame_T = {}
+    for i in range(20):
+        frame_T[i] = T_cw([x[i], 0.0, 0.0], yaw[i])
+        if i % 3 == 0:
+            graph.add_keyframe(i, None, frame_T[i], torch.full((2, 2), 0.5), torch.ones(2, 2), torch.ones(2, 2))
+    state = SimpleNamespace(graph=graph, frame_T=frame_T, frame_ratios={4: 1.0, 13: 2.0})
+    backend.rescale_stretches(state, [(9, 2.0)])
+    centres = np.array([(-state.frame_T[i][:3, :3].T @ state.frame_T[i][:3, 3]).numpy() for i in range(20)])
+    np.testing.assert_allclose(centres[:, 0], np.arange(20), atol=1e-12)
+    np.testing.assert_allclose(centres[:, 1:], 0.0, atol=1e-12)
+    for i in range(20):  # rotations untouched
+        np.testing.assert_allclose(state.frame_T[i][:3, :3].numpy(), T_cw([0, 0, 0], yaw[i])[:3, :3].numpy())
+    kf_centres = [float(-(T[:3, :3].T @ T[:3, 3])[0]) for T in graph.poses()]
+    assert kf_centres == pytest.approx(list(range(0, 20, 3)))
+    assert [float(d[0, 0]) for d in graph.disps()] == pytest.approx([0.5] * 4 + [0.25] * 3)
+    assert state.frame_ratios == {4: 1.0, 13: 1.0}
+
+
+def test_stretch_factors_are_the_stretches_medians():
+    from recon.poses.scale_watch import ScaleBreak, stretch_factors
+
+    log_ratio = np.r_[np.zeros(10), np.full(10, np.log(2.0)), np.full(10, np.log(0.5))]
+    frames = np.arange(30) * 2
+    breaks = [ScaleBreak(18, 20, 0.5, 9.0), ScaleBreak(38, 40, 4.0, 9.0)]
+    assert stretch_factors(log_ratio, frames, breaks) == pytest.approx([2.0, 0.25])

@@ -141,3 +141,39 @@ def metric_rescale(state: TrackState) -> float:
         T[:3, 3] *= s
         state.frame_T[i] = T
     return float(s)
+
+
+def rescale_stretches(state: TrackState, breaks: list[tuple[int, float]]) -> None:
+    """Bring each stretch of the trajectory after a scale break to the scale of the stretch
+    before it (``scale_watch``): breaks: [(frame of the last keyframe before the break,
+    factor)] in frame order. Every camera after that keyframe moves away from it by
+    ``factor`` (camera centres C -> A + factor (C - A), A its centre; rotations kept) and
+    the keyframes after it have their depth scaled alike, as do the non-keyframes' depth
+    ratios the metric rescale pools. A Sim(3) per stretch, anchored at the break, the way a
+    loop closure's Sim(3) joins two submaps of different scale (ORB-SLAM's monocular
+    loop correction), with the depth prior standing in for the loop."""
+    g = state.graph
+    for anchor_frame, factor in breaks:
+        if not (np.isfinite(factor) and factor > 0):
+            continue
+        anchor = _centre(state.frame_T[anchor_frame])
+        later = [i for i in state.frame_T if i > anchor_frame]
+        for i in later:
+            state.frame_T[i] = _moved(state.frame_T[i], anchor, factor)
+        ids = [k for k, frame in enumerate(g.frames) if frame > anchor_frame]
+        if ids:
+            poses = torch.stack([_moved(T, anchor, factor) for T in g.poses(ids)])
+            g.set_state(ids, poses, g.disps(ids) / factor)
+        for i in [i for i in state.frame_ratios if i > anchor_frame]:
+            state.frame_ratios[i] /= factor
+
+
+def _centre(T_cw: torch.Tensor) -> torch.Tensor:
+    return -T_cw[:3, :3].T @ T_cw[:3, 3]
+
+
+def _moved(T_cw: torch.Tensor, anchor: torch.Tensor, factor: float) -> torch.Tensor:
+    """T_cw (4, 4) with its camera centre moved to anchor + factor (centre - anchor)."""
+    out = T_cw.clone()
+    out[:3, 3] = -T_cw[:3, :3] @ (anchor + factor * (_centre(T_cw) - anchor))
+    return out

@@ -223,10 +223,13 @@ class StreamingFrontend:
         g = s.graph
         for k, i in enumerate(g.frames):
             s.frame_T[i] = g.poses([k])[0]
-        scale = backend.metric_rescale(s)
         prior, prior_w = g.priors()
         # Said by the caller, which knows the video's frame numbers (recon.stages.gate_estimate).
         watch = scale_watch.watch_scale(g.disps().numpy(), prior.numpy(), (prior_w > 0).numpy(), g.frames)
+        if watch.breaks and self.cfg.join_scale_breaks:
+            backend.rescale_stretches(s, [(b.before, f) for b, f in zip(watch.breaks, watch.corrections)])
+            watch.applied = True
+        scale = backend.metric_rescale(s)
         T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
         return PoseResult(
             poses=invert_poses(T_cw),

@@ -78,6 +78,13 @@ class FrontendConfig:
         Manhattan world's orthogonal directions), and take that value when at least
         ``vanishing_min_share`` of the frames agree on it (``focal_choice``: on the
         recordings' clips such values came within 3.4 %, the search's within -54 % to +61 %).
+    join_scale_breaks: where the map's depth steps against the depth prior's beyond the
+        prior's noise (``scale_watch``: the trajectory's scale broke there), bring each
+        stretch after such a step to the scale of the one before it
+        (``backend.rescale_stretches``) before the metric rescale. Off until it is
+        measured on the validation table: on the synthetic walk-through
+        (``recon.synthetic.walkthrough``) the map's scale drifted gradually through the
+        plain corridor, not in a step, and the watch found no break to join.
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -129,6 +136,7 @@ class FrontendConfig:
     plumb_line: bool = True
     vanishing_points: bool = True
     vanishing_min_share: float = 0.5
+    join_scale_breaks: bool = False
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25

@@ -72,22 +72,25 @@ class ScaleWatch:
     noise: float
     breaks: list[ScaleBreak] = field(default_factory=list)
     judged: bool = True
+    corrections: list[float] = field(default_factory=list)
+    applied: bool = False
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "ratio": [round(r, 4) for r in self.ratio], "noise": self.noise,
-                "breaks": [asdict(b) for b in self.breaks], "judged": self.judged}
+                "breaks": [asdict(b) for b in self.breaks], "judged": self.judged, "corrections": self.corrections,
+                "applied": self.applied}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ScaleWatch":
         return cls(list(d["frames"]), list(d["ratio"]), d["noise"], [ScaleBreak(**b) for b in d["breaks"]],
-                   d["judged"])
+                   d["judged"], list(d.get("corrections", [])), bool(d.get("applied", False)))
 
     def renumbered(self, names) -> "ScaleWatch":
         """The same with frame positions (0..N-1 of the frames tracked) replaced by names[i]
         (the video's frame numbers)."""
         return ScaleWatch([int(names[i]) for i in self.frames], self.ratio, self.noise,
                           [replace(b, before=int(names[b.before]), after=int(names[b.after])) for b in self.breaks],
-                          self.judged)
+                          self.judged, self.corrections, self.applied)
 
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or "after break N" from the first frame
@@ -103,9 +106,12 @@ class ScaleWatch:
             return ""
         steps = ", ".join(f"x{b.factor:.2f} between frames {b.before} and {b.after}" for b in self.breaks[:4])
         more = f" and {len(self.breaks) - 4} more" if len(self.breaks) > 4 else ""
-        return (f"the map's scale against the depth prior's steps {steps}{more}, beyond the prior's own noise "
-                f"({100 * self.noise:.0f} % a keyframe): the trajectory's stretches on either side are at different "
-                f"scales")
+        text = (f"the map's scale against the depth prior's steps {steps}{more}, beyond the prior's own noise "
+                f"({100 * self.noise:.0f} % a keyframe)")
+        if self.applied:
+            return text + ("; each stretch after a step was brought to the scale of the one before it (by the depth "
+                           "prior), so the trajectory is one piece, but its joints are as good as the prior's scale")
+        return text + ": the trajectory's stretches on either side are at different scales"
 
 
 def keyframe_log_ratios(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -178,6 +184,16 @@ def find_breaks(log_ratio: np.ndarray, frames: np.ndarray, cfg: ScaleWatchConfig
     return sorted(breaks, key=lambda b: b.after)
 
 
+def stretch_factors(log_ratio: np.ndarray, frames: np.ndarray, breaks: list[ScaleBreak]) -> list[float]:
+    """Per break, the factor that brings the stretch after it to the scale of the stretch
+    before it: exp of the difference of the two stretches' median log ratios (the whole
+    stretch is a better estimate than the windows around the step). log_ratio, frames: (K,)
+    as in :func:`watch_scale`, without NaN."""
+    edges = [0, *[int(np.searchsorted(frames, b.after)) for b in breaks], len(frames)]
+    medians = [float(np.median(log_ratio[a:b])) for a, b in zip(edges[:-1], edges[1:])]
+    return [float(np.exp(after - before)) for before, after in zip(medians[:-1], medians[1:])]
+
+
 def watch_scale(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray, frames,
                 cfg: ScaleWatchConfig | None = None) -> ScaleWatch:
     """The scale check of a front-end map (module docstring).
@@ -199,8 +215,9 @@ def watch_scale(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray,
     watch = ScaleWatch(frames.tolist(), centred.tolist(), noise, judged=log_ratio.size >= cfg.min_keyframes)
     if watch.judged:
         watch.breaks = find_breaks(log_ratio, frames, cfg, noise)
+        watch.corrections = stretch_factors(log_ratio, frames, watch.breaks)
     return watch
 
 
 __all__ = ["ScaleBreak", "ScaleWatch", "ScaleWatchConfig", "find_breaks", "keyframe_log_ratios", "log_noise",
-           "split_point", "step_statistics", "watch_scale"]
+           "split_point", "step_statistics", "stretch_factors", "watch_scale"]
