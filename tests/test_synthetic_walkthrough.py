@@ -12,6 +12,7 @@ import pytest
 
 from recon.errors import ReconInputError
 from recon.synthetic.walkthrough import TEXTURELESS_SHARE, render_walkthrough, walkthrough_plan
+from test_synthetic_scene import depth_off_mesh
 
 SIZE = (160, 120)
 
@@ -34,13 +35,6 @@ def subset(plan):
 @pytest.fixture(scope="module")
 def walk(subset):
     return render_walkthrough(*SIZE, seed=0, frames=subset)
-
-
-def backproject(depth: np.ndarray, pose: np.ndarray, intrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """World points (P, 3) of pixels (u, v) (P,) with z-depth (P,) seen from a camera-to-world pose."""
-    fx, fy, cx, cy = intrinsics
-    cam = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], axis=-1)
-    return cam @ pose[:3, :3].T + pose[:3, 3]
 
 
 def mesh_scene(plan) -> o3d.t.geometry.RaycastingScene:
@@ -117,15 +111,7 @@ def test_depth_positive_and_on_the_mesh(walk):
     assert np.isfinite(walk.depth).all() and (walk.depth > 0.1).all()
     lo, hi = walk.room_bounds
     assert walk.depth.max() < np.linalg.norm(hi - lo)
-    scene = walk.raycasting_scene()
-    rng = np.random.default_rng(0)
-    for i in range(0, len(walk.frame_ids), 4):
-        u = rng.integers(0, walk.width, 300).astype(np.float64)
-        v = rng.integers(0, walk.height, 300).astype(np.float64)
-        depth = walk.depth[i, v.astype(int), u.astype(int)].astype(np.float64)
-        points = backproject(depth, walk.poses[i], walk.intrinsics, u, v)
-        distance = scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy()
-        assert distance.max() < 1e-3
+    assert depth_off_mesh(walk, range(0, len(walk.frame_ids), 4), 300) < 1e-3
 
 
 def test_path_walks_through_every_room_and_the_corridor_at_walking_pace(plan):
