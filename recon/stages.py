@@ -313,9 +313,11 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
             "quality": gate.summary(names)}
     if "scale_watch" in result.diagnostics:
         watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
-        info["scale_watch"] = {**watch.renumbered(names).to_dict(), "frame_verdicts": watch.frame_verdicts(len(names))}
-        if watch.breaks:
-            log.warning("%s (report.json: poses.scale_watch)", watch.renumbered(names).describe())
+        # Verdicts by position in the selection, frames and breaks named by video frame.
+        named = watch.renumbered(names)
+        info["scale_watch"] = {**named.to_dict(), "frame_verdicts": watch.frame_verdicts(len(names))}
+        if named.breaks:
+            log.warning("%s (report.json: poses.scale_watch)", named.describe())
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])

@@ -13,7 +13,7 @@ import logging
 import numpy as np
 import torch
 
-from recon.poses import ba
+from recon.poses import ba, lie
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses.frontend_config import ba_pixels
@@ -156,24 +156,20 @@ def rescale_stretches(state: TrackState, breaks: list[tuple[int, float]]) -> Non
     for anchor_frame, factor in breaks:
         if not (np.isfinite(factor) and factor > 0):
             continue
-        anchor = _centre(state.frame_T[anchor_frame])
+        anchor = lie.inv(state.frame_T[anchor_frame])[:3, 3]
         later = [i for i in state.frame_T if i > anchor_frame]
-        for i in later:
-            state.frame_T[i] = _moved(state.frame_T[i], anchor, factor)
+        for i, T in zip(later, _moved(torch.stack([state.frame_T[i] for i in later]), anchor, factor)):
+            state.frame_T[i] = T
         ids = [k for k, frame in enumerate(g.frames) if frame > anchor_frame]
         if ids:
-            poses = torch.stack([_moved(T, anchor, factor) for T in g.poses(ids)])
-            g.set_state(ids, poses, g.disps(ids) / factor)
+            g.set_state(ids, _moved(g.poses(ids), anchor, factor), g.disps(ids) / factor)
         for i in [i for i in state.frame_ratios if i > anchor_frame]:
             state.frame_ratios[i] /= factor
 
 
-def _centre(T_cw: torch.Tensor) -> torch.Tensor:
-    return -T_cw[:3, :3].T @ T_cw[:3, 3]
-
-
 def _moved(T_cw: torch.Tensor, anchor: torch.Tensor, factor: float) -> torch.Tensor:
-    """T_cw (4, 4) with its camera centre moved to anchor + factor (centre - anchor)."""
-    out = T_cw.clone()
-    out[:3, 3] = -T_cw[:3, :3] @ (anchor + factor * (_centre(T_cw) - anchor))
-    return out
+    """World-to-camera poses T_cw (N, 4, 4) with their camera centres C moved to
+    anchor + factor (C - anchor) (anchor (3,)); rotations kept."""
+    T_wc = lie.inv(T_cw)
+    T_wc[:, :3, 3] = anchor + factor * (T_wc[:, :3, 3] - anchor)
+    return lie.inv(T_wc)

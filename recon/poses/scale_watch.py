@@ -65,7 +65,9 @@ class ScaleWatch:
     """What report.json says: per keyframe (``frames``) the map's depth against the prior's,
     divided by the run's median (1 = at the run's scale); ``noise``: the prior's scale noise
     from keyframe to keyframe (standard deviation of the log ratio); ``breaks``; ``judged``:
-    whether there were enough keyframes to judge."""
+    whether there were enough keyframes to judge; ``corrections``: per break, the factor that
+    brings the stretch after it to the scale of the one before (``stretch_factors``);
+    ``applied``: whether the front end applied them (``FrontendConfig.join_scale_breaks``)."""
 
     frames: list[int]
     ratio: list[float]
