@@ -110,6 +110,18 @@ def judged(search, vp, true_f: float) -> dict:
             "accepted": abs(error(choice.focal)) <= 10.0 or holds}
 
 
+def swept_to_a_minimum(evaluations: list[tuple[float, float]]) -> bool:
+    """Whether the search's sweep (its first evaluations, recon.poses.calib.candidate_focals
+    in order) had its best score inside, not at an end; True where fewer were recorded."""
+    from recon.poses.calib import candidate_focals
+
+    sweep = len(candidate_focals(640, 480))
+    if len(evaluations) < sweep:
+        return True
+    scores = [score for _, score in evaluations[:sweep]]
+    return 0 < scores.index(min(scores)) < sweep - 1
+
+
 def rechosen(paths: list[Path]) -> list[dict]:
     """The rows of earlier runs' JSON with the current rule applied again to their estimates
     (the search's evaluations taken from whichever file has them): a rule change costs
@@ -125,7 +137,7 @@ def rechosen(paths: list[Path]) -> list[dict]:
     out = []
     for row in sorted(rows.values(), key=lambda r: CLIPS.index(r["clip"]) if r["clip"] in CLIPS else len(CLIPS)):
         evaluations = [tuple(e) for e in row.get("search_evaluations") or [(row["search_focal"], 1.0)]]
-        search = FocalSearch(row["search_focal"], evaluations, True)
+        search = FocalSearch(row["search_focal"], evaluations, swept_to_a_minimum(evaluations))
         out.append({**row, **judged(search, VanishingFocal(**row["vp"]), row["true_focal"])})
     return out
 

@@ -63,3 +63,19 @@ def test_a_flat_search_score_is_a_range():
     assert flat.focal == 460.0 and flat.disagree and flat.low < 369.0 < flat.high
     sharp = choose_focal(_search(524.0, 0.02), None, CFG)
     assert sharp.high / sharp.low < DISAGREEMENT and not sharp.disagree
+
+
+def test_a_search_that_did_not_bracket_its_minimum_rules_nothing_out():
+    """TUM fr1/rpy's second segment: the search's best score lay at the lowest candidate
+    (300 px for a 517 px camera, the score still falling), with the vanishing points of a
+    few frames at 492 px. Such a search has not found the focal length: the range spans
+    every candidate it scored, so it holds the camera."""
+    focals = [268.5, 349.2, 440.4, 532.6, 641.8, 772.5, 929.3, 296.9, 285.7]
+    scores = [2393.0, 6073.0, 5563.0, 3177.0, 3256.0, 4974.0, 6939.0, 2384.0, 2386.0]
+    search = FocalSearch(296.9, list(zip(focals, scores)), bracketed=False)
+    assert flat_range(search) == (268.5, 929.3)
+    choice = choose_focal(search, _vp(492.2, 0.1, trusted=False), CFG)
+    assert choice.focal == 296.9 and choice.disagree and choice.low < 517.0 < choice.high
+    assert "268-929 px open" in choice.warning(640)
+    bracketed = choose_focal(FocalSearch(296.9, list(zip(focals, scores)), bracketed=True), None, CFG)
+    assert bracketed.high < 517.0

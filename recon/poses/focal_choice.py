@@ -21,8 +21,12 @@ focal length from nothing"):
   of its best (a flat score: the frames do not fix f) and the vanishing points' value,
   trusted or not, give or take ``VANISHING_ACCURACY`` (their largest error where they were
   taken: ScanNet's second segment had them 1.9 % above its camera while the search's
-  flat region lay far above). Where the range's ends differ by more than
-  ``DISAGREEMENT`` the warning gives it (report.json: ``poses.diagnostics.focal``).
+  flat region lay far above). A search whose best score lay at an end of its sweep did
+  not bracket a minimum (the score still fell towards the end of the candidates: a camera
+  that turns more than it moves, TUM fr1/rpy's second segment, ScanNet's sparse
+  keyframes, KITTI's first): it rules nothing out, and the range spans every candidate it
+  scored. Where the range's ends differ by more than ``DISAGREEMENT`` the warning gives it
+  (report.json: ``poses.diagnostics.focal``).
 """
 
 from __future__ import annotations
@@ -76,7 +80,11 @@ class FocalChoice:
 
 
 def flat_range(search: FocalSearch, flat: float = FLAT_SCORE) -> tuple[float, float]:
-    """(low, high): the focal lengths the search scored within `flat` times its best score."""
+    """(low, high): the focal lengths the search scored within `flat` times its best score;
+    every focal length it scored when its minimum was not bracketed."""
+    if not search.bracketed and search.evaluations:
+        scored = [f for f, _ in search.evaluations]
+        return min(scored), max(scored)
     best = min(score for _, score in search.evaluations) if search.evaluations else math.inf
     near = [f for f, score in search.evaluations if score <= flat * best] or [search.focal]
     return min(near), max(near)
