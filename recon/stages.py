@@ -302,12 +302,13 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     """An estimate (a recon.poses PoseResult of the frames `frame_indices`, their video frame
     numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what
     report.json says of it, and the note naming the frames left out ("" when none)."""
+    from .poses.motion_checks import MotionChecks
     from .poses.quality import gate_trajectory
     from .poses.scale_watch import ScaleWatch
 
     gate = gate_trajectory(result)
     names = [int(i) for i in frame_indices]
-    diagnostics = {k: v for k, v in result.diagnostics.items() if k != "scale_watch"}
+    diagnostics = {k: v for k, v in result.diagnostics.items() if k not in ("scale_watch", "motion_checks")}
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
             "quality": gate.summary(names)}
@@ -318,6 +319,10 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         info["scale_watch"] = {**named.to_dict(), "frame_verdicts": watch.frame_verdicts(len(names))}
         if named.breaks:
             log.warning("%s (report.json: poses.scale_watch)", named.describe())
+    if "motion_checks" in result.diagnostics:
+        checks = MotionChecks.from_dict(result.diagnostics["motion_checks"])
+        info["motion_checks"] = {**checks.renumbered(names).to_dict(),
+                                 "frame_verdicts": checks.frame_verdicts(len(names))}
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
@@ -348,8 +353,10 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
     # The scale check's verdict rides along, so that the timeline shows which stretch a
     # frame's pose belongs to when the trajectory's scale breaks (recon.poses.scale_watch).
     scale = stage.info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * len(status)
+    motion = stage.info.get("motion_checks", {}).get("frame_verdicts") or ["ok"] * len(status)
     return [(int(i), (f"dropped: {why[int(i)]}" if int(i) in why else state)
-             + ("" if scale[k] == "ok" else f"; scale {scale[k]}"), stage.poses[k])
+             + ("" if scale[k] == "ok" else f"; scale {scale[k]}") + ("" if motion[k] == "ok" else f"; {motion[k]}"),
+             stage.poses[k])
             for k, (i, state) in enumerate(zip(seq.indices, status))]
 
 

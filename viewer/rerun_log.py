@@ -342,8 +342,9 @@ class RerunLogger:
         if rec is None:
             return
         self._at_frame(rec, int(index))
-        # "<state>[: why][; scale after break N]": a frame past a scale break is trouble too.
-        trouble = state.split(":")[0].split(";")[0] in _TROUBLE or "; scale" in state
+        # "<state>[: why][; scale after break N][; rotation only | large motion]": a frame past a
+        # scale break, or whose motion the frames cannot measure, is trouble too.
+        trouble = state.split(":")[0].split(";")[0] in _TROUBLE or ";" in state
         rec.log(TRACKING, rr.TextLog(f"frame {index}: {state}", level=rr.TextLogLevel.WARN if trouble
                                      else rr.TextLogLevel.INFO))
         if pose is not None and state.startswith("dropped"):

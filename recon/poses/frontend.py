@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler, plumb_line, scale_watch, vanishing
+from recon.poses import ba, backend, filler, motion_checks, plumb_line, scale_watch, vanishing
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
@@ -231,13 +231,18 @@ class StreamingFrontend:
             watch.applied = True
         scale = backend.metric_rescale(s)
         T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
+        keyframe_depth = (1.0 / g.disps()).float().numpy()
+        motion = motion_checks.check_motion(
+            g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
+            lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),
             keyframes=np.array(g.frames, dtype=np.int64),
             seconds=0.0,
-            diagnostics={**self.diagnostics, **self._diagnostics(scale), "scale_watch": watch.to_dict()},
-            keyframe_depth=(1.0 / g.disps()).float().numpy(),
+            diagnostics={**self.diagnostics, **self._diagnostics(scale), "scale_watch": watch.to_dict(),
+                         "motion_checks": motion.to_dict()},
+            keyframe_depth=keyframe_depth,
         )
 
     def _diagnostics(self, scale: float) -> dict:
