@@ -29,6 +29,10 @@ REFINE_CHOICES = ("mvs", "none")
 # so that the parser does not import the rerun SDK (a second, at every `recon --help`).
 RERUN_MODES = ("spawn", "save", "serve", "off")
 
+# What an estimated trajectory whose scale breaks becomes (PipelineConfig.on_break, --on-break):
+# separate reconstructions, one per stretch; a stop naming the frames; one trajectory, warned.
+ON_BREAK_CHOICES = ("segments", "stop", "keep")
+
 # Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget
 # and videos whose poses are estimated (recon.pipeline.stream_reason).
 STREAM_CHOICES = ("auto", "on", "off")
@@ -37,5 +41,5 @@ STREAM_CHOICES = ("auto", "on", "off")
 DEVICE_PATTERN = r"auto|cpu|cuda(?::(\d+))?"
 DEVICE_SPELLINGS = "cpu, cuda, cuda:N or auto"
 
-__all__ = ["DEMO_PRIORS", "DEVICE_PATTERN", "DEVICE_SPELLINGS", "POSE_CHOICES", "POSE_METHODS",
+__all__ = ["DEMO_PRIORS", "DEVICE_PATTERN", "DEVICE_SPELLINGS", "ON_BREAK_CHOICES", "POSE_CHOICES", "POSE_METHODS",
            "PRIOR_ALIGN_CHOICES", "PRIOR_CHOICES", "REFINE_CHOICES", "RERUN_MODES", "STREAM_CHOICES"]

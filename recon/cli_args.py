@@ -17,6 +17,7 @@ from medea_core import MedeaConfig
 from .choices import (
     DEMO_PRIORS,
     DEVICE_SPELLINGS,
+    ON_BREAK_CHOICES,
     POSE_CHOICES,
     POSE_METHODS,
     PRIOR_ALIGN_CHOICES,
@@ -206,6 +207,11 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "default %(default)s")
     g.add_argument("--pose-method", choices=POSE_METHODS, default=d.pose_method,
                    help="pose estimator (default %(default)s)")
+    g.add_argument("--on-break", choices=ON_BREAK_CHOICES, default=d.on_break,
+                   help="where an estimated trajectory's scale breaks (report.json poses.scale_watch): segments "
+                        "(each stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
+                        "frames, exit 2) or keep (one trajectory, warned); keep also returns a trajectory the "
+                        "front end's motion checks distrust (poses.motion_checks). Default %(default)s")
     add_pose_option_argument(g)
 
     g = parser.add_argument_group("depth prior")
@@ -396,6 +402,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         distortion=_numbers(args.distortion, (4, 5), "--distortion") if args.distortion else None,
         rolling_shutter=args.rolling_shutter,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
+        on_break=args.on_break,
         prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
         refine=args.refine, mvs=mvs_config_from_args(args),

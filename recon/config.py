@@ -20,6 +20,7 @@ from .camera import check_distortion
 from .choices import (
     DEVICE_PATTERN,
     DEVICE_SPELLINGS,
+    ON_BREAK_CHOICES,
     POSE_METHODS,
     PRIOR_ALIGN_CHOICES,
     PRIOR_CHOICES,
@@ -80,6 +81,13 @@ class PipelineConfig:
     pose_method: estimator, "auto" | "frontend" | "sfm".
     pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
         ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
+    on_break: what an estimated trajectory becomes where its scale breaks (the front end's
+        map against the depth prior, ``recon.poses.scale_watch``): "segments" (each stretch
+        brought to the prior's scale and reconstructed on its own, ``OUT/segment_NN/``, with
+        one summary; a streamed run), "stop" (the run stops with one line naming the frames)
+        or "keep" (one trajectory, with a warning). Whatever it is, a trajectory the front
+        end's motion checks distrust as a whole (``recon.poses.motion_checks``) is not
+        returned, except under "keep".
     prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
         depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
         depth model folder; recon.priors.hf). weights: FastDepth weights location.
@@ -131,6 +139,7 @@ class PipelineConfig:
     poses: str = "auto"
     pose_method: str = "auto"
     pose_options: dict[str, Any] = field(default_factory=dict)
+    on_break: str = "segments"
     prior: str = "fastdepth"
     prior_path: Path | None = None
     prior_align: str = "fastdepth"
@@ -163,6 +172,8 @@ class PipelineConfig:
                 self.medea.validate()
         except ValueError as error:
             raise ReconInputError(str(error)) from None
+        if self.on_break not in ON_BREAK_CHOICES:
+            raise ReconInputError(f"on_break must be one of {', '.join(ON_BREAK_CHOICES)}, got {self.on_break!r}")
         if self.rerun not in RERUN_MODES:
             raise ReconInputError(f"rerun mode must be one of {', '.join(RERUN_MODES)}, got {self.rerun!r}")
         if self.fov is not None and not (0 < self.fov < 180):

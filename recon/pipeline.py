@@ -64,6 +64,7 @@ from .stages import (
     camera_poses,
     decode,
     default_intrinsics,
+    estimator_options,
     given_intrinsics,
     judge_given_poses,
     plan_poses,
@@ -316,7 +317,7 @@ def _unroll(config: PipelineConfig, pose_plan, source, seq: Sequence, pose_stage
 def _posed(config: PipelineConfig, pose_plan, source, seq: Sequence):
     """(sequence with its poses, the pose stage, the tracking states): the frames the quality
     gate (or a missing ground truth) leaves out are taken out, with a warning."""
-    pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=config.pose_options,
+    pose_stage = camera_poses(pose_plan, source, seq, method=config.pose_method, options=estimator_options(config),
                               device=config.device, progress=config.progress)
     seq = seq.with_(poses=pose_stage.poses)
     tracking = tracking_states(pose_stage, seq)

@@ -298,6 +298,34 @@ def ground_truth_kept(source: FrameSource) -> tuple[np.ndarray, str]:
     return valid, f"{missing} frames have no ground-truth pose and are left out" if missing else ""
 
 
+def estimator_options(config) -> dict:
+    """The pose estimator's options of a run (``config`` its PipelineConfig): the user's
+    ``pose_options`` over what ``on_break`` implies for the front end. Segments are each
+    brought to the depth prior's scale (``join_scale_breaks``); "keep" returns a trajectory
+    whatever the front end's motion checks say (``stop_untrusted`` off)."""
+    implied = {"segments": {"join_scale_breaks": True}, "stop": {}, "keep": {"stop_untrusted": False}}
+    return {**implied[config.on_break], **config.pose_options}
+
+
+def trajectory_stretches(info: dict, count: int) -> np.ndarray:
+    """(count,) int: per frame of an estimate, the stretch of its trajectory it belongs to
+    (0 before the first scale break, n after break n; recon.poses.scale_watch's
+    ``frame_verdicts`` in the pose report ``info``); all 0 without a scale watch."""
+    verdicts = info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * count
+    return np.array([0 if v == "ok" else int(v.rsplit(" ", 1)[-1]) for v in verdicts], dtype=np.int64)
+
+
+def stop_at_breaks(info: dict) -> None:
+    """ReconInputError naming the scale breaks of an estimate's pose report ``info``, if it
+    has any (``--on-break stop``; not a TrackingLostError, which the SfM fallback would answer)."""
+    from .poses.scale_watch import ScaleWatch
+
+    watch = info.get("scale_watch")
+    if watch and watch["breaks"]:
+        raise ReconInputError(f"stopped where the trajectory's scale breaks (--on-break stop): "
+                              f"{ScaleWatch.from_dict(watch).describe()}")
+
+
 def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     """An estimate (a recon.poses PoseResult of the frames `frame_indices`, their video frame
     numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -33,11 +33,12 @@ import numpy as np
 
 from .clock import StageClock
 from .config import PipelineConfig
+from .errors import ReconInputError
 from .io.frame_store import FrameStore
 from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .io.source import FrameSource
 from .rolling_shutter import angular_velocity
-from .stages import PosePlan, shutter_summary
+from .stages import PosePlan, shutter_summary, stop_at_breaks, trajectory_stretches
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
 
@@ -59,6 +60,8 @@ class StreamResult:
     files: dict[str, Path]
     report: dict
     rerun_url: str | None = None
+    # Where the trajectory's scale broke (--on-break segments): each stretch's own run.
+    segments: list["StreamResult"] = field(default_factory=list)
 
     @property
     def seconds_per_frame(self) -> dict[str, float]:
@@ -83,6 +86,13 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         logger, rec_path = _open_logger(config, out, stack)
         say("tracking (streamed)")
         video = track_video(config, source, pose_plan, given, store, logger, clock)
+        stretch = trajectory_stretches(video.pose_info, len(video.indices))
+        if pose_plan.estimated and stretch.max() > 0 and config.on_break == "stop":
+            stop_at_breaks(video.pose_info)
+        if pose_plan.estimated and stretch.max() > 0 and config.on_break == "segments":
+            result = _run_segments(config, source, out, pose_plan, video, stretch, store, logger, clock, say)
+            result.rerun_url = logger.url if logger is not None else None
+            return _with_summary(result, out, rec_path)
         say(f"depth: {int(video.depth_frame.sum())} of {len(video.indices)} frames in windows of {config.window}")
         omega = _turn_rate(config, pose_plan, video, say)
         volume, windows, shifts = depth_windows(config, video, pose_plan, store, out, logger, clock, omega)
@@ -93,11 +103,70 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         say("export")
         result = _finish(config, source, out, video, volume, windows, clock, logger, store.bytes_written)
         url = logger.url if logger is not None else None
+    result.rerun_url = url
+    return _with_summary(result, out, rec_path)
+
+
+def _with_summary(result: StreamResult, out: OutputFolder, rec_path: Path | None) -> StreamResult:
+    """The run's report.json written (with the recording's path, when one was saved)."""
     if rec_path is not None:
         result.files["recording"] = rec_path
-    result.rerun_url = url
     result.files["report"] = out.write_json(REPORT_JSON, _with_files(result.report, result.files, out))
     return result
+
+
+def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder, pose_plan: PosePlan,
+                  video: TrackedVideo, stretch: np.ndarray, store: FrameStore, logger, clock: StageClock,
+                  say) -> StreamResult:
+    """A trajectory whose scale breaks (``stretch``: (N,) the stretch of each tracked frame,
+    recon.stages.trajectory_stretches) reconstructed stretch by stretch, each in
+    ``OUT/segment_NN/`` with its own trajectory, depth, mesh and report, and one summary
+    (the StreamResult of the whole run: its ``segments``, its mesh the largest one's). A
+    stretch with fewer than two depth frames is left out with a warning. The front end
+    brought each stretch to the depth prior's scale (``join_scale_breaks``), but where one
+    stretch sits against the next is what broke: the segments share no frame of reference
+    that can be trusted, so none is fused with another."""
+    pieces: list[StreamResult] = []
+    for k in range(int(stretch.max()) + 1):
+        mine = stretch == k
+        frames = video.indices[mine]
+        if (video.depth_frame & mine).sum() < 2:
+            log.warning("frames %d-%d (stretch %d of the trajectory) have fewer than two depth frames and are left "
+                        "out", frames[0], frames[-1], k)
+            continue
+        name = f"segment_{len(pieces):02d}"
+        say(f"{name}: frames {frames[0]}-{frames[-1]}")
+        part = replace(video, poses=np.where(mine[:, None, None], video.poses, np.nan),
+                       depth_frame=video.depth_frame & mine)
+        part_out = OutputFolder(out.path / name, overwrite=True)
+        part_clock = StageClock()
+        volume, windows, _ = depth_windows(config, part, pose_plan, store, part_out, logger, part_clock)
+        piece = _finish(config, source, part_out, part, volume, windows, part_clock, logger, store.bytes_written)
+        piece.files["report"] = part_out.write_json(REPORT_JSON, _with_files(piece.report, piece.files, part_out))
+        for stage, seconds in part_clock.seconds.items():
+            clock.seconds[stage] = clock.seconds.get(stage, 0.0) + seconds
+        pieces.append(piece)
+    if not pieces:
+        raise ReconInputError("no stretch of the trajectory between its scale breaks has two depth frames "
+                              "(report.json is not written; --on-break keep writes the trajectory as one)")
+    largest = max(pieces, key=lambda p: p.depth_frames)
+    summary = {**largest.report, "segments": [
+        {"folder": p.output.name, "frames": [int(p.report["frames"]["indices"][0]),
+                                             int(p.report["frames"]["indices"][-1])],
+         "depth_frames": p.depth_frames, "triangles": int(len(p.fusion.mesh.triangles))} for p in pieces]}
+    summary["frames"] = {**summary["frames"], "count": int(sum(p.report["frames"]["count"] for p in pieces)),
+                         "tracked": len(video.indices), "depth_frames": int(sum(p.depth_frames for p in pieces))}
+    summary["poses"] = {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1}
+    summary["seconds"] = dict(clock.seconds)
+    files = {p.output.name: p.output for p in pieces}
+    log.warning("the trajectory's scale breaks (report.json: poses.scale_watch): written as %d separate "
+                "reconstructions, %s (--on-break stop stops instead, keep writes one)", len(pieces),
+                ", ".join(f"{p.output.name}/ frames {s['frames'][0]}-{s['frames'][1]}"
+                          for p, s in zip(pieces, summary["segments"])))
+    return StreamResult(output=out.path, frames_tracked=len(video.indices),
+                        depth_frames=summary["frames"]["depth_frames"], poses=video.poses,
+                        intrinsics=video.intrinsics, fusion=largest.fusion, seconds=dict(clock.seconds),
+                        files=files, report=summary, segments=pieces)
 
 
 def _turn_rate(config: PipelineConfig, pose_plan: PosePlan, video: TrackedVideo, say) -> np.ndarray | None:

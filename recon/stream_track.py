@@ -25,7 +25,15 @@ from .io.frame_store import FrameStore
 from .io.pose_matching import frame_names, match_pose_file
 from .io.source import FrameSource
 from .sequence import Sequence
-from .stages import PosePlan, default_intrinsics, gate_estimate, ground_truth_kept, judge_given_poses, prior_function
+from .stages import (
+    PosePlan,
+    default_intrinsics,
+    estimator_options,
+    gate_estimate,
+    ground_truth_kept,
+    judge_given_poses,
+    prior_function,
+)
 from .stream_plan import MotionSelector, parse_depth_frames
 
 log = logging.getLogger(__name__)
@@ -265,7 +273,7 @@ class _Poser:
             if config.pose_method == "sfm":
                 raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
             self.frontend = StreamingFrontend(intrinsics, self._prior,
-                                              _frontend_config(config.pose_options, config.device))
+                                              _frontend_config(estimator_options(config), config.device))
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,

@@ -79,3 +79,14 @@ def test_a_search_that_did_not_bracket_its_minimum_rules_nothing_out():
     assert "268-929 px open" in choice.warning(640)
     bracketed = choose_focal(FocalSearch(296.9, list(zip(focals, scores)), bracketed=True), None, CFG)
     assert bracketed.high < 517.0
+
+
+def test_a_focal_length_the_search_did_not_bracket_is_not_found():
+    """The search's value at an end of its candidates, with no vanishing points taken, is
+    not a focal length the frames fixed: the front end does not trust a trajectory built on
+    it. Vanishing points most frames agree on are found whatever the search did."""
+    edge = FocalSearch(268.5, [(268.5, 1.0), (349.2, 1.5), (929.3, 2.0)], bracketed=False)
+    assert not choose_focal(edge, _vp(492.2, 0.1, trusted=False), CFG).found
+    assert "--fov" in choose_focal(edge, None, CFG).not_found()
+    assert choose_focal(edge, _vp(992.0, 0.8), CFG).found
+    assert choose_focal(_search(524.0, 0.02), None, CFG).found

@@ -64,7 +64,13 @@ def test_check_motion_names_what_makes_a_trajectory_untrusted():
     assert verdict.median_step_share > 0.1 and set(verdict.frame_verdicts(n)[1:]) == {"large motion"}
     spin = _poses(2.0 * np.ones(n), 0.0005 * np.ones(n))
     turned = check_motion(spin, depth, np.arange(n), spin, F, WIDTH)
-    assert turned.rotation_only == [[0, n - 1]] and turned.translation_share < 0.05
+    assert turned.rotation_only == [[0, n - 1]] and turned.translation_share < 0.05 and turned.turns_on_the_spot
     assert "turns on the spot" in turned.untrusted()[0]
+    # A walk that stops to look around for a quarter of its frames: marked, not judged.
+    pause = _poses(np.r_[0.5 * np.ones(15), 3.0 * np.ones(10), 0.5 * np.ones(15)],
+                   np.r_[0.03 * np.ones(15), 0.0005 * np.ones(10), 0.03 * np.ones(15)])
+    looked = check_motion(pause, depth, np.arange(n), pause, F, WIDTH)
+    assert len(looked.rotation_only) == 1 and not looked.turns_on_the_spot and looked.untrusted() == []
+    assert "rotation only" in looked.frame_verdicts(n)[15:25]
     again = MotionChecks.from_dict(turned.to_dict()).renumbered(list(range(100, 100 + n)))
     assert again.rotation_only == [[100, 100 + n - 1]]

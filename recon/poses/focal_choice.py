@@ -50,20 +50,35 @@ VANISHING_ACCURACY = 1.04
 class FocalChoice:
     """focal: the value tracking starts from (pixels); source: which estimate it is; low,
     high: the range the estimates leave open (pixels); candidates: {estimate: focal} of
-    every estimate made (the vanishing points' also when not trusted)."""
+    every estimate made (the vanishing points' also when not trusted); bracketed: whether the
+    search's minimum lay inside its candidates."""
 
     focal: float
     source: str
     low: float
     high: float
     candidates: dict
+    bracketed: bool = True
+
+    @property
+    def found(self) -> bool:
+        """False when the focal length is the search's and its best score lay at an end of its
+        candidates: a value the frames did not fix (TUM fr1/rpy's second segment: 300 px for
+        a 517 px camera), so a trajectory built on it is not to be trusted either."""
+        return self.source != "flow" or self.bracketed
 
     @property
     def disagree(self) -> bool:
         return self.high > DISAGREEMENT * self.low
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "disagree": self.disagree}
+        return {**asdict(self), "disagree": self.disagree, "found": self.found}
+
+    def not_found(self) -> str:
+        """Why the trajectory is not trusted when the focal length was not found."""
+        return (f"the focal length was not found: the search's best score lay at an end of its candidates "
+                f"({self.focal:.0f} px of {self.low:.0f}-{self.high:.0f}) and no vanishing points were agreed on; "
+                f"pass --fov or --intrinsics")
 
     def warning(self, width: int) -> str:
         """The one warning a run with an estimated focal length gives (frames `width` px wide)."""
@@ -105,7 +120,8 @@ def choose_focal(search: FocalSearch, vp: VanishingFocal | None, cfg) -> FocalCh
     if "vanishing points" in candidates:
         vp_focal = candidates["vanishing points"]
         values += [vp_focal / VANISHING_ACCURACY, vp_focal * VANISHING_ACCURACY]
-    return FocalChoice(float(search.focal), "flow", float(min(values)), float(max(values)), candidates)
+    return FocalChoice(float(search.focal), "flow", float(min(values)), float(max(values)), candidates,
+                       search.bracketed)
 
 
 __all__ = ["DISAGREEMENT", "FLAT_SCORE", "VANISHING_ACCURACY", "FocalChoice", "choose_focal", "flat_range"]

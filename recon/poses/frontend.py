@@ -80,6 +80,7 @@ class StreamingFrontend:
         config = config or FrontendConfig()
         self.cfg = replace(config, calibrate_lens=calibrates_lens(config.calibrate_lens, self.intrinsics))
         self.diagnostics: dict = {"method": "frontend"}
+        self._focal_choice = None  # set by the focal search (recon.poses.focal_choice) when intrinsics are unknown
         self.state: TrackState | None = None
         self.tracker: Tracker | None = None
         self.count = 0  # frames added
@@ -192,7 +193,7 @@ class StreamingFrontend:
         if self.cfg.vanishing_points:
             vp = vanishing.estimate_focal_vp(frames, lens)
             self.diagnostics["vanishing_points"] = vp.to_dict()
-        choice = choose_focal(search, vp, self.cfg)
+        choice = self._focal_choice = choose_focal(search, vp, self.cfg)
         focal = choice.focal
         self.intrinsics = (focal, focal, (width - 1) / 2.0, (height - 1) / 2.0)
         self.diagnostics["focal"] = choice.to_dict()
@@ -235,6 +236,12 @@ class StreamingFrontend:
         motion = motion_checks.check_motion(
             g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
+        why = motion.untrusted()
+        if self._focal_choice is not None and not self._focal_choice.found:
+            why.insert(0, self._focal_choice.not_found())
+        if why and self.cfg.stop_untrusted:
+            raise TrackingLostError(f"the trajectory of frames 0-{n - 1} cannot be trusted: {'; '.join(why)}",
+                                    frame=motion.rotation_only[0][0] if motion.rotation_only else 0)
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),

@@ -85,6 +85,11 @@ class FrontendConfig:
         measured on the validation table: on the synthetic walk-through
         (``recon.synthetic.walkthrough``) the map's scale drifted gradually through the
         plain corridor, not in a step, and the watch found no break to join.
+    stop_untrusted: stop (TrackingLostError, which the SfM fallback then answers) when the
+        front end's checks of its own motion (``motion_checks``: the lens fit on its bound,
+        neighbouring frames farther apart than dense flow follows, a camera turned on the
+        spot for most of the run) say the trajectory cannot be trusted; off: return it, the
+        verdicts in ``diagnostics["motion_checks"]`` (``--on-break keep``).
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -137,6 +142,7 @@ class FrontendConfig:
     vanishing_points: bool = True
     vanishing_min_share: float = 0.5
     join_scale_breaks: bool = False
+    stop_untrusted: bool = True
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25

@@ -40,12 +40,16 @@ class MotionCheckConfig:
     large_motion_share: neighbouring frames whose motion moves the image by more than this
         share of its width (median over the pixels) are farther apart than dense flow follows;
     min_large_motion_share: ... and a run is judged to move too fast when this share of its
-        frame pairs do."""
+        frame pairs do;
+    min_rotation_only_share: a run whose rotation-only stretches hold this share of its
+        frames is judged to turn on the spot (shorter stretches are marked, not judged: a
+        hand-held walk pauses to look around)."""
 
     window: int = 6
     max_translation_share: float = 0.3
     large_motion_share: float = 0.1
     min_large_motion_share: float = 0.5
+    min_rotation_only_share: float = 0.5
 
 
 @dataclass
@@ -54,13 +58,15 @@ class MotionChecks:
     rotation_only: [first, last] frame ranges of rotation-only stretches; translation_share:
     the run's share of keyframe flow made by translation; large_motion: frames whose step from
     the frame before exceeds the large-motion share, and the run's median step (share of the
-    width); lens_k1 and lens_at_bound."""
+    width); moves_too_fast and turns_on_the_spot: the verdicts on the whole run; lens_k1 and
+    lens_at_bound."""
 
     rotation_only: list[list[int]] = field(default_factory=list)
     translation_share: float = float("nan")
     large_motion: list[int] = field(default_factory=list)
     median_step_share: float = float("nan")
     moves_too_fast: bool = False
+    turns_on_the_spot: bool = False
     lens_k1: float | None = None
     lens_at_bound: bool = False
 
@@ -75,7 +81,7 @@ class MotionChecks:
         """The same with frame positions replaced by names[i] (the video's frame numbers)."""
         return MotionChecks([[int(names[a]), int(names[b])] for a, b in self.rotation_only], self.translation_share,
                             [int(names[i]) for i in self.large_motion], self.median_step_share, self.moves_too_fast,
-                            self.lens_k1, self.lens_at_bound)
+                            self.turns_on_the_spot, self.lens_k1, self.lens_at_bound)
 
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or what is wrong with its motion."""
@@ -95,7 +101,7 @@ class MotionChecks:
         if self.moves_too_fast:
             why.append(f"neighbouring frames are a median {100 * self.median_step_share:.0f} % of the image width "
                        "apart, farther than dense flow follows")
-        if self.rotation_only:
+        if self.turns_on_the_spot:
             spans = ", ".join(f"{a}-{b}" for a, b in self.rotation_only[:4])
             why.append(f"the camera turns on the spot (frames {spans}): its translation makes "
                        f"{100 * self.translation_share:.0f} % of the keyframes' flow, too little parallax to measure "
@@ -185,6 +191,8 @@ def check_motion(keyframe_T_cw: np.ndarray, keyframe_depth: np.ndarray, keyframe
         scene_depth = float(np.median(d[np.isfinite(d) & (d > 0)]))
         out.large_motion, out.median_step_share = large_motion_frames(frame_T_cw, scene_depth, focal, width, cfg)
         out.moves_too_fast = len(out.large_motion) >= cfg.min_large_motion_share * max(len(frame_T_cw) - 1, 1)
+        turning = sum(b - a + 1 for a, b in out.rotation_only)
+        out.turns_on_the_spot = turning >= cfg.min_rotation_only_share * len(frame_T_cw)
     return out
 
 
