@@ -44,7 +44,7 @@ says so). Poses ``"auto"``: a dataset's ground truth when it has one, else estim
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -52,12 +52,13 @@ import numpy as np
 
 from .clock import StageClock
 from .config import PipelineConfig
+from .errors import ReconInputError
 from .export import export_reconstruction
 from .fusion import FusionOptions
 from .io.output_folder import RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .lens import worth_undistorting
 from .refine import default_min_confidence, fusion_confidence
-from .report import build_report, fusion_summary
+from .report import build_report, fusion_summary, segments_summary, segments_warning
 from .sequence import Sequence
 from .stages import (
     adjust_with_medea,
@@ -72,7 +73,9 @@ from .stages import (
     prior_function,
     refine_depth,
     select_frames,
+    stop_at_breaks,
     tracking_states,
+    trajectory_stretches,
     undistort_known_lens,
     unrolled_frames,
 )
@@ -109,6 +112,8 @@ class PipelineResult:
     rerun_url: str | None = None
     adjusted_depth: np.ndarray | None = None
     refined: object = None
+    # Where the trajectory's scale broke (--on-break segments): each stretch's own run.
+    segments: list["PipelineResult"] = field(default_factory=list)
 
     @property
     def seconds_per_frame(self) -> dict[str, float]:
@@ -172,7 +177,6 @@ def _remove_if_empty(folder: Path) -> None:
 
 
 def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
-    from .fusion import fuse
 
     config.validate()
     say = on_stage or (lambda _: None)
@@ -229,6 +233,24 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
             say("polishing the given poses against the frames")
             pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress, config.device)
             seq = seq.with_(poses=pose_stage.poses)
+
+    if pose_plan.estimated and config.on_break != "keep":
+        stretch = trajectory_stretches(pose_stage.info, len(pose_stage.poses))
+        stretch = stretch if pose_stage.keep is None else stretch[pose_stage.keep]
+        if stretch.max() > 0:
+            if config.on_break == "stop":
+                stop_at_breaks(pose_stage.info)
+            return _run_segments(out, seq, stretch, pose_stage, timer, say, lambda piece, piece_out: _reconstruct(
+                config, piece_out, source, piece, pose_stage, pose_plan, intrinsics_from, prior, StageClock(),
+                tracking, say))
+    return _reconstruct(config, out, source, seq, pose_stage, pose_plan, intrinsics_from, prior, timer, tracking, say)
+
+
+def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequence, pose_stage, pose_plan,
+                 intrinsics_from: str, prior, timer: StageClock, tracking, say) -> PipelineResult:
+    """The stages after the poses (undistortion, MEDeA, refinement, fusion, export, Rerun,
+    report) on the posed sequence, into ``out``."""
+    from .fusion import fuse
 
     undistorted = worth_undistorting(seq.intrinsics, seq.size, pose_stage.lens_k1)
     if undistorted:
@@ -301,6 +323,37 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         intrinsics=seq.intrinsics, fusion=fused, medea=medea_result, seconds=dict(timer.seconds), files=files,
         report=report, rerun_url=rerun_url, adjusted_depth=adjusted, refined=refined,
     )
+
+
+def _run_segments(out: OutputFolder, seq: Sequence, stretch: np.ndarray, pose_stage, timer: StageClock, say,
+                  reconstruct: Callable[[Sequence, OutputFolder], PipelineResult]) -> PipelineResult:
+    """A trajectory whose scale breaks (``stretch``: (N,) the stretch of each posed frame,
+    recon.stages.trajectory_stretches) reconstructed stretch by stretch into
+    ``OUT/segment_NN/`` (``reconstruct(piece, its folder)``), with one summary report.json;
+    the result of the whole run is the largest piece's, with ``segments``. A stretch of fewer
+    than two frames is left out with a warning (recon.stream does the same for a streamed run)."""
+    pieces = []
+    for k in range(int(stretch.max()) + 1):
+        mine = np.flatnonzero(stretch == k)
+        if len(mine) < 2:
+            log.warning("%d frame(s) of stretch %d of the trajectory are left out: too few to reconstruct",
+                        len(mine), k)
+            continue
+        name = f"segment_{len(pieces):02d}"
+        piece = seq.take(mine)
+        say(f"{name}: frames {int(piece.indices[0])}-{int(piece.indices[-1])}")
+        pieces.append(reconstruct(piece, OutputFolder(out.path / name, overwrite=True)))
+    if not pieces:
+        raise ReconInputError("no stretch of the trajectory between its scale breaks has two frames "
+                              "(--on-break keep writes the trajectory as one)")
+    largest = max(pieces, key=lambda p: len(p.frames))
+    summary = segments_summary(largest.report, pieces, pose_stage.info)
+    summary["seconds"] = {**timer.seconds, **summary["seconds"]}
+    log.warning(segments_warning(summary))
+    result = replace(largest, output=out.path, report=summary, files={p.output.name: p.output for p in pieces},
+                     seconds=dict(summary["seconds"]), segments=pieces)
+    result.files["report"] = out.write_json(REPORT_JSON, summary)
+    return result
 
 
 def _unroll(config: PipelineConfig, pose_plan, source, seq: Sequence, pose_stage, tracking, say):

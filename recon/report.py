@@ -123,6 +123,33 @@ def peak_memory_mb() -> float | None:
     return None
 
 
+def segments_summary(report: dict, pieces: list, pose_info: dict) -> dict:
+    """The summary report.json of a run written as segments (--on-break segments): the
+    largest segment's ``report`` with the whole run's frame counts, pose report ``pose_info``
+    and ``segments``: per piece (a PipelineResult or StreamResult, each with its own folder
+    and report) its folder, first and last frame, frames with depth and triangles."""
+    segments = [{"folder": p.output.name, "frames": [int(p.report["frames"]["indices"][0]),
+                                                    int(p.report["frames"]["indices"][-1])],
+                 "depth_frames": int(p.report["frames"].get("depth_frames", p.report["frames"]["count"])),
+                 "triangles": int(len(p.fusion.mesh.triangles))} for p in pieces]
+    frames = {**report["frames"], "count": sum(int(p.report["frames"]["count"]) for p in pieces),
+              "depth_frames": sum(s["depth_frames"] for s in segments),
+              "indices": [i for p in pieces for i in p.report["frames"]["indices"]]}
+    seconds = {}
+    for piece in pieces:
+        for stage, value in piece.report.get("seconds", {}).items():
+            seconds[stage] = seconds.get(stage, 0.0) + value
+    return {**report, "frames": frames, "poses": {**report["poses"], **pose_info}, "segments": segments,
+            "seconds": seconds}
+
+
+def segments_warning(summary: dict) -> str:
+    """The one warning of a run written as segments (its summary report)."""
+    parts = ", ".join(f"{s['folder']}/ frames {s['frames'][0]}-{s['frames'][1]}" for s in summary["segments"])
+    return (f"the trajectory's scale breaks (report.json: poses.scale_watch): written as {len(summary['segments'])} "
+            f"separate reconstructions, {parts} (--on-break stop stops instead, keep writes one)")
+
+
 def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
                   store_bytes: int) -> dict:
     """report.json of a streamed run (recon.stream): the one-shot report's sections, with

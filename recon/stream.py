@@ -37,6 +37,7 @@ from .errors import ReconInputError
 from .io.frame_store import FrameStore
 from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .io.source import FrameSource
+from .report import segments_summary, segments_warning
 from .rolling_shutter import angular_velocity
 from .stages import PosePlan, shutter_summary, stop_at_breaks, trajectory_stretches
 from .stream_depth import depth_windows
@@ -143,30 +144,21 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
         volume, windows, _ = depth_windows(config, part, pose_plan, store, part_out, logger, part_clock)
         piece = _finish(config, source, part_out, part, volume, windows, part_clock, logger, store.bytes_written)
         piece.files["report"] = part_out.write_json(REPORT_JSON, _with_files(piece.report, piece.files, part_out))
-        for stage, seconds in part_clock.seconds.items():
-            clock.seconds[stage] = clock.seconds.get(stage, 0.0) + seconds
         pieces.append(piece)
     if not pieces:
         raise ReconInputError("no stretch of the trajectory between its scale breaks has two depth frames "
                               "(report.json is not written; --on-break keep writes the trajectory as one)")
     largest = max(pieces, key=lambda p: p.depth_frames)
-    summary = {**largest.report, "segments": [
-        {"folder": p.output.name, "frames": [int(p.report["frames"]["indices"][0]),
-                                             int(p.report["frames"]["indices"][-1])],
-         "depth_frames": p.depth_frames, "triangles": int(len(p.fusion.mesh.triangles))} for p in pieces]}
-    summary["frames"] = {**summary["frames"], "count": int(sum(p.report["frames"]["count"] for p in pieces)),
-                         "tracked": len(video.indices), "depth_frames": int(sum(p.depth_frames for p in pieces))}
-    summary["poses"] = {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1}
-    summary["seconds"] = dict(clock.seconds)
+    summary = segments_summary(largest.report, pieces, {"source": video.pose_source, **video.pose_info,
+                                                        "lens_k1": video.lens_k1})
+    summary["frames"]["tracked"] = len(video.indices)
+    summary["seconds"] = {**clock.seconds, **summary["seconds"]}
+    log.warning(segments_warning(summary))
     files = {p.output.name: p.output for p in pieces}
-    log.warning("the trajectory's scale breaks (report.json: poses.scale_watch): written as %d separate "
-                "reconstructions, %s (--on-break stop stops instead, keep writes one)", len(pieces),
-                ", ".join(f"{p.output.name}/ frames {s['frames'][0]}-{s['frames'][1]}"
-                          for p, s in zip(pieces, summary["segments"])))
     return StreamResult(output=out.path, frames_tracked=len(video.indices),
                         depth_frames=summary["frames"]["depth_frames"], poses=video.poses,
-                        intrinsics=video.intrinsics, fusion=largest.fusion, seconds=dict(clock.seconds),
-                        files=files, report=summary, segments=pieces)
+                        intrinsics=video.intrinsics, fusion=largest.fusion,
+                        seconds=dict(summary["seconds"]), files=files, report=summary, segments=pieces)
 
 
 def _turn_rate(config: PipelineConfig, pose_plan: PosePlan, video: TrackedVideo, say) -> np.ndarray | None:

@@ -66,6 +66,7 @@ def test_check_motion_names_what_makes_a_trajectory_untrusted():
     turned = check_motion(spin, depth, np.arange(n), spin, F, WIDTH)
     assert turned.rotation_only == [[0, n - 1]] and turned.translation_share < 0.05 and turned.turns_on_the_spot
     assert "turns on the spot" in turned.untrusted()[0]
+    assert turned.untrusted(focal_estimated=False) == []  # a known camera turning is tracked (TUM fr1/rpy)
     # A walk that stops to look around for a quarter of its frames: marked, not judged.
     pause = _poses(np.r_[0.5 * np.ones(15), 3.0 * np.ones(10), 0.5 * np.ones(15)],
                    np.r_[0.03 * np.ones(15), 0.0005 * np.ones(10), 0.03 * np.ones(15)])

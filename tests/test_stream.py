@@ -256,13 +256,16 @@ def test_a_batch_task_reports_a_streamed_run(room_video, tmp_path):
     assert outcome.frames == FRAMES and outcome.triangles > 1000
 
 
-def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_path, monkeypatch):
+@pytest.mark.parametrize("stream", ["auto", "off"])
+def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_path, monkeypatch, stream):
     """The depth prior of the room's frames 18-35 is twice too far: the map's depth against
     the prior's steps there, the scale watch (its windows shortened to fit 36 frames) calls it
-    a break, and the run (--on-break segments, the default) writes each stretch as its own
-    reconstruction, each brought to its own prior's scale: right before the break, twice too
-    large after it, both right in shape. --on-break stop stops naming the frames."""
+    a break, and the run (--on-break segments, the default), streamed or at once, writes each
+    stretch as its own reconstruction, each brought to its own prior's scale: right before the
+    break, twice too large after it, both right in shape. --on-break stop stops naming the
+    frames."""
     import functools
+    import json
 
     from recon.errors import ReconInputError
     from recon.eval.trajectory import ate_rmse
@@ -277,7 +280,7 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
         prior.write_bytes(f"{frame_name(i)}.npy", npy_bytes((depth * (2.0 if i >= 18 else 1.0)).astype(np.float32)))
     monkeypatch.setattr(scale_watch, "ScaleWatchConfig",
                         functools.partial(scale_watch.ScaleWatchConfig, window=3, min_keyframes=6))
-    config = replace(_config(room_video, tmp_path / "out", "auto", rerun="off"), poses="estimate",
+    config = replace(_config(room_video, tmp_path / "out", stream, rerun="off"), poses="estimate",
                      depth_frames="3", prior_path=prior.path, pose_options={"keyframe_flow": 2.0})
     result = run_pipeline(config)
     assert [p.output.name for p in result.segments] == ["segment_00", "segment_01"], result.report["poses"]["scale_watch"]
@@ -292,6 +295,9 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
         assert ate["rmse"] < 0.03, ate
         scales.append(ate["scale"])
     assert 1.6 < scales[0] / scales[1] < 2.5, scales  # poses scaled by 1/s to the truth: the second is larger
-    assert result.report["frames"]["tracked"] == FRAMES
+    assert result.report["frames"]["depth_frames"] == sum(len(load_output(p.output).indices) for p in result.segments)
+    summary = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [s["folder"] for s in summary["segments"]] == ["segment_00", "segment_01"]
+    assert summary["poses"]["scale_watch"]["breaks"] and not (tmp_path / "out" / "trajectory.txt").exists()
     with pytest.raises(ReconInputError, match="scale breaks .*--on-break stop"):
         run_pipeline(replace(config, output=tmp_path / "stop", on_break="stop"))

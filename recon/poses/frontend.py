@@ -236,7 +236,7 @@ class StreamingFrontend:
         motion = motion_checks.check_motion(
             g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
-        why = motion.untrusted()
+        why = motion.untrusted(focal_estimated=self._focal_choice is not None)
         if self._focal_choice is not None and not self._focal_choice.found:
             why.insert(0, self._focal_choice.not_found())
         if why and self.cfg.stop_untrusted:

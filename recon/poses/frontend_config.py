@@ -88,8 +88,10 @@ class FrontendConfig:
     stop_untrusted: stop (TrackingLostError, which the SfM fallback then answers) when the
         front end's checks of its own motion (``motion_checks``: the lens fit on its bound,
         neighbouring frames farther apart than dense flow follows, a camera turned on the
-        spot for most of the run) say the trajectory cannot be trusted; off: return it, the
-        verdicts in ``diagnostics["motion_checks"]`` (``--on-break keep``).
+        spot for most of the run, with the focal length estimated), or the focal search's
+        minimum was not bracketed (``focal_choice.FocalChoice.found``), say the trajectory
+        cannot be trusted; off: return it, the verdicts in ``diagnostics["motion_checks"]``
+        (``--on-break keep``).
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
