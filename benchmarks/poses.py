@@ -98,6 +98,17 @@ def _load_frames(name: str, k1: float):
     return seq.rgb, prior, (None if base == "synthetic-nok" else seq.intrinsics), seq.poses, 0.0
 
 
+def motion_verdicts(diagnostics: dict) -> list[str]:
+    """Why the front end's motion checks distrust its trajectory, and its translation share."""
+    if "motion_checks" not in diagnostics:
+        return []
+    from recon.poses.motion_checks import MotionChecks
+
+    checks = MotionChecks.from_dict(diagnostics["motion_checks"])
+    return [f"translation share {checks.translation_share:.2f}, median step {checks.median_step_share:.3f} of the "
+            f"width, rotation-only frames {sum(b - a + 1 for a, b in checks.rotation_only)}", *checks.untrusted()]
+
+
 def evaluate(res, gt: np.ndarray, true_intr) -> dict:
     sim3 = ate_rmse(res.poses, gt, "sim3")
     se3 = ate_rmse(res.poses, gt, "se3")
@@ -118,6 +129,9 @@ def evaluate(res, gt: np.ndarray, true_intr) -> dict:
         "lost_frames": len(res.diagnostics.get("lost_frames", [])),
         "focal": res.intrinsics[0],
         "lens_k1": res.diagnostics.get("lens_k1"),
+        # The front end's verdicts on its own trajectory (recon.poses.scale_watch, motion_checks).
+        "scale_breaks": len(res.diagnostics.get("scale_watch", {}).get("breaks", [])),
+        "untrusted": motion_verdicts(res.diagnostics),
     }
     if true_intr is not None:
         out["focal_error_pct"] = 100 * (res.intrinsics[0] / true_intr[0] - 1)

@@ -269,7 +269,12 @@ def run_one(rec: Recording, mode: str, segment: int, variant: list[str], work: P
         row["error"] = f"signal {-done.returncode}" if done.returncode < 0 else lines[-1]
         row["stderr_tail"] = lines[-40:]
         return row
-    row.update(scores(rec, mode, out))
+    segments = json.loads((out / "report.json").read_text()).get("segments")
+    if segments:  # --on-break segments: each stretch is scored on its own, the row is the worst
+        parts = [scores(rec, mode, out / s["folder"]) for s in segments]
+        row.update(max(parts, key=lambda p: p.get("ate_sim3_pct") or 0.0), segments=parts)
+    else:
+        row.update(scores(rec, mode, out))
     return row
 
 
@@ -300,7 +305,8 @@ def table_row(r: dict) -> list[str]:
                 *["-"] * (len(HEADERS) - 6)]
     return [r["recording"], r["mode"], r["segment"], r["variant"], "0", fmt(r.get("fscore"), ".3f"),
             fmt(r.get("fscore_icp"), ".3f"), fmt(r.get("abs_rel"), ".4f"), fmt(r.get("ate_se3"), ".3f"),
-            fmt(r.get("ate_sim3_pct"), ".1f"), fmt(r.get("scale_error"), ".3f"),
+            fmt(r.get("ate_sim3_pct"), ".1f") + (f" (worst of {len(r['segments'])} segments)" if r.get("segments")
+                                                 else ""), fmt(r.get("scale_error"), ".3f"),
             focal_cell(r) if r["mode"] == "nothing" else
             f"{fmt(r.get('trajectory_moved_m'), '.3f')} m {fmt(r.get('trajectory_turned_deg'), '.2f')} deg",
             fmt(r.get("s_per_frame"), ".3f"), fmt(r.get("pose_s_per_frame"), ".3f"),
