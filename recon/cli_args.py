@@ -212,6 +212,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "(each stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
                         "frames, exit 2) or keep (one trajectory, warned); keep also returns a trajectory the "
                         "front end's motion checks distrust (poses.motion_checks). Default %(default)s")
+    g.add_argument("--no-join", dest="join_segments", action="store_false",
+                   help="do not try to join the stretches on either side of a scale break (by ORB matches and "
+                        "PnP across it) before --on-break applies")
     add_pose_option_argument(g)
 
     g = parser.add_argument_group("depth prior")
@@ -402,7 +405,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
         distortion=_numbers(args.distortion, (4, 5), "--distortion") if args.distortion else None,
         rolling_shutter=args.rolling_shutter,
         poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
-        on_break=args.on_break,
+        on_break=args.on_break, join_segments=args.join_segments,
         prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
         weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
         refine=args.refine, mvs=mvs_config_from_args(args),

@@ -88,6 +88,9 @@ class PipelineConfig:
         or "keep" (one trajectory, with a warning). Whatever it is, a trajectory the front
         end's motion checks distrust as a whole (``recon.poses.motion_checks``) is not
         returned, except under "keep".
+    join_segments: before that, try to join the stretches on either side of each break
+        (``recon.poses.join``: the frames after it posed by PnP in the stretch before it, a
+        similarity between the two); joined stretches are one trajectory again.
     prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
         depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
         depth model folder; recon.priors.hf). weights: FastDepth weights location.
@@ -140,6 +143,7 @@ class PipelineConfig:
     pose_method: str = "auto"
     pose_options: dict[str, Any] = field(default_factory=dict)
     on_break: str = "segments"
+    join_segments: bool = True
     prior: str = "fastdepth"
     prior_path: Path | None = None
     prior_align: str = "fastdepth"

@@ -67,11 +67,13 @@ from .stages import (
     default_intrinsics,
     estimator_options,
     given_intrinsics,
+    join_breaks,
     judge_given_poses,
     plan_poses,
     polished_poses,
     prior_function,
     refine_depth,
+    say_joins,
     select_frames,
     stop_at_breaks,
     tracking_states,
@@ -237,6 +239,11 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
     if pose_plan.estimated and config.on_break != "keep":
         stretch = trajectory_stretches(pose_stage.info, len(pose_stage.poses))
         stretch = stretch if pose_stage.keep is None else stretch[pose_stage.keep]
+        if stretch.max() > 0 and config.join_segments:
+            stretch, poses, joins = join_breaks(stretch, seq.poses, np.arange(len(seq)),
+                                                lambda p: (seq.rgb[p], seq.prior_depth[p]), seq.intrinsics)
+            seq, pose_stage = seq.with_(poses=poses), replace(pose_stage, info={**pose_stage.info, "joins": joins})
+            say_joins(joins)
         if stretch.max() > 0:
             if config.on_break == "stop":
                 stop_at_breaks(pose_stage.info)

@@ -315,6 +315,50 @@ def trajectory_stretches(info: dict, count: int) -> np.ndarray:
     return np.array([0 if v == "ok" else int(v.rsplit(" ", 1)[-1]) for v in verdicts], dtype=np.int64)
 
 
+def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
+                views: int = 4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """The stretches of a trajectory joined across its scale breaks where the frames allow
+    (recon.poses.join): (stretch (N,) renumbered so that joined stretches share one number,
+    poses (N, 4, 4) camera-to-world with each joined stretch moved into the frame of the one
+    before, what report.json says of each break). stretch: (N,) as from
+    :func:`trajectory_stretches`; positions: the frames that can serve as views (colour and
+    depth at hand), in order; frame(position) -> (rgb (H, W, 3) uint8, depth (h, w) metres);
+    intrinsics of the frames."""
+    from .poses.join import JoinConfig, View, apply_similarity, join_stretches
+
+    def view(p: int) -> View:
+        return View(*frame(p), poses[p])
+
+    cfg = JoinConfig(views=views)
+    label, poses, report = stretch.copy(), np.array(poses, dtype=np.float64, copy=True), []
+    usable = [p for p in positions if np.isfinite(poses[p]).all()]
+    for k in range(1, int(stretch.max()) + 1):
+        # Every other frame of the 2m nearest the break on each side: some baseline between views.
+        before = [p for p in usable if stretch[p] == k - 1][-2 * cfg.views::2]
+        after = [p for p in usable if stretch[p] == k][:2 * cfg.views:2]
+        join = None
+        if before and after:
+            join = join_stretches([view(p) for p in before], [view(p) for p in after], intrinsics, cfg)
+        entry = {"break": k, "joined": join is not None, "tried": [len(before), len(after)]}
+        if join is not None:
+            mine = stretch == k
+            poses[mine] = apply_similarity(poses[mine], join)
+            label[mine] = label[np.flatnonzero(stretch == k - 1)[0]]
+            entry.update(join.to_dict())
+        report.append(entry)
+    _, label = np.unique(label, return_inverse=True)
+    return label.astype(np.int64), poses, report
+
+
+def say_joins(joins: list[dict]) -> None:
+    """One line on the breaks :func:`join_breaks` joined (and those it could not)."""
+    joined = [j for j in joins if j["joined"]]
+    if joined:
+        scales = ", ".join(f"x{j['scale']:.2f}" for j in joined)
+        log.info("%d of %d scale breaks joined (the frames after each posed in the stretch before it; scale %s)",
+                 len(joined), len(joins), scales)
+
+
 def stop_at_breaks(info: dict) -> None:
     """ReconInputError naming the scale breaks of an estimate's pose report ``info``, if it
     has any (``--on-break stop``; not a TrackingLostError, which the SfM fallback would answer)."""

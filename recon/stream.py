@@ -39,7 +39,7 @@ from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, a
 from .io.source import FrameSource
 from .report import segments_summary, segments_warning
 from .rolling_shutter import angular_velocity
-from .stages import PosePlan, shutter_summary, stop_at_breaks, trajectory_stretches
+from .stages import PosePlan, join_breaks, say_joins, shutter_summary, stop_at_breaks, trajectory_stretches
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
 
@@ -88,6 +88,12 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         say("tracking (streamed)")
         video = track_video(config, source, pose_plan, given, store, logger, clock)
         stretch = trajectory_stretches(video.pose_info, len(video.indices))
+        if pose_plan.estimated and stretch.max() > 0 and config.on_break != "keep" and config.join_segments:
+            stretch, poses, joins = join_breaks(stretch, video.poses, np.flatnonzero(video.depth_frame),
+                                                lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
+                                                video.intrinsics)
+            video = replace(video, poses=poses, pose_info={**video.pose_info, "joins": joins})
+            say_joins(joins)
         if pose_plan.estimated and stretch.max() > 0 and config.on_break == "stop":
             stop_at_breaks(video.pose_info)
         if pose_plan.estimated and stretch.max() > 0 and config.on_break == "segments":

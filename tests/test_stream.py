@@ -281,7 +281,8 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
     monkeypatch.setattr(scale_watch, "ScaleWatchConfig",
                         functools.partial(scale_watch.ScaleWatchConfig, window=3, min_keyframes=6))
     config = replace(_config(room_video, tmp_path / "out", stream, rerun="off"), poses="estimate",
-                     depth_frames="3", prior_path=prior.path, pose_options={"keyframe_flow": 2.0})
+                     depth_frames="3", prior_path=prior.path, pose_options={"keyframe_flow": 2.0},
+                     join_segments=False)
     result = run_pipeline(config)
     assert [p.output.name for p in result.segments] == ["segment_00", "segment_01"], result.report["poses"]["scale_watch"]
     (first, last), _ = [s["frames"] for s in result.report["segments"]]
@@ -301,3 +302,13 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
     assert summary["poses"]["scale_watch"]["breaks"] and not (tmp_path / "out" / "trajectory.txt").exists()
     with pytest.raises(ReconInputError, match="scale breaks .*--on-break stop"):
         run_pipeline(replace(config, output=tmp_path / "stop", on_break="stop"))
+    # Joined (the default): the frames after the break posed by PnP against the depth before
+    # it; one trajectory, the stretch after the break brought back to the one before it.
+    joined = run_pipeline(replace(config, output=tmp_path / "joined", join_segments=True))
+    assert not joined.segments and not (tmp_path / "joined" / "segment_00").exists(), joined.report["poses"]["joins"]
+    join = joined.report["poses"]["joins"][0]
+    assert join["joined"] and 0.4 < join["scale"] < 0.65, join
+    written = load_output(tmp_path / "joined")
+    frames = np.asarray(written.indices)
+    ate = ate_rmse(written.poses, seq.poses[frames], "sim3")
+    assert ate["rmse"] < 0.03, ate

@@ -150,3 +150,32 @@ def interpolate_poses(
         out[inside] = make_poses(rot, trans)
     out[near_ok] = ref[nearest[near_ok]]
     return out, inside | near_ok
+
+
+def umeyama(src, dst, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
+
+    src, dst: (N, 3) corresponding points. Returns R (3, 3) (a rotation, det +1), t (3,),
+    s (1.0 when not `with_scale`).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ReconInputError(f"umeyama needs two (N, 3) point sets of equal shape, got {src.shape} and {dst.shape}")
+    if len(src) < 2:
+        raise ReconInputError(f"umeyama needs at least 2 points, got {len(src)}")
+    mu_src, mu_dst = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_src, dst - mu_dst
+    var_src = (xs**2).sum() / len(src)
+    if var_src <= 1e-18:
+        raise ReconInputError("umeyama: source points are all the same (no motion to align)")
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    # Flip the weakest axis when needed so the result is a rotation, not a reflection.
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    rot = (u * sign) @ vt
+    scale = float((d * sign).sum() / var_src) if with_scale else 1.0
+    trans = mu_dst - scale * rot @ mu_src
+    return rot, trans, scale
