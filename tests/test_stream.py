@@ -284,7 +284,7 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
                      depth_frames="3", prior_path=prior.path, pose_options={"keyframe_flow": 2.0},
                      join_segments=False)
     result = run_pipeline(config)
-    assert [p.output.name for p in result.segments] == ["segment_00", "segment_01"], result.report["poses"]["scale_watch"]
+    assert [p.output.name for p in result.segments] == ["segment_00", "segment_01"], result.report["poses"]
     (first, last), _ = [s["frames"] for s in result.report["segments"]]
     assert first == 0 and 14 <= last + 1 <= 22, result.report["segments"]
     scales = []
