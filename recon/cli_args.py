@@ -276,6 +276,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "the share of source views that agree, >= 1/3; filled pixels: 0.1 x the share of "
                         "reconstructed pixels around them; 0 fuses all). Default: 0.1 (reconstructed pixels only) "
                         "with given poses, 0.01 (also filled pixels near evidence) with estimated poses")
+    g.add_argument("--max-triangles", type=int, default=fd.max_triangles,
+                   help="the mesh's triangle budget: a larger mesh is decimated (quadric error, colours kept) "
+                        "to this many triangles (default %(default)s; 0 keeps the full mesh)")
     g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
 
     g = parser.add_argument_group("output")
@@ -289,7 +292,7 @@ def fusion_options_from_args(args: argparse.Namespace):
     return FusionOptions(
         voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
         min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
-        min_confidence=args.min_confidence,
+        min_confidence=args.min_confidence, max_triangles=args.max_triangles,
     )
 
 

@@ -59,7 +59,8 @@ def fusion_summary(fused, min_confidence: float | None) -> dict:
     return {"min_confidence": min_confidence, "voxel_size": fused.voxel_size, "trunc": fused.trunc,
             "max_depth": fused.max_depth, "frames_fused": fused.frames_fused, "block_estimate": fused.block_estimate,
             "blocks_used": fused.blocks_used, "fragments_removed": fused.fragments_removed,
-            "vertices": len(mesh.vertices), "triangles": len(mesh.triangles)}
+            "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+            "triangles_full": fused.triangles_full or len(mesh.triangles)}
 
 
 def _input_section(config, source) -> dict:

@@ -202,18 +202,21 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
     from .export import export_reconstruction
     from .fusion import FusionResult
     from .fusion.tsdf import warn_empty_mesh
+    from .fusion.volume import within_budget
     from .report import stream_report
 
     (volume, options) = fusion_state
     start = time.perf_counter()
     with clock.stage("fusion"):
         mesh, removed = volume.mesh(options)
+        full = len(mesh.triangles)
+        mesh = within_budget(mesh, options.max_triangles)
         cloud = volume.point_cloud(options) if options.point_cloud else None
     fusion = FusionResult(mesh=mesh, point_cloud=cloud, voxel_size=volume.voxel, trunc=volume.trunc,
                           seconds=time.perf_counter() - start, max_depth=volume.max_depth,
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,
-                          fragments_removed=removed)
-    if len(mesh.triangles) == 0:
+                          fragments_removed=removed, triangles_full=full)
+    if full == 0:
         warn_empty_mesh(volume, options, config.refine != "none")
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     with clock.stage("export"):

@@ -53,7 +53,7 @@ from tqdm import tqdm
 
 from recon.errors import ReconInputError
 
-from .volume import TsdfVolume, clean_depth, remove_fragments, triangle_components  # noqa: F401 (re-exported)
+from .volume import TsdfVolume, clean_depth, remove_fragments, triangle_components, within_budget  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,8 @@ class FusionOptions:
     keep everything). point_cloud: also extract a surface point cloud. device: "cpu",
     "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
     confidence map, pixels below it are not integrated (None: the caller's choice, else
-    DEFAULT_MIN_CONFIDENCE).
+    DEFAULT_MIN_CONFIDENCE). max_triangles: the mesh's triangle budget (``volume.within_budget``:
+    quadric decimation; 0 = no limit, the full mesh).
     """
 
     voxel_size: float | None = None
@@ -99,6 +100,7 @@ class FusionOptions:
     device: str = "cpu"
     progress: bool = True
     min_confidence: float | None = None
+    max_triangles: int = 1_000_000
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
@@ -116,6 +118,8 @@ class FusionOptions:
             raise ReconInputError(f"fusion option block_count must be >= 64, got {self.block_count}")
         if self.min_confidence is not None and not (0 <= self.min_confidence <= 1):
             raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
+        if int(self.max_triangles) < 0:
+            raise ReconInputError(f"fusion option max_triangles must be >= 0 (0: no limit), got {self.max_triangles}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
             raise ReconInputError(
                 "fusion options min_fragment_triangles must be >= 0 and min_fragment_fraction in [0, 1]"
@@ -131,7 +135,8 @@ class FusionResult:
     voxel_size, trunc, max_depth: metres actually used. seconds: wall time of fuse().
     frames_fused: frames integrated (frames with an invalid pose or no valid depth are
     skipped). block_estimate: blocks predicted before integrating; blocks_used: allocated.
-    fragments_removed: triangles dropped by fragment removal.
+    fragments_removed: triangles dropped by fragment removal. triangles_full: the mesh's
+    triangles before the budget (FusionOptions.max_triangles) decimated it.
     """
 
     mesh: o3d.geometry.TriangleMesh
@@ -144,6 +149,7 @@ class FusionResult:
     block_estimate: int = 0
     blocks_used: int = 0
     fragments_removed: int = 0
+    triangles_full: int = 0
 
 
 # --------------------------------------------------------------------------- devices
@@ -403,8 +409,10 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     for i in tqdm(frames, desc="TSDF fusion", unit="frame", disable=not options.progress, leave=False):
         volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i])
     mesh, removed = volume.mesh(options)
+    full = len(mesh.triangles)
     if len(mesh.triangles) == 0:
         warn_empty_mesh(volume, options, confidence is not None)
+    mesh = within_budget(mesh, options.max_triangles)
     cloud = volume.point_cloud(options) if options.point_cloud else None
     fused, blocks_used = volume.frames_fused, volume.blocks_used
     return FusionResult(
@@ -418,4 +426,5 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         block_estimate=estimate,
         blocks_used=blocks_used,
         fragments_removed=removed,
+        triangles_full=full,
     )
