@@ -23,11 +23,11 @@ config = PipelineConfig(
     fusion=FusionOptions(voxel_size=None, point_cloud=True),  # None: chosen from the depth range
     rerun="save",  # writes OUTPUT/recording.rrd
 )
-result = run_pipeline(config)
+result = run_pipeline(config)  # a PipelineResult, or a StreamResult when the run streams (same fields)
 print(format_summary(result))
 
 # Everything is also available in memory:
-depth = result.depth  # (N, H, W) metres, MEDeA-adjusted
+depth = result.depth  # (N, H, W) metres, the final depth (a streamed run: its depth frames, read back)
 poses = result.poses  # (N, 4, 4) camera-to-world, OpenCV axes
 mesh = result.fusion.mesh  # open3d.geometry.TriangleMesh
 print(f"{len(depth)} depth maps {depth.shape[1:]}, mesh with {len(mesh.triangles)} triangles")

@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -81,6 +81,9 @@ from .stages import (
     undistort_known_lens,
     unrolled_frames,
 )
+
+if TYPE_CHECKING:
+    from .stream import StreamResult
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +126,12 @@ class PipelineResult:
         return {stage: s / n for stage, s in self.seconds.items()}
 
 
-def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None = None) -> PipelineResult:
-    """Run every stage (module docstring) and write the output folder; returns what was made.
+def run_pipeline(config: PipelineConfig,
+                 on_stage: Callable[[str], None] | None = None) -> PipelineResult | StreamResult:
+    """Run every stage (module docstring) and write the output folder; returns what was made:
+    a PipelineResult, or a streamed run's recon.stream.StreamResult. Both give output, poses,
+    intrinsics, depth (a streamed run's read back from disk: its depth frames), fusion (its
+    mesh), seconds, files, report, rerun_url and segments.
 
     The input is opened and the output folder checked before any heavy work, so bad input
     or a non-empty output folder fail at once, with nothing written. An output folder this

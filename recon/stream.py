@@ -69,6 +69,17 @@ class StreamResult:
         n = max(1, self.frames_tracked)
         return {stage: s / n for stage, s in self.seconds.items()}
 
+    @property
+    def depth(self) -> np.ndarray:
+        """(D, H, W) metres: the depth of the frames that got depth (``report["frames"]
+        ["depth_indices"]``), read back from the output folder (a streamed run keeps no depth in
+        memory), so that code written for a one-shot run's ``PipelineResult.depth`` runs on
+        both. Of a run written as segments: the largest segment's."""
+        from .io.output_folder import load_output
+
+        folder = max(self.segments, key=lambda p: p.depth_frames).output if self.segments else self.output
+        return load_output(folder).depth
+
 
 
 # --------------------------------------------------------------------------- entry point
