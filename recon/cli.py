@@ -143,10 +143,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    import subprocess
+    import tempfile
+    from contextlib import ExitStack
 
     from viewer import RerunLogger
 
+    from .io.output_folder import RECORDING, atomic_path
     from .view import log_output_folder, recording_of
 
     display_default = "spawn" if default_rerun_mode() == "spawn" else "serve"
@@ -158,26 +160,44 @@ def _cmd_view(args: argparse.Namespace) -> int:
         raise ReconInputError(f"{target}: no such file or folder")
     recording = recording_of(target)
     if recording is not None and mode != "save":
-        command = [sys.executable, "-m", "rerun", str(recording)] + (["--serve-web"] if mode == "serve" else [])
-        print(f"opening {recording} in Rerun ({mode})")
-        if mode == "spawn":
-            subprocess.Popen(command, start_new_session=True)
-            return 0
-        try:
-            return subprocess.call(command)
-        except KeyboardInterrupt:
-            return 0
+        return _open_recording(recording, mode, args.bind)
     if mode == "save" and path is None:
         raise ReconInputError("recon view --rerun save needs a path: --rerun save OUT.rrd")
     if path is not None and path.exists() and not args.overwrite:
         raise ReconInputError(f"{path}: already exists (pass --overwrite to replace it)")
-    with RerunLogger(mode, path, max_width=None) as logger:
-        summary = log_output_folder(target, logger, progress=not args.quiet)
-        url = logger.url
-    print(f"logged {summary}" + (f" to {path}" if path else ""))
     if mode == "serve":
-        _wait_for_ctrl_c(url)
+        # The SDK's own server listens on every interface; the viewer's command line binds where
+        # it is told, so the folder is logged to a temporary recording that it then serves.
+        with tempfile.TemporaryDirectory(prefix="recon-view-") as folder:
+            temporary = Path(folder) / RECORDING
+            with RerunLogger("save", temporary, max_width=None) as logger:
+                summary = log_output_folder(target, logger, progress=not args.quiet)
+            print(f"logged {summary}")
+            return _open_recording(temporary, mode, args.bind)
+    with ExitStack() as stack:
+        written = None if path is None else stack.enter_context(atomic_path(path, overwrite=args.overwrite))
+        with RerunLogger(mode, written, max_width=None) as logger:
+            summary = log_output_folder(target, logger, progress=not args.quiet)
+    print(f"logged {summary}" + (f" to {path}" if path else ""))
     return 0
+
+
+def _open_recording(recording: Path, mode: str, bind: str) -> int:
+    """The Rerun viewer on an .rrd: a desktop window (spawn, returns at once) or a web viewer
+    listening on `bind` until Ctrl-C (serve)."""
+    import subprocess
+
+    command = [sys.executable, "-m", "rerun", str(recording)]
+    if mode == "serve":
+        command += ["--serve-web", "--bind", bind]
+    print(f"opening {recording} in Rerun ({mode}{f' on {bind}' if mode == 'serve' else ''})")
+    if mode == "spawn":
+        subprocess.Popen(command, start_new_session=True)
+        return 0
+    try:
+        return subprocess.call(command)
+    except KeyboardInterrupt:
+        return 0
 
 
 # --------------------------------------------------------------------------- main

@@ -526,6 +526,9 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--overwrite", action="store_true", help="replace an existing file given to --rerun save")
     add_rerun_argument(view, "spawn with a display, else serve", "the result")
     view.add_argument("--quiet", action="store_true", help="no progress bars")
+    view.add_argument("--bind", default="127.0.0.1",
+                      help="address the web viewer (serve) listens on (default %(default)s, this machine only; "
+                           "0.0.0.0 for every interface)")
 
     ev = sub.add_parser(
         "eval", help="score an output folder against a dataset's ground truth",

@@ -55,12 +55,19 @@ def log_output_folder(folder, logger, progress: bool = True) -> str:
     poses = read_trajectory(folder)
     intrinsics = read_intrinsics(folder)
     depth_paths = depth_files(folder)
+    report = read_report(folder)
     count = len(poses) if poses is not None else len(depth_paths)
+    indices = _frame_numbers(report, count)
+    depth_of = dict(zip(indices, depth_paths))
     if depth_paths and poses is not None and len(depth_paths) != len(poses):
-        raise ReconInputError(f"{folder}: {len(depth_paths)} depth maps for {len(poses)} poses in {TRAJECTORY}")
-    indices = _frame_numbers(read_report(folder), count)
+        # A streamed run tracks every frame and gives some of them depth (report.json says which).
+        depth_indices = (report or {}).get("frames", {}).get("depth_indices")
+        if depth_indices is None or len(depth_indices) != len(depth_paths):
+            raise ReconInputError(f"{folder}: {len(depth_paths)} depth maps for {len(poses)} poses in {TRAJECTORY}, "
+                                  "and report.json does not say which frames they belong to")
+        depth_of = dict(zip(depth_indices, depth_paths))
     for k in tqdm(range(count), desc="rerun logging", unit="frame", disable=not progress, leave=False):
-        depth = read_depth(depth_paths[k], mmap=True) if depth_paths else None
+        depth = read_depth(depth_of[indices[k]], mmap=True) if indices[k] in depth_of else None
         pose = poses[k] if poses is not None else None
         logger.log_frame(int(indices[k]), None, adjusted_depth=depth, pose=pose,
                          intrinsics=intrinsics if depth is not None else None)

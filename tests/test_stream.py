@@ -158,6 +158,23 @@ def test_streamed_run_with_estimated_poses(room_video, tmp_path):
     ate = ate_rmse(result.poses[kept], seq.poses[kept], "sim3")
     assert ate["rmse"] < 0.03 and abs(np.log(ate["scale"])) < 0.2, ate  # metric scale: from the simulated prior
     assert depth_metrics(written.depth, seq.depth[written.indices])["abs_rel"] < 0.06
+    # `recon view` opens the folder: every tracked frame's camera, depth where it was given.
+    from recon.view import log_output_folder
+
+    class Counter:
+        def __init__(self):
+            self.frames, self.depth, self.meshes = [], 0, 0
+
+        def log_frame(self, index, rgb, adjusted_depth=None, pose=None, intrinsics=None):
+            self.frames.append(index)
+            self.depth += adjusted_depth is not None
+
+        def log_mesh(self, *args, **kwargs):
+            self.meshes += 1
+
+    counter = Counter()
+    log_output_folder(tmp_path / "est", counter, progress=False)
+    assert counter.frames == report["frames"]["indices"] and counter.depth == FRAMES // 3 and counter.meshes == 1
 
 
 def test_sigterm_stops_a_run_and_removes_its_temporary_frames(room_video, tmp_path):
