@@ -18,6 +18,7 @@ Bad input raises ReconInputError anywhere below; `main` prints it as the single 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import signal
@@ -247,6 +248,10 @@ def _raise_terminated(signum, frame):
 
 
 def main(argv: list[str] | None = None) -> int:
+    # A crash in native code (Open3D, torch, FFmpeg) then leaves the Python stack on stderr
+    # instead of a bare exit status (issue 46: one segmentation fault, nothing said).
+    if not faulthandler.is_enabled():
+        faulthandler.enable()
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     _TERMINATION.clear()

@@ -813,3 +813,16 @@ def test_an_ordinary_error_after_a_finished_run_is_not_taken_for_a_sigterm(monke
     monkeypatch.setitem(cli._COMMANDS, "eval", broken)
     with pytest.raises(TypeError, match="a bug"):
         main(["eval", "somewhere", "--gt", "elsewhere"])
+
+
+def test_a_crash_in_native_code_leaves_the_python_stack_on_stderr():
+    """A segmentation fault inside a run (here: reading address 0) says where it happened."""
+    import subprocess
+    import sys
+
+    code = ("import ctypes, recon.cli as cli\n"
+            "cli._main = lambda argv: ctypes.string_at(0)\n"
+            "cli.main(['run'])\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0
+    assert "Segmentation fault" in done.stderr and "recon/cli.py" in done.stderr, done.stderr[-2000:]
