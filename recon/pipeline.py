@@ -208,7 +208,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         try:
             return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
         except TrackingLostError as err:
-            if not (_streamed_as_video(config, source, pose_plan) and config.pose_method == "auto"):
+            if not (_streamed_as_video(config, source, pose_plan) and config.pose_method == "auto"
+                    and err.sfm_may_help):
                 raise
             # The one-shot run can still try SfM, which the streamed front end cannot.
             log.warning("the streamed front end lost the camera (%s); running the video at once, with SfM "

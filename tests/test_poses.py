@@ -50,6 +50,14 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, ca
     with pytest.raises(TrackingLostError):
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
 
+    def turning(*args, **kwargs):  # no parallax: SfM would have none either
+        raise TrackingLostError("the camera turns on the spot", frame=0, sfm_may_help=False)
+
+    monkeypatch.setattr(fe, "estimate_poses_frontend", turning)
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: pytest.fail("SfM tried on a turning camera"))
+    with pytest.raises(TrackingLostError, match="^the camera turns on the spot$"):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
+
 
 def test_bad_inputs_raise_one_line_errors(pose_room):
     seq, prior = pose_room

@@ -66,7 +66,7 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     try:
         return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg)
     except TrackingLostError as err:
-        if method == "frontend":
+        if method == "frontend" or not err.sfm_may_help:
             raise
         # Said once: with progress bars before SfM's (which take a while), else after SfM
         # succeeded (when it fails too, its error says both).

@@ -236,12 +236,19 @@ class StreamingFrontend:
         motion = motion_checks.check_motion(
             g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
-        why = motion.untrusted(focal_estimated=self._focal_choice is not None)
-        if self._focal_choice is not None and not self._focal_choice.found:
+        focal_estimated = self._focal_choice is not None
+        why = motion.untrusted(focal_estimated=focal_estimated)
+        if focal_estimated and not self._focal_choice.found:
             why.insert(0, self._focal_choice.not_found())
         if why and self.cfg.stop_untrusted:
-            raise TrackingLostError(f"the trajectory of frames 0-{n - 1} cannot be trusted: {'; '.join(why)}",
-                                    frame=motion.rotation_only[0][0] if motion.rotation_only else 0)
+            # SfM triangulates from parallax as the front end does: a camera turning on the spot
+            # gives it none either (TUM fr1/rpy: 10 % of its path, exit 0, when it was tried).
+            turning = motion.turns_on_the_spot and focal_estimated
+            raise TrackingLostError(
+                f"the trajectory of frames 0-{n - 1} cannot be trusted: {'; '.join(why)}"
+                + ("; give the camera's intrinsics (--intrinsics or --fov) to track a turning camera, or "
+                   "--on-break keep to take the trajectory anyway" if turning else ""),
+                frame=motion.rotation_only[0][0] if motion.rotation_only else 0, sfm_may_help=not turning)
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),

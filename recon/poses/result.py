@@ -24,9 +24,12 @@ class TrackingLostError(ReconInputError):
     it specifically and fall back to SfM (``recon.poses.sfm.estimate_poses_sfm``).
     """
 
-    def __init__(self, message: str, frame: int | None = None):
+    def __init__(self, message: str, frame: int | None = None, sfm_may_help: bool = True):
         super().__init__(message)
         self.frame = frame
+        # False where SfM has nothing more to go on (a camera that turns on the spot: no
+        # parallax for either method), so that no fallback is tried.
+        self.sfm_may_help = sfm_may_help
 
 
 # Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every
