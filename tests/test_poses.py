@@ -50,6 +50,24 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, ca
     with pytest.raises(TrackingLostError):
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
 
+    # Without intrinsics, SfM's focal length is said with the range the front end's estimates left.
+    from recon.poses.focal_choice import FocalChoice
+
+    def unsure(*args, **kwargs):
+        err = TrackingLostError("the focal length was not found", frame=0)
+        err.focal_choice = FocalChoice(300.0, "flow", 269.0, 929.0, {"flow": 300.0}, bracketed=False)
+        raise err
+
+    monkeypatch.setattr(fe, "estimate_poses_frontend", unsure)
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: sentinel)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res = estimate_poses(seq.rgb, prior, None, method="auto", progress=False)
+    focal = res.diagnostics["focal"]
+    assert focal["source"] == "SfM bundle adjustment" and focal["focal"] == seq.intrinsics[0]
+    assert focal["low"] == min(269.0, seq.intrinsics[0]) and focal["high"] == 929.0 and focal["disagree"]
+    assert any("-929 px open" in r.getMessage() for r in caplog.records)
+
     def turning(*args, **kwargs):  # no parallax: SfM would have none either
         raise TrackingLostError("the camera turns on the spot", frame=0, sfm_may_help=False)
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 
+import numpy as np
+
 from recon.choices import POSE_METHODS
 from recon.errors import ReconInputError
 from recon.poses.options import (
@@ -80,4 +82,9 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         if not progress:
             log.warning("front end failed (%s); the poses are from the SfM fallback (pycolmap)", err)
         result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
+        if err.focal_choice is not None and intrinsics is None:
+            # SfM's focal length is one estimate more: said with the range all of them leave open.
+            choice = err.focal_choice.with_estimate("SfM bundle adjustment", result.intrinsics[0])
+            result.diagnostics["focal"] = choice.to_dict()
+            log.warning(choice.warning(np.asarray(frames[0]).shape[1]))
         return result

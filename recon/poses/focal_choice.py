@@ -74,6 +74,12 @@ class FocalChoice:
     def to_dict(self) -> dict:
         return {**asdict(self), "disagree": self.disagree, "found": self.found}
 
+    def with_estimate(self, source: str, focal: float) -> "FocalChoice":
+        """The choice of another estimator that took over (the SfM fallback's bundle
+        adjustment): its focal length, the range widened to hold it, the others kept."""
+        return FocalChoice(float(focal), source, min(self.low, focal), max(self.high, focal),
+                           {**self.candidates, source: float(focal)})
+
     def not_found(self) -> str:
         """Why the trajectory is not trusted when the focal length was not found."""
         return (f"the focal length was not found: the search's best score lay at an end of its candidates "

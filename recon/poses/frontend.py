@@ -306,8 +306,13 @@ def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool
     if not prior.is_callable and len(prior) != len(frames_list):
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
     stream = StreamingFrontend(intrinsics, prior, config)
-    for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress, leave=False)):
-        stream.add(i, frame)
-    result = stream.finish(frames_list.__getitem__, progress)
+    try:
+        for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress,
+                                       leave=False)):
+            stream.add(i, frame)
+        result = stream.finish(frames_list.__getitem__, progress)
+    except TrackingLostError as err:
+        err.focal_choice = stream._focal_choice
+        raise
     result.seconds = time.perf_counter() - t0
     return result

@@ -30,6 +30,9 @@ class TrackingLostError(ReconInputError):
         # False where SfM has nothing more to go on (a camera that turns on the spot: no
         # parallax for either method), so that no fallback is tried.
         self.sfm_may_help = sfm_may_help
+        # The front end's focal-length estimates (recon.poses.focal_choice.FocalChoice) when it
+        # searched one before it failed: the range a fallback's own estimate is said within.
+        self.focal_choice = None
 
 
 # Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every
