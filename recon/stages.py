@@ -302,8 +302,10 @@ def estimator_options(config) -> dict:
     """The pose estimator's options of a run (``config`` its PipelineConfig): the user's
     ``pose_options`` over what ``on_break`` implies for the front end. Segments are each
     brought to the depth prior's scale (``join_scale_breaks``); "keep" returns a trajectory
-    whatever the front end's motion checks say (``stop_untrusted`` off)."""
-    implied = {"segments": {"join_scale_breaks": True}, "stop": {}, "keep": {"stop_untrusted": False}}
+    whatever the front end's motion checks or SfM's scale spread say (``stop_untrusted`` off,
+    ``max_scale_spread`` 0)."""
+    implied = {"segments": {"join_scale_breaks": True}, "stop": {},
+               "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}
     return {**implied[config.on_break], **config.pose_options}
 
 

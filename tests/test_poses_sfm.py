@@ -41,6 +41,20 @@ def test_sfm_synthetic_accuracy_and_metric_scale(sfm_room):
     assert abs(d["lens_k1"]) < 0.01  # a pinhole camera
 
 
+def test_a_model_whose_scale_the_prior_contradicts_is_refused(sfm_room):
+    """The prior of the room's frames 15-29 twice too far: SfM's map and the prior then
+    disagree in scale from frame to frame beyond the prior's noise, and the model is refused;
+    with the check off (--on-break keep) it is returned."""
+    seq, prior = sfm_room
+    split = prior.copy()
+    split[15:] *= 2.0
+    with pytest.raises(TrackingLostError, match="disagree in scale"):
+        estimate_poses(seq.rgb, split, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3, num_threads=1)
+    kept = estimate_poses(seq.rgb, split, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
+                          num_threads=1, max_scale_spread=0.0)
+    assert kept.diagnostics["scale_spread_log_std"] > 0.25
+
+
 def test_sfm_estimates_the_lens_radial_term(sfm_room):
     """The room filmed through a barrel lens (k1 = -0.1): asked to (the intrinsics are given,
     so by default the lens is not estimated), COLMAP's SIMPLE_RADIAL camera finds it, and the

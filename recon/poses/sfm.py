@@ -96,6 +96,12 @@ class SfMConfig:
         ``lens_k1``, used to register the other frames and by the pipeline to undistort);
         None (default): only when the focal length is unknown too
         (``frontend_config.calibrates_lens``).
+    max_scale_spread: the most the map's scale may vary against the depth prior's over the
+        frames (standard deviation of the per-frame log ratio that the metric scale is the
+        median of; 0 = not checked). Beyond it the model is not returned: five times the
+        prior's own scale noise (about 5 % a frame, ``scale_watch``) is a map whose parts are
+        at different scales (the phone's images 35-70: 0.31, 7 % of the path off, where runs
+        within 5 % had 0.05-0.17).
     frontend: flow / alignment settings used to choose keyframes (its flow settings,
         ``min_match_correlation`` and ``min_edge_weight`` decide which steps the flow can
         follow) and to register the remaining frames (``lost_inlier`` and the rest).
@@ -115,6 +121,7 @@ class SfMConfig:
     num_threads: int = 2
     correction_grid: tuple[int, int] = (3, 4)
     calibrate_lens: bool | None = None
+    max_scale_spread: float = 0.25
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
 
 
@@ -354,6 +361,11 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     poses = invert_poses(T_all)
     poses[:, :3, 3] *= scale
     log_r = np.log(np.array([r for r, _ in ratios.values()]))
+    if cfg.max_scale_spread > 0 and log_r.std() > cfg.max_scale_spread:
+        raise TrackingLostError(
+            f"SfM's map and the depth prior disagree in scale by x{np.exp(log_r.std()):.2f} (one standard deviation) "
+            f"from frame to frame, more than the prior's noise explains: its parts are at different scales "
+            f"(--on-break keep takes it anyway)", frame=0)
     trusted = np.array([s in TRUSTED_STATES for s in status])
     diagnostics = {
         "method": "sfm",
