@@ -87,8 +87,8 @@ class FrontendConfig:
         plain corridor, not in a step, and the watch found no break to join.
     stop_untrusted: stop (TrackingLostError, which the SfM fallback then answers) when the
         front end's checks of its own motion (``motion_checks``: the lens fit on its bound,
-        neighbouring frames farther apart than dense flow follows, a camera turned on the
-        spot for most of the run, with the focal length estimated), or the focal search's
+        a camera turned on the spot for most of the run, with the focal length estimated),
+        or the focal search's
         minimum was not bracketed (``focal_choice.FocalChoice.found``), say the trajectory
         cannot be trusted; off: return it, the verdicts in ``diagnostics["motion_checks"]``
         (``--on-break keep``).
