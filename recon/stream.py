@@ -102,7 +102,7 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         if pose_plan.estimated and stretch.max() > 0 and config.on_break != "keep" and config.join_segments:
             stretch, poses, joins = join_breaks(stretch, video.poses, np.flatnonzero(video.depth_frame),
                                                 lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
-                                                video.intrinsics)
+                                                video.intrinsics, video.pose_info["scale_watch"]["stretch_scales"])
             video = replace(video, poses=poses, pose_info={**video.pose_info, "joins": joins})
             say_joins(joins)
         if pose_plan.estimated and stretch.max() > 0 and config.on_break == "stop":
@@ -140,10 +140,9 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
     recon.stages.trajectory_stretches) reconstructed stretch by stretch, each in
     ``OUT/segment_NN/`` with its own trajectory, depth, mesh and report, and one summary
     (the StreamResult of the whole run: its ``segments``, its mesh the largest one's). A
-    stretch with fewer than two depth frames is left out with a warning. The front end
-    brought each stretch to the depth prior's scale (``join_scale_breaks``), but where one
-    stretch sits against the next is what broke: the segments share no frame of reference
-    that can be trusted, so none is fused with another."""
+    stretch with fewer than two depth frames is left out with a warning. Where one stretch
+    sits against the next is what broke: the segments share no frame of reference that can
+    be trusted, so none is fused with another."""
     pieces: list[StreamResult] = []
     for k in range(int(stretch.max()) + 1):
         mine = stretch == k
