@@ -83,8 +83,8 @@ class PipelineConfig:
         ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
     on_break: what an estimated trajectory becomes where its scale breaks (the front end's
         map against the depth prior, ``recon.poses.scale_watch``): "segments" (each stretch
-        reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run stops with one line naming the frames)
-        or "keep" (one trajectory, with a warning). Whatever it is, a trajectory the front
+        reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run
+        stops with one line naming the frames) or "keep" (one trajectory, with a warning). Whatever it is, a trajectory the front
         end's motion checks distrust as a whole (``recon.poses.motion_checks``) is not
         returned, except under "keep".
     join_segments: before that, try to join the stretches on either side of each break

@@ -249,8 +249,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         stretch = stretch if pose_stage.keep is None else stretch[pose_stage.keep]
         if stretch.max() > 0 and config.join_segments:
             stretch, poses, joins = join_breaks(stretch, seq.poses, np.arange(len(seq)),
-                                                lambda p: (seq.rgb[p], seq.prior_depth[p]), seq.intrinsics,
-                                                pose_stage.info["scale_watch"]["stretch_scales"])
+                                                lambda p: (seq.rgb[p], seq.prior_depth[p]), seq.intrinsics)
             seq, pose_stage = seq.with_(poses=poses), replace(pose_stage, info={**pose_stage.info, "joins": joins})
             say_joins(joins)
         if stretch.max() > 0:

@@ -316,25 +316,23 @@ def trajectory_stretches(info: dict, count: int) -> np.ndarray:
 
 
 def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
-                stretch_scales=None, views: int = 4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+                views: int = 4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """The stretches of a trajectory joined across its scale breaks where the frames allow
     (recon.poses.join): (stretch (N,) renumbered so that joined stretches share one number,
     poses (N, 4, 4) camera-to-world with each joined stretch moved into the frame of the one
     before, what report.json says of each break). stretch: (N,) as from
     :func:`trajectory_stretches`; positions: the frames that can serve as views (colour and
     depth at hand), in order; frame(position) -> (rgb (H, W, 3) uint8, prior depth (h, w)
-    metres); intrinsics of the frames; stretch_scales: per stretch the trajectory's units per
-    metre of its prior (ScaleWatch.stretch_scales; None: 1), so that each view's depth is in
-    the units of its stretch's poses: on 7-Scenes 0-399, where the watch calls a step the
-    map did not take, the stretches then join as they were (Sim(3) ATE 3.95 -> 3.57 cm),
-    where bringing each stretch to its prior's scale first made it 7.6 cm."""
+    metres); intrinsics of the frames. The depth prior is the scale both sides are brought
+    to (the trajectory's units are the prior's metres on the whole, ``backend.metric_rescale``):
+    on 7-Scenes 0-399 (a break at frames 189-196) the join took the Sim(3) ATE from 3.95 to
+    3.57 cm, on TUM fr1/rpy 0-99 (three) it kept 1.58 cm; taking the map's own depth against
+    the prior per stretch instead made them 5.7 and 2.0 cm, and bringing each stretch to its
+    prior's scale before the join (``join_scale_breaks``) 7.6 and 1.9 cm."""
     from .poses.join import JoinConfig, View, apply_similarity, join_stretches
 
-    scales = np.ones(int(stretch.max()) + 1) if stretch_scales is None else np.asarray(stretch_scales, np.float64)
-
     def view(p: int) -> View:
-        rgb, depth = frame(p)
-        return View(rgb, depth * np.float32(scales[stretch[p]]), poses[p])
+        return View(*frame(p), poses[p])
 
     cfg = JoinConfig(views=views)
     label, poses, report = stretch.copy(), np.array(poses, dtype=np.float64, copy=True), []
@@ -395,8 +393,7 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
         # Verdicts by position in the selection, frames and breaks named by video frame.
         named = watch.renumbered(names)
-        info["scale_watch"] = {**named.to_dict(), "frame_verdicts": watch.frame_verdicts(len(names)),
-                               "stretch_scales": watch.stretch_scales()}
+        info["scale_watch"] = {**named.to_dict(), "frame_verdicts": watch.frame_verdicts(len(names))}
         if named.breaks:
             log.warning("%s (report.json: poses.scale_watch)", named.describe())
     if "motion_checks" in result.diagnostics:

@@ -102,7 +102,7 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
         if pose_plan.estimated and stretch.max() > 0 and config.on_break != "keep" and config.join_segments:
             stretch, poses, joins = join_breaks(stretch, video.poses, np.flatnonzero(video.depth_frame),
                                                 lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
-                                                video.intrinsics, video.pose_info["scale_watch"]["stretch_scales"])
+                                                video.intrinsics)
             video = replace(video, poses=poses, pose_info={**video.pose_info, "joins": joins})
             say_joins(joins)
         if pose_plan.estimated and stretch.max() > 0 and config.on_break == "stop":

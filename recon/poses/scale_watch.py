@@ -102,14 +102,6 @@ class ScaleWatch:
             verdict[b.after:] = [f"after break {n}"] * max(count - b.after, 0)
         return verdict
 
-    def stretch_scales(self) -> list[float]:
-        """Per stretch between breaks (0 before the first), the map's depth against the
-        prior's there (the median of its keyframes' ratios, 1 = the run's median): how many
-        of the trajectory's units a metre of that stretch's prior is."""
-        frames, ratio = np.asarray(self.frames), np.asarray(self.ratio)
-        edges = [0, *[int(np.searchsorted(frames, b.after)) for b in self.breaks], len(frames)]
-        return [float(np.median(ratio[a:b])) if b > a else 1.0 for a, b in zip(edges[:-1], edges[1:])]
-
     def describe(self) -> str:
         """One sentence naming the breaks' frames and factors (empty without breaks)."""
         if not self.breaks:
