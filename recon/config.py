@@ -84,9 +84,9 @@ class PipelineConfig:
     on_break: what an estimated trajectory becomes where its scale breaks (the front end's
         map against the depth prior, ``recon.poses.scale_watch``): "segments" (each stretch
         reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run
-        stops with one line naming the frames) or "keep" (one trajectory, with a warning). Whatever it is, a trajectory the front
-        end's motion checks distrust as a whole (``recon.poses.motion_checks``) is not
-        returned, except under "keep".
+        stops with one line naming the frames) or "keep" (one trajectory, with a warning).
+        Whatever it is, a trajectory the front end's motion checks distrust as a whole
+        (``recon.poses.motion_checks``) is not returned, except under "keep".
     join_segments: before that, try to join the stretches on either side of each break
         (``recon.poses.join``: the frames after it posed by PnP in the stretch before it, a
         similarity between the two); joined stretches are one trajectory again.
