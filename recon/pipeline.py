@@ -59,25 +59,21 @@ from .io.output_folder import RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .lens import worth_undistorting
 from .refine import default_min_confidence, fusion_confidence
 from .report import build_report, fusion_summary, segments_summary, segments_warning
+from .segments import estimator_options, join_breaks, say_joins, stop_at_breaks, trajectory_stretches
 from .sequence import Sequence
 from .stages import (
     adjust_with_medea,
     camera_poses,
     decode,
     default_intrinsics,
-    estimator_options,
     given_intrinsics,
-    join_breaks,
     judge_given_poses,
     plan_poses,
     polished_poses,
     prior_function,
     refine_depth,
-    say_joins,
     select_frames,
-    stop_at_breaks,
     tracking_states,
-    trajectory_stretches,
     undistort_known_lens,
     unrolled_frames,
 )
@@ -343,7 +339,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
 def _run_segments(out: OutputFolder, seq: Sequence, stretch: np.ndarray, pose_stage, timer: StageClock, say,
                   reconstruct: Callable[[Sequence, OutputFolder], PipelineResult]) -> PipelineResult:
     """A trajectory whose scale breaks (``stretch``: (N,) the stretch of each posed frame,
-    recon.stages.trajectory_stretches) reconstructed stretch by stretch into
+    recon.segments.trajectory_stretches) reconstructed stretch by stretch into
     ``OUT/segment_NN/`` (``reconstruct(piece, its folder)``), with one summary report.json;
     the result of the whole run is the largest piece's, with ``segments``. A stretch of fewer
     than two frames is left out with a warning (recon.stream does the same for a streamed run)."""

@@ -39,7 +39,8 @@ from .io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, a
 from .io.source import FrameSource
 from .report import segments_summary, segments_warning
 from .rolling_shutter import angular_velocity
-from .stages import PosePlan, join_breaks, say_joins, shutter_summary, stop_at_breaks, trajectory_stretches
+from .segments import join_breaks, say_joins, stop_at_breaks, trajectory_stretches
+from .stages import PosePlan, shutter_summary
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
 
@@ -137,7 +138,7 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
                   video: TrackedVideo, stretch: np.ndarray, store: FrameStore, logger, clock: StageClock,
                   say) -> StreamResult:
     """A trajectory whose scale breaks (``stretch``: (N,) the stretch of each tracked frame,
-    recon.stages.trajectory_stretches) reconstructed stretch by stretch, each in
+    recon.segments.trajectory_stretches) reconstructed stretch by stretch, each in
     ``OUT/segment_NN/`` with its own trajectory, depth, mesh and report, and one summary
     (the StreamResult of the whole run: its ``segments``, its mesh the largest one's). A
     stretch with fewer than two depth frames is left out with a warning. Where one stretch

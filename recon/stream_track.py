@@ -24,11 +24,11 @@ from .errors import ReconInputError
 from .io.frame_store import FrameStore
 from .io.pose_matching import frame_names, match_pose_file
 from .io.source import FrameSource
+from .segments import estimator_options
 from .sequence import Sequence
 from .stages import (
     PosePlan,
     default_intrinsics,
-    estimator_options,
     gate_estimate,
     ground_truth_kept,
     judge_given_poses,

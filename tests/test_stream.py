@@ -281,7 +281,7 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
     at once, writes each stretch as its own reconstruction, each right in shape;
     --on-break stop stops naming the frames; joined (the default) it is one trajectory again,
     the stretch after the break brought to the prior's scale (here the prior is what slipped,
-    so that is half the size: the join takes the prior as the scale, recon.stages.join_breaks)."""
+    so that is half the size: the join takes the prior as the scale, recon.segments.join_breaks)."""
     import functools
     import json
 
