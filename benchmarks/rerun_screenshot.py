@@ -9,7 +9,8 @@ downloads a browser of its own)::
 
     apt-get install -y chromium
     .venv/bin/pip install playwright
-    .venv/bin/recon run ../shared/data/7scenes-redkitchen --max-frames 60 -o /tmp/shot_run --rerun save --quiet
+    .venv/bin/recon run ../shared/data/7scenes-redkitchen --max-frames 60 -o /tmp/shot_run --rerun save \\
+        --stream on --poses estimate --quiet    # streamed, estimated: the cameras are logged once final
     .venv/bin/python benchmarks/rerun_screenshot.py /tmp/shot_run/recording.rrd   # -> docs/images/rerun_layout.png
 
 How: the web viewer's files are served by the SDK (``rr.serve_web_viewer``) and the .rrd by a

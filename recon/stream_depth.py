@@ -9,7 +9,8 @@ surface already fused where the window's cameras see it (else to the frames the 
 window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones
 are source views only, with the sweep the window before left them). Each finished frame's
 depth is written to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`)
-and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames.
+and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames. An
+estimate's final cameras are logged first (tracking logged the frames before they were final).
 """
 
 from __future__ import annotations
@@ -88,6 +89,9 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if len(positions) < 2:
         raise ReconInputError(f"only {len(positions)} frames have a pose and moved enough to get depth; "
                               "lower --depth-frames or check the poses")
+    if logger is not None and plan.estimated:
+        with clock.stage("logging"):
+            _log_final_cameras(logger, video)
     windows = plan_windows(len(positions), int(config.window), int(config.window_overlap))
     options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": False})
     if options.min_confidence is None:
@@ -229,6 +233,15 @@ def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, s
     capacity = int(min(options.block_count, max(4096, 2 * estimate)))
     return TsdfVolume(voxel, trunc, max_depth, capacity, colored=True, block_resolution=options.block_resolution,
                       device=fusion_device(options.device))
+
+
+def _log_final_cameras(logger, video: TrackedVideo) -> None:
+    """Every frame's camera at its final pose, before its depth is logged. Tracking logged each
+    frame's RGB with the pose and intrinsics the front end had then: none while its focal search
+    buffered the first frames, poses the global BA, the metric scale and a join moved since.
+    (Given poses are final as they come and were logged so.) A run in segments passes each
+    stretch here, NaN elsewhere: the stretches are logged in order, each from its first frame."""
+    logger.log_cameras(video.indices, video.poses, video.intrinsics, video.size)
 
 
 def _log_mesh(logger, volume, options, index: int) -> None:

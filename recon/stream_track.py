@@ -5,7 +5,8 @@ time (the streaming front end, :class:`recon.poses.frontend.StreamingFrontend`, 
 poses). Each frame goes to a :class:`~recon.io.frame_store.FrameStore` on disk, and the
 frames that will get depth, chosen by motion as they come
 (:class:`recon.stream_plan.MotionSelector`), with their prior and features. The viewer
-shows each frame, its camera and the trajectory as it is tracked. At the end the estimate
+shows each frame, its camera and the trajectory as it is tracked (an estimate's camera as
+known then; the depth pass logs every final camera again). At the end the estimate
 is closed (global BA, non-keyframes, metric scale) and passes the quality gate, exactly as
 in the one-shot run; what the depth pass needs is a :class:`TrackedVideo`.
 """
@@ -181,14 +182,27 @@ class _TrackLoop:
         return out
 
     def _log(self, batch: Sequence, poses: np.ndarray) -> None:
+        """Each frame's RGB, with its camera as known now (an estimate's are logged again once
+        final: recon.stream_depth.depth_windows)."""
         if self.logger is None:
             return
         with self.clock.stage("logging"):
-            camera = self.poser.intrinsics or self.intrinsics
+            camera = self._live_intrinsics()
             for k, pose in enumerate(poses):
                 self.logger.log_frame(int(batch.indices[k]), batch.rgb[k],
                                       pose=pose if np.isfinite(pose).all() else None, intrinsics=camera,
                                       timestamp=float(batch.timestamps[k]))
+
+    def _live_intrinsics(self) -> tuple | None:
+        """The camera while tracking: given; else the front end's once its focal search is done
+        (None before); else the pose file's; else the field of view close() will assume."""
+        if self.intrinsics is not None:
+            return self.intrinsics
+        if self.poser.estimating:
+            return self.poser.frontend.intrinsics
+        if self.poser.file_intrinsics is not None:
+            return self.poser.file_intrinsics
+        return default_intrinsics(*self.source.shape)
 
     def close(self) -> TrackedVideo:
         """Close the poses (global BA, gate) and return what the depth pass needs."""

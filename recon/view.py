@@ -1,6 +1,6 @@
 """`recon view`'s work: which recording to open, and logging a finished output folder to
-Rerun when the run saved no recording (the mesh, the camera trajectory with intrinsics,
-and the depth maps).
+Rerun when the run saved no recording (the mesh, every frame's camera with its intrinsics,
+the trajectory, and the depth maps).
 
 The folder is read through :mod:`recon.io.output_folder`; logging goes through a
 :class:`viewer.RerunLogger` the caller opens.
@@ -8,12 +8,14 @@ The folder is read through :mod:`recon.io.output_folder`; logging goes through a
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from recon.errors import ReconInputError
 from recon.io.output_folder import (
+    INTRINSICS_JSON,
     MESH_PLY,
     RECORDING,
     TRAJECTORY,
@@ -43,6 +45,20 @@ def _frame_numbers(report: dict | None, count: int) -> list[int]:
     return list(range(count)) if indices is None or len(indices) != count else indices
 
 
+def _camera(folder: Path, intrinsics, depth_paths: list[Path]) -> tuple | None:
+    """(fx, fy, cx, cy, width, height) of the depth maps (intrinsics.json's size, else the first
+    map's), or None without intrinsics or a size."""
+    if intrinsics is None:
+        return None
+    saved = json.loads((folder / INTRINSICS_JSON).read_text())
+    if "width" in saved and "height" in saved:
+        return (*intrinsics, int(saved["width"]), int(saved["height"]))
+    if depth_paths:
+        height, width = read_depth(depth_paths[0], mmap=True).shape[:2]
+        return (*intrinsics, width, height)
+    return None
+
+
 def log_output_folder(folder, logger, progress: bool = True) -> str:
     """Log mesh, cameras and depth of an output folder to `logger`; returns a one-line summary."""
     from tqdm.auto import tqdm
@@ -66,11 +82,13 @@ def log_output_folder(folder, logger, progress: bool = True) -> str:
             raise ReconInputError(f"{folder}: {len(depth_paths)} depth maps for {len(poses)} poses in {TRAJECTORY}, "
                                   "and report.json does not say which frames they belong to")
         depth_of = dict(zip(depth_indices, depth_paths))
+    # Every camera with its pinhole, the frames without depth too (a streamed run gives depth to
+    # some): the pinhole carries the size of the image it is in pixels of.
+    camera = _camera(folder, intrinsics, depth_paths)
     for k in tqdm(range(count), desc="rerun logging", unit="frame", disable=not progress, leave=False):
         depth = read_depth(depth_of[indices[k]], mmap=True) if indices[k] in depth_of else None
         pose = poses[k] if poses is not None else None
-        logger.log_frame(int(indices[k]), None, adjusted_depth=depth, pose=pose,
-                         intrinsics=intrinsics if depth is not None else None)
+        logger.log_frame(int(indices[k]), None, adjusted_depth=depth, pose=pose, intrinsics=camera)
     mesh = read_mesh(folder)
     triangles = 0
     if mesh is not None:

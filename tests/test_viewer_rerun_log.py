@@ -220,7 +220,7 @@ def test_live_logging_roundtrip_with_layout(tmp_path):
 
 def _check_layout(layout: dict) -> None:
     """The default layout: frame timeline; tabs "reconstruction" (active: the 3D scene without
-    depth, a row of 2D views) and "losses" (time series of medea/)."""
+    depth, a row of 2D views) and "losses" (bar charts of medea/)."""
     assert layout["timeline"] == "frame"
     root = layout["root"]
     assert root["kind"] == "Tabs" and root["active_tab"] == 0
@@ -235,7 +235,7 @@ def _check_layout(layout: dict) -> None:
     assert row["kind"] == "Horizontal"
     images = [(view["class"], view["origin"]) for view in row["contents"] if view["class"] == "2D"]
     assert images == [("2D", "/world/camera/rgb")] + [("2D", entity) for entity in DEPTH_ENTITIES]
-    assert {view["class"] for view in losses["contents"]} == {"TimeSeries"}
+    assert {view["class"] for view in losses["contents"]} == {"BarChart"}  # shown on every timeline
     assert all(view["origin"].startswith("/medea/") for view in losses["contents"])
     assert [view["class"] for view in layout["views"]].count("3D") == 1
 

@@ -13,13 +13,15 @@ Layout (rerun-sdk 0.41 ``rerun.blueprint``)::
     |    '- Horizontal   RGB | prior depth | MEDeA depth | refined depth | confidence | tracking
     |                    (Spatial2DViews with their origin at the image; depth with a colormap;
     |                    the tracking TextLog of the frame timeline)
-    '- "MEDeA losses"    Grid of one TimeSeriesView per stage (medea/<stage>/<term>)
+    '- "MEDeA losses"    Grid of one BarChartView per stage: each term's loss per epoch
+    |                    (medea/<stage>/<term>), the terms over each other
     TimePanel on the "frame" timeline, following the newest frame; the time, blueprint and
     selection panels collapsed (one click opens each)
 
-The loss curves live on the "epoch" timeline and a Rerun view always plots against the
-time panel's timeline (views cannot pick their own, rerun issue #6828), so the losses tab
-says to switch the time panel to "epoch".
+The losses are bar charts, not time series: a Rerun view plots against the time panel's
+timeline (views cannot pick their own, rerun issue #6828), so a plot of the per-epoch
+scalars (on the "epoch" timeline) would be empty on "frame", where the recording opens; the
+static bar charts of the same values show on every timeline.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from .entities import (
 )
 
 RECONSTRUCTION_TAB = "reconstruction"
-LOSSES_TAB = "MEDeA losses (epoch timeline)"
+LOSSES_TAB = "MEDeA losses"
 SCENE_VIEW = "3D scene"
 # Metres from the camera centre to the image in the 3D view: room scale (what recon mostly
 # reconstructs); the view's selection panel changes it.
@@ -95,7 +97,8 @@ def default_blueprint(loss_stages: Sequence[str] = LOSS_STAGES) -> rrb.Blueprint
     )
     reconstruction = rrb.Vertical(scene, row, row_shares=[3, 1], name=RECONSTRUCTION_TAB)
     losses = rrb.Grid(
-        *(rrb.TimeSeriesView(name=f"MEDeA {stage} losses", origin=f"/{LOSSES}/{stage}") for stage in loss_stages),
+        *(rrb.BarChartView(name=f"MEDeA {stage}: loss per epoch", origin=f"/{LOSSES}/{stage}")
+          for stage in loss_stages),
         name=LOSSES_TAB,
     )
     return rrb.Blueprint(

@@ -6,7 +6,8 @@ Shared by the logger (:mod:`viewer.rerun_log`, which writes them) and the layout
 Entity layout::
 
     world                         ViewCoordinates RIGHT_HAND_Y_DOWN (static)
-    world/camera                  Transform3D (camera-to-world) + Pinhole (camera_xyz RDF)
+    world/camera                  Transform3D (camera-to-world) + Pinhole (camera_xyz RDF), at
+                                  every frame (a streamed estimate: again once the poses are final)
     world/camera/rgb              Image
     world/camera/prior_depth      DepthImage (meter=1)
     world/camera/adjusted_depth   DepthImage (meter=1)
@@ -19,7 +20,8 @@ Entity layout::
                                   relocalised, recovered, interpolated, dropped)
     world/mesh                    Mesh3D: static, or one update per ``index`` on "frame"
     world/points                  Points3D (static)
-    medea/<stage>/<term>          Scalars on the "epoch" timeline
+    medea/<stage>/<term>          Scalars on the "epoch" timeline, and the same per-epoch
+                                  values as a static BarChart (shown on every timeline)
 
 Frames are on the "frame" sequence timeline (and "time", a duration in seconds, when a
 timestamp is given; the logger remembers each frame's timestamp, so everything logged

@@ -14,6 +14,13 @@ Live (streamed) logging, in any order per frame::
     logger.log_depth(i, prior_depth=prior)             # later: depth at the same frame time,
     logger.log_depth(i, adjusted_depth=d, refined_depth=r, confidence=c)  # RGB not re-sent
     logger.log_mesh(vertices, triangles, colors, index=i)  # the mesh so far, at frame i
+    logger.log_cameras(indices, poses, K, (H, W))      # once the poses are final: every camera
+
+A frame whose pose or camera is not known while it is logged (a streamed estimate: the
+focal search buffers the first frames, the global BA moves every pose at the end) gets
+them from :meth:`RerunLogger.log_cameras`, which logs every frame's camera and the
+trajectory again at that frame's time: Rerun shows, at a time, the row logged last, so the
+final cameras replace what tracking logged there.
 
 Depth and confidence logged after the frame's RGB are resampled to the RGB's logged size
 (the pinhole's resolution). A mesh logged with ``index`` is shown from that frame on,
@@ -65,6 +72,12 @@ MODES = ("spawn", "save", "serve", "off")
 TRAJECTORY_PIECE = 256
 # Tracking states that mean trouble are logged as warnings (rerun's TextLog level).
 _TROUBLE = ("interpolated", "dropped", "lost")
+# A stage's loss terms share one bar chart, drawn over each other: the total, the largest,
+# is translucent so that the terms under it show (other names get Rerun's colours). The share
+# of pixels the pairs overlap is no loss (its scale is another): a scalar only.
+_LOSS_COLORS = {"total": [120, 120, 120, 110], "photometric": [31, 119, 180, 200], "depth": [255, 127, 14, 200],
+                "feature": [44, 160, 44, 200]}
+_NOT_CHARTED = ("valid_fraction",)
 
 
 def trajectory_piece(index: int) -> str:
@@ -143,6 +156,47 @@ def _resize_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
     rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
     cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
     return np.ascontiguousarray(depth[rows[:, None], cols[None, :]])
+
+
+def _camera(intrinsics: Any, source: tuple[int, int] | None) -> tuple[Any, tuple[int, int]] | None:
+    """(intrinsics, (H, W) of the image they are in pixels of) from (fx, fy, cx, cy, width,
+    height), or from 4 values or a 3x3 matrix in pixels of ``source``; None when either is
+    unknown."""
+    if intrinsics is None:
+        return None
+    k = _to_numpy(intrinsics).astype(np.float64)
+    if k.shape == (6,):
+        return k[:4], (int(k[5]), int(k[4]))
+    return None if source is None else (k, tuple(source))
+
+
+def _pose_matrix(pose: Any) -> np.ndarray:
+    t = _to_numpy(pose).astype(np.float64)
+    if t.shape != (4, 4):
+        raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {t.shape}")
+    return t
+
+
+def _log_transform(rec: rr.RecordingStream, pose: np.ndarray) -> None:
+    rec.log(CAMERA, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+
+
+def _log_pinhole(rec: rr.RecordingStream, intrinsics: Any, source: tuple[int, int], logged: tuple[int, int]) -> None:
+    """The camera's pinhole: intrinsics in pixels of a ``source`` (H, W) image, for the images
+    logged under it at ``logged`` (H, W)."""
+    fx, fy, cx, cy = _as_intrinsics(intrinsics)
+    (src_h, src_w), (height, width) = source, logged
+    sx, sy = width / src_w, height / src_h
+    rec.log(
+        CAMERA,
+        rr.Pinhole(
+            focal_length=[fx * sx, fy * sy],
+            # project convention: pixel centres at integers; Rerun: at +0.5
+            principal_point=[(cx + 0.5) * sx, (cy + 0.5) * sy],
+            resolution=[width, height],
+            camera_xyz=rr.ViewCoordinates.RDF,
+        ),
+    )
 
 
 def _stage_losses(stage: Any) -> Mapping[str, Any]:
@@ -249,7 +303,9 @@ class RerunLogger:
         (prior, MEDeA's adjusted, the refinement's): (H, W) metres, resampled (nearest) to
         the logged RGB size; confidence: (H, W) in [0, 1], the refinement's (logged as an
         8-bit image); pose: 4x4 camera-to-world; intrinsics: (fx, fy, cx, cy) or 3x3 in
-        pixels of ``rgb`` (of the depth when rgb is None); timestamp: seconds.
+        pixels of ``rgb`` (of the depth when rgb is None), or (fx, fy, cx, cy, width, height)
+        with the size of the image they are in pixels of (a camera logged without images, or
+        with images of another size); timestamp: seconds.
         """
         rec = self._rec
         if rec is None:
@@ -262,20 +318,17 @@ class RerunLogger:
         # The logged resolution, shared by every image under the pinhole: the RGB's, else
         # the one this frame's RGB was logged at earlier, else the depth's.
         image = _rgb_uint8(rgb) if rgb is not None else None
+        first = next((d for d in (prior_depth, adjusted_depth, refined_depth, confidence) if d is not None), None)
+        source = None  # (H, W) of the images given
         if image is not None:
-            src_h, src_w = image.shape[:2]
-            height, width = _logged_size(src_h, src_w, self.max_width)
-            self._sizes[index] = (height, width)
-        else:
-            first = next((d for d in (prior_depth, adjusted_depth, refined_depth, confidence) if d is not None), None)
-            if first is None:
-                src_h = src_w = None
-            else:
-                src_h, src_w = _depth_f32(first).shape
-                height, width = self._sizes.setdefault(index, _logged_size(src_h, src_w, self.max_width))
+            source = image.shape[:2]
+            self._sizes[index] = _logged_size(*source, self.max_width)
+        elif first is not None:
+            source = _depth_f32(first).shape
+            self._sizes.setdefault(index, _logged_size(*source, self.max_width))
 
         if image is not None:
-            image = _resize_rgb(image, height, width)
+            image = _resize_rgb(image, *self._sizes[index])
             archetype = rr.Image(image)
             if self.jpeg_quality is not None and image.ndim == 3 and image.shape[-1] == 3:
                 archetype = archetype.compress(jpeg_quality=self.jpeg_quality)
@@ -283,43 +336,72 @@ class RerunLogger:
         for entity, depth in ((PRIOR_DEPTH, prior_depth), (ADJUSTED_DEPTH, adjusted_depth),
                               (REFINED_DEPTH, refined_depth)):
             if depth is not None:
-                rec.log(entity, rr.DepthImage(_resize_nearest(_depth_f32(depth), height, width), meter=1.0))
+                rec.log(entity, rr.DepthImage(_resize_nearest(_depth_f32(depth), *self._sizes[index]), meter=1.0))
         if confidence is not None:
-            conf = _resize_nearest(np.clip(_depth_f32(confidence), 0.0, 1.0), height, width)
+            conf = _resize_nearest(np.clip(_depth_f32(confidence), 0.0, 1.0), *self._sizes[index])
             rec.log(CONFIDENCE, rr.Image((conf * 255.0 + 0.5).astype(np.uint8)))
 
-        if intrinsics is not None and src_h is not None:
-            fx, fy, cx, cy = _as_intrinsics(intrinsics)
-            sx, sy = width / src_w, height / src_h
-            rec.log(
-                CAMERA,
-                rr.Pinhole(
-                    focal_length=[fx * sx, fy * sy],
-                    # project convention: pixel centres at integers; Rerun: at +0.5
-                    principal_point=[(cx + 0.5) * sx, (cy + 0.5) * sy],
-                    resolution=[width, height],
-                    camera_xyz=rr.ViewCoordinates.RDF,
-                ),
-            )
-
+        camera = _camera(intrinsics, source)
+        if camera is not None:
+            k, k_size = camera
+            _log_pinhole(rec, k, k_size, self._sizes.get(index) or _logged_size(*k_size, self.max_width))
         if pose is not None:
-            t = _to_numpy(pose).astype(np.float64)
-            if t.shape != (4, 4):
-                raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {t.shape}")
-            rec.log(CAMERA, rr.Transform3D(translation=t[:3, 3], mat3x3=t[:3, :3]))
-            piece = index // TRAJECTORY_PIECE
-            self._centres.setdefault(piece, {})[index] = t[:3, 3].copy()
-            rec.log(trajectory_piece(index), rr.LineStrips3D([self._piece_centres(piece)], colors=[[255, 128, 0]]))
+            t = _pose_matrix(pose)
+            _log_transform(rec, t)
+            self._centres.setdefault(index // TRAJECTORY_PIECE, {})[index] = t[:3, 3].copy()
+            self._log_piece(rec, index)
+
+    def log_cameras(self, indices: Any, poses: Any, intrinsics: Any, size: tuple[int, int]) -> None:
+        """Every frame's final camera, once the poses are known for good: for each frame of
+        ``indices`` (frame order) its camera (pose + pinhole) and the trajectory of these
+        poses up to it, at that frame's time. Images are not logged again.
+
+        For a run whose frames were logged before their poses were final (a streamed run's
+        estimate: no pose or intrinsics yet while the focal search buffers, poses the global
+        BA then moves): at each frame time these rows, logged last, replace what was logged
+        there before, and the trajectory is these poses alone. poses: (N, 4, 4) camera-to-
+        world, NaN for a frame without one, which stays out of the trajectory while its
+        camera stays at the frame posed last before it (logged again at its time, so that a
+        pose tracking gave it does not show); frames before the first pose are left as they
+        are. intrinsics: (fx, fy, cx, cy) or 3x3 in pixels of images of ``size`` (H, W),
+        brought to each frame's logged RGB size."""
+        rec = self._rec
+        if rec is None:
+            return
+        indices = [int(i) for i in _to_numpy(indices).ravel()]
+        poses = _to_numpy(poses).astype(np.float64)
+        if len(poses) != len(indices):
+            raise ValueError(f"{len(indices)} frame indices for {len(poses)} poses")
+        self._centres = {}  # the trajectory is these poses alone
+        held = None
+        for k in np.argsort(indices, kind="stable"):
+            index, pose = indices[k], poses[k]
+            if np.isfinite(pose).all():
+                held = _pose_matrix(pose)
+                self._centres.setdefault(index // TRAJECTORY_PIECE, {})[index] = held[:3, 3].copy()
+            elif held is None:
+                continue
+            self._at_frame(rec, index)
+            _log_pinhole(rec, intrinsics, size, self._sizes.get(index) or _logged_size(*size, self.max_width))
+            _log_transform(rec, held)
+            self._log_piece(rec, index)
+
+    def _log_piece(self, rec: rr.RecordingStream, index: int) -> None:
+        """The trajectory piece of frame ``index`` as it stands, at the current time (no
+        strip while the piece has no centre: that clears one logged there before)."""
+        centres = self._piece_centres(int(index) // TRAJECTORY_PIECE)
+        strips = [centres] if len(centres) else []
+        rec.log(trajectory_piece(index), rr.LineStrips3D(strips, colors=[[255, 128, 0]]))
 
     def _piece_centres(self, piece: int) -> np.ndarray:
         """(M, 3) centres of one trajectory piece in frame order, led by the last centre of the
-        piece before it so that the pieces join into one line."""
-        own = self._centres[piece]
+        piece before it so that the pieces join into one line; (0, 3) when it has none."""
+        own = self._centres.get(piece, {})
         centres = [own[k] for k in sorted(own)]
         before = self._centres.get(piece - 1)
-        if before:
+        if before and centres:
             centres.insert(0, before[max(before)])
-        return np.stack(centres)
+        return np.stack(centres) if centres else np.zeros((0, 3))
 
     def log_depth(
         self,
@@ -397,8 +479,12 @@ class RerunLogger:
     # ------------------------------------------------------------------ losses
 
     def log_losses(self, history: Mapping[str, Any]) -> None:
-        """Per-epoch losses, {stage: {term: [values]}} (or {stage: StageHistory}), as
-        ``medea/<stage>/<term>`` scalars on the "epoch" timeline."""
+        """Per-epoch losses, {stage: {term: [values]}} (or {stage: StageHistory}), under
+        ``medea/<stage>/<term>``: scalars on the "epoch" timeline, and each loss (not the
+        pairs' "valid_fraction") as a static bar chart too, one bar per epoch, which shows on
+        every timeline: a plot of the scalars shows only on "epoch" (a Rerun view plots against
+        the time panel's timeline), not on "frame", where a recording opens. A later call
+        replaces the bar charts."""
         rec = self._rec
         if rec is None:
             return
@@ -409,11 +495,14 @@ class RerunLogger:
                 values = np.asarray([float(v) for v in values], dtype=np.float64)
                 if values.size == 0:
                     continue
+                entity = f"{LOSSES}/{stage}/{term}"
                 rec.send_columns(
-                    f"{LOSSES}/{stage}/{term}",
+                    entity,
                     indexes=[rr.TimeColumn(EPOCH_TIMELINE, sequence=np.arange(values.size))],
                     columns=rr.Scalars.columns(scalars=values),
                 )
+                if term not in _NOT_CHARTED:
+                    rec.log(entity, rr.BarChart(values, color=_LOSS_COLORS.get(term)), static=True)
 
     def log_epoch(self, stage: str, epoch: int, losses: Mapping[str, float]) -> None:
         """One epoch's losses; matches ``medea_core``'s progress callback
