@@ -320,9 +320,10 @@ def test_colmap_project_with_a_camera_per_image(tmp_path, colmap_reader):
     assert ds.kind == "colmap" and len(ds) == 3 and ds.frame_ids == ["img_0", "img_1", "img_2"]
     assert not ds.has_depth and ds.timestamps is None and ds.pose_valid.all()
     np.testing.assert_allclose(ds.poses, poses[:3], atol=1e-9)
-    np.testing.assert_allclose(ds.frame_intrinsics, [[100, 100, 4, 3], [110, 110, 4.5, 3], [130, 130, 4, 3.5]])
-    assert ds.intrinsics == (110.0, 110.0, 4.0, 3.0)  # medians over the three frames
-    assert ds.intrinsics_of(2) == (130.0, 130.0, 4.0, 3.5)
+    # COLMAP's principal points less half a pixel: its first pixel's centre is at 0.5, ours at 0.
+    np.testing.assert_allclose(ds.frame_intrinsics, [[100, 100, 3.5, 2.5], [110, 110, 4, 2.5], [130, 130, 3.5, 3]])
+    assert ds.intrinsics == (110.0, 110.0, 3.5, 2.5)  # medians over the three frames
+    assert ds.intrinsics_of(2) == (130.0, 130.0, 3.5, 3.0)
     assert ds.distortion == (0.03, 0.0, 0.0, 0.0, 0.0)
     # read_colmap keeps the distortion and, with several cameras, each image's values.
     data = read_poses(tmp_path)
@@ -333,7 +334,7 @@ def test_colmap_project_with_a_camera_per_image(tmp_path, colmap_reader):
 def test_colmap_project_camera_models(tmp_path, colmap_reader):
     make_colmap(tmp_path / "opencv", [f"1 OPENCV {W} {H} 100 102 4 3 0.1 -0.2 0.001 0.002"], [1, 1])
     ds = open_dataset(tmp_path / "opencv")
-    assert ds.intrinsics == (100.0, 102.0, 4.0, 3.0) and ds.frame_intrinsics is None
+    assert ds.intrinsics == (100.0, 102.0, 3.5, 2.5) and ds.frame_intrinsics is None
     assert ds.distortion == (0.1, -0.2, 0.001, 0.002, 0.0)
     make_colmap(tmp_path / "radial", [f"1 RADIAL {W} {H} 100 4 3 0.1 -0.2"], [1])
     assert open_dataset(tmp_path / "radial").distortion == (0.1, -0.2, 0.0, 0.0, 0.0)
@@ -444,7 +445,7 @@ def test_real_colmap_project():
     assert ds.pose_valid.all() and np.isfinite(ds.poses).all()
     assert ds.frame_intrinsics.shape == (71, 4)
     assert 1101 < ds.frame_intrinsics[:, 0].min() and ds.frame_intrinsics[:, 0].max() < 1156
-    assert ds.intrinsics[0] == pytest.approx(1116, abs=2) and ds.intrinsics[2:] == (360.0, 640.0)
+    assert ds.intrinsics[0] == pytest.approx(1116, abs=2) and ds.intrinsics[2:] == (359.5, 639.5)  # 720 x 1280: the centre
     k1, *rest = ds.distortion
     assert 0.0 < k1 < 0.11 and rest == [0.0] * 4
     # Filmed around a bottle: every optical axis passes close to one point, well in front.

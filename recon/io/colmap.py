@@ -10,9 +10,9 @@ Camera parameters follow COLMAP's ``models.h``: focal length(s), principal point
 model's distortion terms, which are handed back in OpenCV's order (k1, k2, p1, p2, k3) for
 the models that share OpenCV's pinhole distortion formula (SIMPLE_RADIAL, RADIAL, OPENCV,
 FULL_OPENCV without its rational terms); fisheye and FOV models have none in that form.
-The principal point is passed through as stored (COLMAP puts the centre of the first
-pixel at 0.5, OpenCV at 0; the half pixel is not corrected, so that writing and reading
-a model round-trips).
+COLMAP puts the centre of the first pixel at 0.5, the project (like OpenCV) at 0: the
+principal point loses :data:`~recon.io.pose_files.PIXEL_CENTRE` as it is read and gains it
+as it is written, so that a model read and written again is unchanged.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 from recon.errors import ReconInputError
 from recon.io.naming import natural_key
 from recon.io.pose_files import (
+    PIXEL_CENTRE,
     PoseData,
     check_poses,
     data_lines,
@@ -101,7 +102,7 @@ def _colmap_intrinsics(model: str, width: int, height: int, params) -> dict:
     """fx fy cx cy width height, model and OpenCV distortion (see opencv_distortion) of a COLMAP camera."""
     p = [float(v) for v in params]
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if model in _COLMAP_SINGLE_FOCAL else (p[0], p[1], p[2], p[3])
-    return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": int(width), "height": int(height), "model": model,
+    return {"fx": fx, "fy": fy, "cx": cx - PIXEL_CENTRE, "cy": cy - PIXEL_CENTRE, "width": int(width), "height": int(height), "model": model,
             "distortion": opencv_distortion(model, p)}
 
 
@@ -201,11 +202,16 @@ def read_colmap(path) -> PoseData:
                     frame_intrinsics=frame_intrinsics, frame_distortion=frame_distortion)
 
 
+def _colmap_params(intr: dict) -> list[float]:
+    """PINHOLE parameters (fx, fy, cx, cy) in COLMAP's pixel convention (module docstring)."""
+    return [intr["fx"], intr["fy"], intr["cx"] + PIXEL_CENTRE, intr["cy"] + PIXEL_CENTRE]
+
+
 def _colmap_text_model(poses: np.ndarray, names: Sequence[str], intr: dict) -> dict[str, str]:
     """File name -> text of a single-PINHOLE-camera COLMAP text model."""
     w2c = invert_poses(poses)
     q = matrix_to_quat(w2c[:, :3, :3])
-    params = " ".join(f"{intr[k]:.17g}" for k in ("fx", "fy", "cx", "cy"))
+    params = " ".join(f"{v:.17g}" for v in _colmap_params(intr))
     cameras = f"# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n1 PINHOLE {intr['width']} {intr['height']} {params}\n"
     lines = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
     for i, (name, qi, t) in enumerate(zip(names, q, w2c[:, :3, 3]), start=1):
@@ -223,7 +229,7 @@ def _colmap_reconstruction(pycolmap, poses: np.ndarray, names: Sequence[str], in
         model="PINHOLE",
         width=intr["width"],
         height=intr["height"],
-        params=[intr["fx"], intr["fy"], intr["cx"], intr["cy"]],
+        params=_colmap_params(intr),
         camera_id=1,
     )
     w2c = invert_poses(poses)

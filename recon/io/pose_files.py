@@ -21,6 +21,9 @@ from recon.poses.rigid import rotation_errors
 
 # Tolerance on max |R^T R - I| after parsing: text files often carry 6-7 significant digits.
 ROTATION_TOL = 1e-3
+# COLMAP and nerfstudio put the centre of an image's first pixel at (0.5, 0.5), the project
+# (like OpenCV) at (0, 0): their principal point is this much larger than ours.
+PIXEL_CENTRE = 0.5
 
 
 @dataclass

@@ -19,7 +19,8 @@ Formats (the ``fmt`` names):
   COLMAP stores world-to-camera (``cam_from_world``). Uses pycolmap when installed; text
   models are also read and written without it.
 * ``"nerfstudio"``: ``transforms.json``; ``transform_matrix`` is camera-to-world with
-  OpenGL camera axes (x right, y up, z back); intrinsics ``fl_x fl_y cx cy w h``.
+  OpenGL camera axes (x right, y up, z back); intrinsics ``fl_x fl_y cx cy w h`` (the first
+  pixel's centre at 0.5, as in COLMAP: see pose_files.PIXEL_CENTRE).
 * ``"matrices"``: a folder of per-frame 4x4 text files (7-Scenes ``frame-000000.pose.txt``,
   ScanNet ``pose/0.txt``), camera-to-world; rows of -inf/nan mark an invalid pose.
 * ``"log"``: Open3D / Redwood trajectory ``.log``: per pose one line of 3 integers of
@@ -41,6 +42,7 @@ from recon.errors import ReconInputError
 from recon.io.colmap import colmap_model_dir, read_colmap, write_colmap
 from recon.io.naming import natural_key
 from recon.io.pose_files import (
+    PIXEL_CENTRE,
     PoseData,
     atomic_write_text,
     check_poses,
@@ -224,14 +226,15 @@ def write_kitti(path, poses: np.ndarray) -> None:
 
 
 def _json_intrinsics(block: Mapping) -> dict | None:
-    """Intrinsics dict from nerfstudio keys (fl_x fl_y cx cy w h) when all four are there."""
+    """Intrinsics dict from nerfstudio keys (fl_x fl_y cx cy w h) when all four are there, the
+    principal point in the project's pixel convention (pose_files.PIXEL_CENTRE)."""
     if not all(k in block for k in ("fl_x", "cx", "cy")):
         return None
     out = {
         "fx": float(block["fl_x"]),
         "fy": float(block.get("fl_y", block["fl_x"])),
-        "cx": float(block["cx"]),
-        "cy": float(block["cy"]),
+        "cx": float(block["cx"]) - PIXEL_CENTRE,
+        "cy": float(block["cy"]) - PIXEL_CENTRE,
     }
     if "w" in block and "h" in block:
         out["width"], out["height"] = int(block["w"]), int(block["h"])
@@ -284,7 +287,7 @@ def write_nerfstudio(path, poses: np.ndarray, names: Sequence[str] | None = None
     data: dict = {"camera_model": "OPENCV"}
     intr = normalise_intrinsics(intrinsics)
     if intr is not None:
-        data.update(fl_x=intr["fx"], fl_y=intr["fy"], cx=intr["cx"], cy=intr["cy"])
+        data.update(fl_x=intr["fx"], fl_y=intr["fy"], cx=intr["cx"] + PIXEL_CENTRE, cy=intr["cy"] + PIXEL_CENTRE)
         if "width" in intr:
             data.update(w=intr["width"], h=intr["height"])
     gl = opencv_to_opengl(poses)
