@@ -445,7 +445,8 @@ def test_real_colmap_project():
     assert ds.pose_valid.all() and np.isfinite(ds.poses).all()
     assert ds.frame_intrinsics.shape == (71, 4)
     assert 1101 < ds.frame_intrinsics[:, 0].min() and ds.frame_intrinsics[:, 0].max() < 1156
-    assert ds.intrinsics[0] == pytest.approx(1116, abs=2) and ds.intrinsics[2:] == (359.5, 639.5)  # 720 x 1280: the centre
+    # 720 x 1280: the exact centre
+    assert ds.intrinsics[0] == pytest.approx(1116, abs=2) and ds.intrinsics[2:] == (359.5, 639.5)
     k1, *rest = ds.distortion
     assert 0.0 < k1 < 0.11 and rest == [0.0] * 4
     # Filmed around a bottle: every optical axis passes close to one point, well in front.

@@ -102,7 +102,8 @@ def _colmap_intrinsics(model: str, width: int, height: int, params) -> dict:
     """fx fy cx cy width height, model and OpenCV distortion (see opencv_distortion) of a COLMAP camera."""
     p = [float(v) for v in params]
     fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if model in _COLMAP_SINGLE_FOCAL else (p[0], p[1], p[2], p[3])
-    return {"fx": fx, "fy": fy, "cx": cx - PIXEL_CENTRE, "cy": cy - PIXEL_CENTRE, "width": int(width), "height": int(height), "model": model,
+    return {"fx": fx, "fy": fy, "cx": cx - PIXEL_CENTRE, "cy": cy - PIXEL_CENTRE,
+            "width": int(width), "height": int(height), "model": model,
             "distortion": opencv_distortion(model, p)}
 
 
