@@ -58,7 +58,7 @@ from .fusion import FusionOptions
 from .io.output_folder import RECORDING, REPORT_JSON, OutputFolder, atomic_path
 from .lens import worth_undistorting
 from .refine import default_min_confidence, fusion_confidence
-from .report import build_report, fusion_summary, segments_summary, segments_warning
+from .report import build_report, segments_summary, segments_warning
 from .segments import estimator_options, join_breaks, say_joins, stop_at_breaks, trajectory_stretches
 from .sequence import Sequence
 from .stages import (
@@ -310,7 +310,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
         files = export_reconstruction(
             out, mesh=fused.mesh, poses=seq.poses, timestamps=seq.timestamps, intrinsics=seq.intrinsics,
             shape=seq.size, depth=depth, frame_names=seq.names, point_cloud=fused.point_cloud, glb=config.glb,
-            depth_npy=config.depth_npy,
+            glb_rotation=fused.upright.rotation, depth_npy=config.depth_npy,
         )
 
     rerun_url = None
@@ -325,7 +325,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
     report = build_report(
         config=config, source=source, seq=seq, intrinsics_from=intrinsics_from, pose_stage=pose_stage,
         undistorted=undistorted, prior=prior, medea_result=medea_result, medea_skipped=medea_skipped, refined=refined,
-        fusion=fusion_summary(fused, fusion_options.min_confidence if refined is not None else None),
+        fusion=fused, min_confidence=fusion_options.min_confidence if refined is not None else None,
         seconds=timer.seconds, files={k: str(Path(v).relative_to(out.path)) for k, v in files.items()},
     )
     files["report"] = out.write_json(REPORT_JSON, report)

@@ -63,6 +63,11 @@ def fusion_summary(fused, min_confidence: float | None) -> dict:
             "triangles_full": fused.triangles_full or len(mesh.triangles)}
 
 
+def upright_section(fused) -> dict | None:
+    """report.json "upright": the rotation the GLB and the exports were turned by."""
+    return None if fused.upright is None else fused.upright.to_dict()
+
+
 def _input_section(config, source) -> dict:
     """What was read: the input path, its kind, size and frame rate."""
     return {"path": str(config.input), "kind": source.kind, "description": source.description,
@@ -87,10 +92,12 @@ def versions() -> dict:
 
 
 def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undistorted: bool, prior, medea_result,
-                 refined, fusion: dict, seconds: dict, files: dict, medea_skipped: str | None = None) -> dict:
+                 refined, fusion, min_confidence: float | None, seconds: dict, files: dict,
+                 medea_skipped: str | None = None) -> dict:
     """report.json's content. seq: the sequence as fused (frames left out are not in it);
-    prior: the PriorOutput; seconds: {stage: wall seconds}; files: {label: path relative
-    to the output folder}; medea_skipped: why MEDeA was skipped although enabled."""
+    prior: the PriorOutput; fusion: the FusionResult, min_confidence its threshold (None: no
+    confidence fused); seconds: {stage: wall seconds}; files: {label: path relative to the
+    output folder}; medea_skipped: why MEDeA was skipped although enabled."""
     features = seq.features
     return {
         "input": _input_section(config, source),
@@ -103,7 +110,8 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
                   "features": None if features is None else list(features.shape[1:])},
         "medea": {"skipped": medea_skipped} if medea_skipped else medea_summary(medea_result),
         "refine": {"method": config.refine, **refine_summary(refined)},
-        "fusion": fusion,
+        "fusion": fusion_summary(fusion, min_confidence),
+        "upright": upright_section(fusion),
         "memory": {"peak_rss_mb": peak_memory_mb()},
         "options": config.to_dict(),
         "versions": versions(),
@@ -176,6 +184,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                     "each": windows},
         "refine": {"method": config.refine},
         "fusion": fusion_summary(fusion, min_confidence),
+        "upright": upright_section(fusion),
         "memory": {"peak_rss_mb": peak_memory_mb(), "frame_store_mb": store_bytes / 1e6},
         "options": config.to_dict(),
         "versions": versions(),

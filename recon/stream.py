@@ -213,6 +213,7 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
     from .export import export_reconstruction
     from .fusion import FusionResult
     from .fusion.tsdf import warn_empty_mesh
+    from .fusion.upright import estimate_upright
     from .fusion.volume import within_budget
     from .report import stream_report
 
@@ -226,14 +227,15 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
     fusion = FusionResult(mesh=mesh, point_cloud=cloud, voxel_size=volume.voxel, trunc=volume.trunc,
                           seconds=time.perf_counter() - start, max_depth=volume.max_depth,
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,
-                          fragments_removed=removed, triangles_full=full)
+                          fragments_removed=removed, triangles_full=full,
+                          upright=estimate_upright(video.poses, np.asarray(mesh.vertices)))
     if full == 0:
         warn_empty_mesh(volume, options, config.refine != "none")
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     with clock.stage("export"):
         files = export_reconstruction(out, mesh=mesh, poses=video.poses[kept], timestamps=video.timestamps[kept],
                                       intrinsics=video.intrinsics, shape=video.size, point_cloud=cloud,
-                                      glb=config.glb)
+                                      glb=config.glb, glb_rotation=fusion.upright.rotation)
         files["depth"] = out.path / DEPTH_DIR
     if logger is not None:
         with clock.stage("logging"):

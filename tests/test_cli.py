@@ -17,6 +17,8 @@ import trimesh
 
 from recon.cli import build_parser, main
 from recon.demo import pose_estimator_available
+from recon.export.writers import to_gltf_axes
+from recon.fusion.upright import camera_up
 from recon.io.output_folder import read_depth_png_mm
 from recon.io.trajectories import read_poses
 
@@ -85,15 +87,22 @@ def test_demo_mesh_quality(demo):
 
 
 def test_glb_matches_ply_and_is_y_up(demo):
-    out, _ = demo
+    out, report = demo
     ply = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     glb = trimesh.load(str(out / "mesh.glb"), file_type="glb", force="mesh", process=False)
     assert len(glb.vertices) == len(ply.vertices) and len(glb.faces) == len(ply.triangles)
     assert glb_vertex_colors(out / "mesh.glb").shape == (len(ply.vertices), 4)
-    # The synthetic world is y-down with the floor at y = 0 and the ceiling above (y < 0):
-    # in glTF (y up) the floor must be the lowest part of the mesh.
+    # The GLB is the PLY turned by report.json's upright rotation, then to glTF's axes.
+    upright = report["upright"]
+    rotation = np.asarray(upright["transform"])[:3, :3]
+    np.testing.assert_allclose(glb.vertices, to_gltf_axes(np.asarray(ply.vertices), rotation), atol=1e-4)
+    # The synthetic world is level (y down, the floor at y = 0, the ceiling above): the
+    # floor and walls find the level within 2 degrees, closer than the cameras' mean.
+    cameras_up = camera_up(read_poses(out / "trajectory.txt").poses)
+    cameras_tilt = np.degrees(np.arccos(-cameras_up[1]))
+    assert upright["source"] == "surfaces" and upright["tilt_deg"] < min(2.0, cameras_tilt), (upright, cameras_tilt)
+    # In glTF (y up) the floor must be the lowest part of the mesh.
     ply_y = np.asarray(ply.vertices)[:, 1]
-    np.testing.assert_allclose(glb.vertices[:, 1], -ply_y, atol=1e-5)
     floor = np.abs(ply_y) < 0.02
     assert floor.sum() > 100 and glb.vertices[floor, 1].mean() < np.percentile(glb.vertices[:, 1], 5) + 0.05
 

@@ -8,9 +8,9 @@ unless ``overwrite=True``.
 
 glTF is y-up with the camera looking down -z, OpenCV is y-down looking down +z. The GLB
 applies the rotation diag(1, -1, -1) (x, -y, -z) to vertices and normals: a proper rotation
-(det = +1), so triangle winding is kept. When the world frame is gravity-aligned like an
-OpenCV camera held level (y pointing down, as in the synthetic scene and most SLAM outputs
-started from a level camera), the floor is at the bottom in a glTF viewer.
+(det = +1), so triangle winding is kept. Before it, the pipeline turns the GLB by the
+world's upright rotation (:mod:`recon.fusion.upright`: up becomes -y, so +y in glTF), and
+the floor is at the bottom in a glTF viewer whatever the first camera's pitch was.
 """
 
 from __future__ import annotations
@@ -83,13 +83,16 @@ def write_point_cloud_ply(path, cloud, overwrite: bool = False) -> Path:
     return _write_with_open3d(Path(path), overwrite, lambda p: o3d.io.write_point_cloud(p, cloud, write_ascii=False))
 
 
-def to_gltf_axes(points: np.ndarray) -> np.ndarray:
-    """(M, 3) points or normals from OpenCV world axes to glTF's: (x, -y, -z)."""
-    return np.asarray(points, dtype=np.float64) @ GLTF_FROM_OPENCV.T
+def to_gltf_axes(points: np.ndarray, rotation: np.ndarray | None = None) -> np.ndarray:
+    """(M, 3) points or normals from OpenCV world axes to glTF's: (x, -y, -z), after
+    `rotation` (3, 3), the world's upright rotation (:mod:`recon.fusion.upright`), if given."""
+    turn = GLTF_FROM_OPENCV if rotation is None else GLTF_FROM_OPENCV @ np.asarray(rotation, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ turn.T
 
 
-def glb_bytes(mesh) -> bytes:
-    """GLB (binary glTF) of a mesh: vertices and normals rotated to glTF axes, vertex colours.
+def glb_bytes(mesh, rotation: np.ndarray | None = None) -> bytes:
+    """GLB (binary glTF) of a mesh: vertices and normals turned upright by `rotation` (3, 3;
+    None: as they are) and then to glTF axes, vertex colours.
 
     Vertices are written as they are (trimesh with process=False: no merging or
     splitting), so the GLB has exactly the vertex and triangle counts of the PLY.
@@ -97,13 +100,13 @@ def glb_bytes(mesh) -> bytes:
     import trimesh
 
     mesh = _legacy_mesh(mesh)
-    vertices = to_gltf_axes(np.asarray(mesh.vertices))
+    vertices = to_gltf_axes(np.asarray(mesh.vertices), rotation)
     kwargs = {}
     if mesh.has_vertex_colors():
         rgb = np.clip(np.round(np.asarray(mesh.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
         kwargs["vertex_colors"] = np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
     if mesh.has_vertex_normals():
-        kwargs["vertex_normals"] = to_gltf_axes(np.asarray(mesh.vertex_normals))
+        kwargs["vertex_normals"] = to_gltf_axes(np.asarray(mesh.vertex_normals), rotation)
     tm = trimesh.Trimesh(vertices=vertices, faces=np.asarray(mesh.triangles), process=False, **kwargs)
     return with_matte_material(tm.export(file_type="glb"))
 
@@ -138,9 +141,9 @@ def with_matte_material(glb: bytes) -> bytes:
     return header + struct.pack("<I4s", len(text), b"JSON") + text + rest
 
 
-def write_mesh_glb(path, mesh, overwrite: bool = False) -> Path:
+def write_mesh_glb(path, mesh, overwrite: bool = False, rotation: np.ndarray | None = None) -> Path:
     """GLB of a mesh in glTF's y-up axes (module docstring), written atomically."""
-    return atomic_write_bytes(path, glb_bytes(mesh), overwrite)
+    return atomic_write_bytes(path, glb_bytes(mesh, rotation), overwrite)
 
 
 # --------------------------------------------------------------------------- cameras
@@ -210,6 +213,7 @@ def export_reconstruction(
     point_cloud=None,
     glb: bool = True,
     depth_npy: bool = True,
+    glb_rotation: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Write whatever is given into `out` under its standard name (:mod:`recon.io.output_folder`).
     A mesh without triangles or a point cloud without points is not written (and the file an
@@ -218,7 +222,8 @@ def export_reconstruction(
     mesh: Open3D mesh; poses: (N, 4, 4) camera-to-world; timestamps: (N,) seconds;
     intrinsics: (fx, fy, cx, cy) or (N, 4) per frame, with shape = (H, W) of the
     depth maps; depth: (N, H, W) metres or an iterable of (H, W); frame_names: depth file
-    stems (default frame_000000, ...); report: JSON-able mapping, written last.
+    stems (default frame_000000, ...); report: JSON-able mapping, written last;
+    glb_rotation: (3, 3) the upright rotation the GLB is turned by (the PLY is not).
     Returns {label: path} of the files written.
     """
     written: dict[str, Path] = {}
@@ -238,7 +243,7 @@ def export_reconstruction(
             write_mesh_ply(tmp, mesh, overwrite=True)
         written["mesh_ply"] = out.path_for(MESH_PLY)
         if glb:
-            written["mesh_glb"] = out.write_bytes(MESH_GLB, glb_bytes(mesh))
+            written["mesh_glb"] = out.write_bytes(MESH_GLB, glb_bytes(mesh, glb_rotation))
     if point_cloud is not None:
         with out.atomic(POINT_CLOUD_PLY) as tmp:
             write_point_cloud_ply(tmp, point_cloud, overwrite=True)

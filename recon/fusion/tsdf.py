@@ -53,6 +53,7 @@ from tqdm import tqdm
 
 from recon.errors import ReconInputError
 
+from .upright import Upright, estimate_upright
 from .volume import TsdfVolume, clean_depth, remove_fragments, triangle_components, within_budget  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
@@ -136,7 +137,9 @@ class FusionResult:
     frames_fused: frames integrated (frames with an invalid pose or no valid depth are
     skipped). block_estimate: blocks predicted before integrating; blocks_used: allocated.
     fragments_removed: triangles dropped by fragment removal. triangles_full: the mesh's
-    triangles before the budget (FusionOptions.max_triangles) decimated it.
+    triangles before the budget (FusionOptions.max_triangles) decimated it. upright: the
+    rotation that stands the scene upright (:mod:`recon.fusion.upright`), for the GLB and
+    the exports.
     """
 
     mesh: o3d.geometry.TriangleMesh
@@ -150,6 +153,7 @@ class FusionResult:
     blocks_used: int = 0
     fragments_removed: int = 0
     triangles_full: int = 0
+    upright: Upright | None = None
 
 
 # --------------------------------------------------------------------------- devices
@@ -427,4 +431,5 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         blocks_used=blocks_used,
         fragments_removed=removed,
         triangles_full=full,
+        upright=estimate_upright(poses, np.asarray(mesh.vertices)),
     )

@@ -1,0 +1,179 @@
+"""Which way is up: the rotation that stands a reconstruction upright.
+
+A run's world is the frame its poses came in: the first camera's for estimated poses, the
+dataset's for given ones, neither of them level in general (a kitchen filmed at a 15 degree
+pitch comes out 15 degrees off in a viewer). Exports for people to look at (the GLB, the
+COLMAP and nerfstudio models) are rotated so that the scene stands upright; the
+trajectory, the PLY and the depth maps stay in the run's world, where given poses are
+exactly what the user gave.
+
+The estimate has two parts:
+
+1. **The cameras**: people hold cameras without much roll and look at a scene more often
+   level than not, so the cameras' mean down axis (image y) is the first guess (the
+   "auto orient" of nerfstudio's data processing uses the same mean). It is off by the
+   recording's mean pitch: 15 degrees on a kitchen filmed looking down at its counters.
+2. **The scene's surfaces** (the Manhattan-world prior of indoor scene understanding, e.g.
+   Gupta et al., CVPR 2013): floors and table tops have their normal along up, walls,
+   doors and cupboard fronts across it. The fused surface's normals (smoothed over a few
+   grid cells, so that the mesh's noise averages out) within a cone of either pull the
+   guess, the cone narrowing in rounds (``CONES_DEG``) so that slanted surfaces drop
+   out; up is the direction most along the first and most across the second (one 3x3
+   eigenproblem per round).
+
+When too little of the surface is floor or wall, the cameras' guess stands, and the result
+says which it was.
+Conventions: world points in the run's OpenCV-like axes, up is -y once upright (the GLB's
+conversion to glTF then makes it +y).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Where "up" points once upright, in OpenCV world axes (y down).
+UPRIGHT_UP = np.array([0.0, -1.0, 0.0])
+# Rounds of the surface refinement: the cone (degrees) around up, and across it, in which
+# a normal counts as a floor's (a wall's).
+CONES_DEG = (20.0, 10.0, 5.0)
+# The normals: the surface thinned to a grid of this share of its extent, each normal
+# fitted over NORMAL_CELLS cells around its point.
+GRID_SHARE = 1.0 / 150.0
+NORMAL_CELLS = 4.0
+# Surfaces in the cones must make at least this share of the surface to move the guess.
+MIN_SURFACE_SHARE = 0.02
+# The cameras' guess keeps this weight against the surfaces' (shares of the surface).
+CAMERA_PRIOR_WEIGHT = 0.01
+
+
+@dataclass(frozen=True)
+class Upright:
+    """rotation: (3, 3) taking the run's world to the upright one (up = -y); up: (3,) the
+    estimated up direction in the run's world; tilt_deg: the angle between the two ups (how
+    far the run's world was from level); source: "surfaces" (the scene's floors and walls
+    refined the cameras' guess), "cameras" (too little of either) or "none" (no pose: left
+    as it is); horizontal, vertical: the shares of the surface that counted as floors and
+    as walls in the last round."""
+
+    rotation: np.ndarray
+    up: np.ndarray
+    tilt_deg: float
+    source: str
+    horizontal: float = 0.0
+    vertical: float = 0.0
+
+    @property
+    def transform(self) -> np.ndarray:
+        """(4, 4) the rotation as a rigid transform (no translation)."""
+        t = np.eye(4)
+        t[:3, :3] = self.rotation
+        return t
+
+    def to_dict(self) -> dict:
+        return {"transform": self.transform.round(9).tolist(), "up_in_world": self.up.round(9).tolist(),
+                "tilt_deg": round(float(self.tilt_deg), 3), "source": self.source,
+                "horizontal_share": round(float(self.horizontal), 4), "vertical_share": round(float(self.vertical), 4),
+                "applies_to": "mesh.glb and the COLMAP/nerfstudio exports; trajectory.txt, mesh.ply and the "
+                              "depth maps stay in the run's world"}
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+def _smallest_eigenvector(m: np.ndarray) -> np.ndarray:
+    return np.linalg.eigh(m)[1][:, 0]
+
+
+def camera_up(poses: np.ndarray) -> np.ndarray | None:
+    """(3,) the cameras' mean up (minus their mean image-y axis) in the world, or None
+    without a finite pose. poses: (N, 4, 4) camera-to-world."""
+    poses = np.asarray(poses, dtype=np.float64)
+    down = poses[np.isfinite(poses).all(axis=(1, 2)), :3, 1].sum(axis=0)
+    if np.linalg.norm(down) < 1e-9:
+        return None
+    return -_unit(down)
+
+
+def surface_normals(points: np.ndarray) -> np.ndarray:
+    """(K, 3) unit normals of a surface's points, thinned to a grid (``GRID_SHARE`` of the
+    extent, so each normal stands for about the same area) and fitted over ``NORMAL_CELLS``
+    cells. points: (M, 3). Sign arbitrary."""
+    import open3d as o3d
+
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 100:
+        return np.zeros((0, 3))
+    extent = float(np.linalg.norm(np.percentile(points, 98, axis=0) - np.percentile(points, 2, axis=0)))
+    cell = max(extent * GRID_SHARE, 1e-6)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(cell)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_CELLS * cell, max_nn=60))
+    return np.asarray(cloud.normals)
+
+
+def refine_with_surfaces(guess: np.ndarray, normals: np.ndarray, cones_deg=CONES_DEG
+                         ) -> tuple[np.ndarray, float, float]:
+    """The cameras' up refined by the floors and walls (module docstring, part 2).
+
+    guess: (3,) unit; normals: (K, 3) unit, one per equal patch of surface. Returns the
+    refined unit up (in the guess's hemisphere) and the shares of the normals that counted
+    as horizontal and vertical in the last round; the guess itself (and zeros) when they
+    make less than ``MIN_SURFACE_SHARE``.
+    """
+    prior = _unit(np.asarray(guess, dtype=np.float64))
+    if not len(normals):
+        return prior, 0.0, 0.0
+    up = prior
+    for cone in cones_deg:
+        cosine = np.abs(normals @ up)
+        floors = normals[cosine >= np.cos(np.radians(cone))]
+        walls = normals[cosine <= np.sin(np.radians(cone))]
+        if len(floors) + len(walls) < MIN_SURFACE_SHARE * len(normals):
+            return prior, 0.0, 0.0
+        # Up most along the floors' normals and most across the walls': the smallest
+        # eigenvector of sum (I - n n^T) over floors + sum n n^T over walls (+ the guess).
+        m = len(floors) * np.eye(3) - floors.T @ floors + walls.T @ walls
+        m += CAMERA_PRIOR_WEIGHT * len(normals) * (np.eye(3) - np.outer(prior, prior))
+        refined = _smallest_eigenvector(m)
+        up = refined if refined @ prior >= 0 else -refined
+    return up, len(floors) / len(normals), len(walls) / len(normals)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues)."""
+    a, b = _unit(np.asarray(a, float)), _unit(np.asarray(b, float))
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(a @ b)
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        # Opposite: half a turn about any axis perpendicular to a.
+        helper = np.eye(3)[int(np.argmin(np.abs(a)))]
+        axis = _unit(np.cross(a, helper))
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    k = axis / sin
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + sin * kx + (1.0 - cos) * (kx @ kx)
+
+
+def estimate_upright(poses: np.ndarray, points: np.ndarray | None = None) -> Upright:
+    """The upright rotation of a reconstruction (module docstring).
+
+    poses: (N, 4, 4) camera-to-world (non-finite rows are ignored); points: (M, 3) of the
+    fused surface (the mesh's vertices), or None. Without a finite pose the world is taken
+    as upright already (identity, source "none").
+    """
+    guess = camera_up(poses)
+    if guess is None:
+        return Upright(np.eye(3), UPRIGHT_UP.copy(), 0.0, "none")
+    normals = surface_normals(points) if points is not None else np.zeros((0, 3))
+    up, horizontal, vertical = refine_with_surfaces(guess, normals)
+    tilt = float(np.degrees(np.arccos(np.clip(up @ UPRIGHT_UP, -1.0, 1.0))))
+    source = "surfaces" if horizontal + vertical > 0 else "cameras"
+    return Upright(rotation_between(up, UPRIGHT_UP), up, tilt, source, horizontal, vertical)
+
+
+__all__ = ["Upright", "camera_up", "estimate_upright", "refine_with_surfaces", "rotation_between", "surface_normals",
+           "UPRIGHT_UP"]
