@@ -1,6 +1,7 @@
 """The `recon` command line: `recon run` (the pipeline), `recon batch` (many inputs on Ray),
-`recon demo` (the synthetic sample end to end), `recon view` (Rerun inspection of a result)
-and `recon eval` (scores against a dataset's ground truth).
+`recon demo` (the synthetic sample end to end), `recon view` (Rerun inspection of a result),
+`recon eval` (scores against a dataset's ground truth) and `recon export` (a COLMAP model or
+a nerfstudio dataset of a result, recon.export.tools).
 
 This module runs the commands; their options, which mirror the typed configs
 (recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed and turned into
@@ -52,11 +53,18 @@ def _wait_for_ctrl_c(url: str | None) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from .export.tools import ExportOptions, export_folder, parse_formats
     from .pipeline import format_summary, run_pipeline
 
+    formats = parse_formats(args.export) if args.export is not None else ()  # bad names fail before the run
     config = pipeline_config_from_args(args)
     result = run_pipeline(config, on_stage=None if args.quiet else lambda stage: print(stage, flush=True))
     print(format_summary(result))
+    if formats:
+        # Into OUT/<format>/ (each segment folder's, for a run written as segments).
+        options = ExportOptions(overwrite=config.overwrite, input=config.input, progress=not args.quiet)
+        for exported in export_folder(result.output, formats, options=options):
+            print(f"exported {exported}")
     if config.rerun == "serve":
         _wait_for_ctrl_c(result.rerun_url)
     return 0
@@ -124,7 +132,21 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-# --------------------------------------------------------------------------- recon view
+# --------------------------------------------------------------------------- recon export
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from .export.tools import ExportOptions, export_folder
+
+    given = {"max_points": args.max_points, "image_format": args.image_format}  # unset: ExportOptions' defaults
+    options = ExportOptions(**{k: v for k, v in given.items() if v is not None}, overwrite=args.overwrite,
+                            input=args.input, progress=not args.quiet)
+    for exported in export_folder(args.output, args.to, args.dest, options):
+        print(f"wrote {exported}")
+    return 0
+
+
+# --------------------------------------------------------------------------- recon eval
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
@@ -141,6 +163,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     atomic_write_bytes(target, json_bytes(result), overwrite=args.overwrite)
     print(f"\nwrote {target}")
     return 0
+
+
+# --------------------------------------------------------------------------- recon view
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
@@ -203,7 +228,8 @@ def _open_recording(recording: Path, mode: str, bind: str) -> int:
 
 # --------------------------------------------------------------------------- main
 
-_COMMANDS = {"run": _cmd_run, "batch": _cmd_batch, "demo": _cmd_demo, "view": _cmd_view, "eval": _cmd_eval}
+_COMMANDS = {"run": _cmd_run, "batch": _cmd_batch, "demo": _cmd_demo, "view": _cmd_view, "eval": _cmd_eval,
+             "export": _cmd_export}
 
 
 class _StderrHandler(logging.StreamHandler):

@@ -1,5 +1,5 @@
 """The `recon` command line's arguments: the parser (`build_parser`: the sub-commands run,
-batch, demo, view and eval), its option groups mirroring the typed configs
+batch, demo, view, eval and export), its option groups mirroring the typed configs
 (recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions, mvs_core.MvsConfig, the pose
 options), and the conversion of parsed arguments into those configs. Named choices come
 from recon.choices. The commands that run on the parsed arguments are in recon.cli.
@@ -459,6 +459,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", required=True, help="output folder (must be empty unless --overwrite)")
     run.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
     add_rerun_argument(run, None, "the run")
+    run.add_argument("--export", metavar="FORMATS",
+                     help="when the run is done, export the output folder for other tools: colmap, nerfstudio or "
+                          "colmap,nerfstudio, into OUT/colmap/ and OUT/nerfstudio/ (as `recon export OUT --to ...`)")
     add_device_arguments(run)
     add_run_arguments(run)
     add_medea_arguments(run)
@@ -552,4 +555,32 @@ def build_parser() -> argparse.ArgumentParser:
                          "ICP with a scale onto the reference surface (Tanks and Temples' protocol)")
     ev.add_argument("--overwrite", action="store_true", help="replace an existing OUT/eval.json")
     ev.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_export_parser(sub)
     return parser
+
+
+def add_export_parser(sub) -> None:
+    """`recon export OUT --to colmap|nerfstudio`: the options of recon.export.tools.ExportOptions
+    (checked there; importing it here would load Open3D for every command's --help)."""
+    ex = sub.add_parser(
+        "export", help="an output folder -> a COLMAP model or a nerfstudio dataset, for other tools",
+        description="Export an output folder of `recon run` for other tools: a COLMAP text model (images/, "
+                    "sparse/0/cameras.txt, images.txt, points3D.txt) and a nerfstudio dataset (transforms.json, "
+                    "images/, depth/ 16-bit millimetre PNGs, points.ply). The frames are decoded again from the "
+                    "run's input (report.json input.path, or --input) at the size of the depth maps, resampled as "
+                    "the run resampled them; the points are the mesh's vertices. A run written as segments is "
+                    "exported segment by segment. docs/export.md has the conventions.",
+    )
+    ex.add_argument("output", help="output folder of `recon run`")
+    ex.add_argument("--to", action="append", required=True, metavar="FORMAT",
+                    help="colmap or nerfstudio; repeat, or separate with commas, for both")
+    ex.add_argument("-o", "--dest", type=Path, metavar="DEST",
+                    help="folder that receives <format>/ (default: the output folder: OUT/colmap/, OUT/nerfstudio/)")
+    ex.add_argument("--overwrite", action="store_true", help="replace an existing export")
+    ex.add_argument("--max-points", type=int, metavar="N",
+                    help="most 3D points: a fixed random subset of the mesh's vertices when it has more "
+                         "(default 100000)")
+    ex.add_argument("--image-format", metavar="{jpg,png}", help="jpg (quality 95, default) or png (lossless)")
+    ex.add_argument("--input", type=Path, metavar="PATH",
+                    help="where the run's input (video, image folder, dataset) is now, when it has moved")
+    ex.add_argument("--quiet", action="store_true", help="no progress bars")
