@@ -196,6 +196,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
            "s_per_frame": sum(seconds.values()) / max(tracked, 1),
            "pose_s_per_frame": seconds.get("poses", 0.0) / max(tracked, 1),
            "peak_rss_mb": report.get("memory", {}).get("peak_rss_mb"),
+           **mesh_sizes(report, out),
            "focal": report["intrinsics"]["values"][0], "focal_source": report["intrinsics"]["source"],
            "focal_error_pct": 100.0 * (report["intrinsics"]["values"][0] / true_focal(rec, width) - 1.0),
            **focal_range(report, true_focal(rec, width)),
@@ -231,6 +232,15 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
                    scale_error=t["scale_error"] if rec.metric else None,
                    **(moved(estimated, given) if estimated.shape == given.shape else {}))
     return row
+
+
+def mesh_sizes(report: dict, out: Path) -> dict:
+    """The mesh's triangles (written and before the budget) and its files' sizes in MB."""
+    fusion = report.get("fusion", {})
+    files = {name: out / name for name in ("mesh.ply", "mesh.glb")}
+    return {"triangles": fusion.get("triangles"), "triangles_full": fusion.get("triangles_full"),
+            **{f"{name.replace('.', '_')}_mb": path.stat().st_size / 1e6 if path.is_file() else None
+               for name, path in files.items()}}
 
 
 def focal_range(report: dict, truth: float) -> dict:
@@ -286,7 +296,8 @@ def fmt(value, spec: str) -> str:
 
 
 HEADERS = ["recording", "mode", "frames", "variant", "exit", "F@5cm", "(+ICP)", "abs rel", "ATE SE3 m",
-           "ATE Sim3 %path", "scale err", "focal err % / poses moved", "s/frame", "poses s/fr", "peak MB", "warn"]
+           "ATE Sim3 %path", "scale err", "focal err % / poses moved", "s/frame", "poses s/fr", "peak MB",
+           "triangles k (full) / GLB MB", "warn"]
 
 
 def focal_cell(r: dict) -> str:
@@ -310,7 +321,15 @@ def table_row(r: dict) -> list[str]:
             focal_cell(r) if r["mode"] == "nothing" else
             f"{fmt(r.get('trajectory_moved_m'), '.3f')} m {fmt(r.get('trajectory_turned_deg'), '.2f')} deg",
             fmt(r.get("s_per_frame"), ".3f"), fmt(r.get("pose_s_per_frame"), ".3f"),
-            fmt(r.get("peak_rss_mb"), ".0f"), str(len(r["warnings"]))]
+            fmt(r.get("peak_rss_mb"), ".0f"), mesh_cell(r), str(len(r["warnings"]))]
+
+
+def mesh_cell(r: dict) -> str:
+    if r.get("triangles") is None:
+        return "-"
+    full = r.get("triangles_full") or r["triangles"]
+    return (f"{r['triangles'] / 1e3:.0f}" + (f" ({full / 1e3:.0f})" if full != r["triangles"] else "")
+            + f" / {fmt(r.get('mesh_glb_mb'), '.1f')}")
 
 
 def comparison(rows: list[dict], baseline: str) -> list[str]:
