@@ -18,7 +18,7 @@ a ScanNet scene: z up) it also gives the angle between the estimated up (report.
 
 Usage::
 
-    .venv/bin/python benchmarks/upright.py OUT [OUT ...] [--gt DATASET ...] [--json upright]
+    .venv/bin/python benchmarks/upright.py OUT [OUT ...] [--gt DATASET ...] [--again] [--json upright]
 """
 
 from __future__ import annotations
@@ -107,16 +107,30 @@ def gravity_error(folder: Path, report: dict, gt: Path) -> float | None:
     return _angle(np.asarray(report["upright"]["up_in_world"]), world.T @ GRAVITY_UP[kind])
 
 
-def measure(folder: Path, gt: Path | None, window_deg: float) -> dict:
+def estimated_again(folder: Path, ply) -> dict:
+    """report.json's "upright" as this checkout's estimator gives it from the folder's
+    mesh.ply and trajectory.txt (for folders an earlier version wrote)."""
+    from recon.fusion.upright import estimate_upright
+    from recon.io.trajectories import read_poses
+
+    return estimate_upright(read_poses(folder / "trajectory.txt").poses, np.asarray(ply.vertices)).to_dict()
+
+
+def measure(folder: Path, gt: Path | None, window_deg: float, again: bool = False) -> dict:
     import open3d as o3d
     import trimesh
 
     from recon.export.writers import to_gltf_axes
 
     report = json.loads((folder / "report.json").read_text())
-    glb = trimesh.load(folder / "mesh.glb", file_type="glb", force="mesh", process=False)
     ply = o3d.io.read_triangle_mesh(str(folder / "mesh.ply"))
     raw = to_gltf_axes(np.asarray(ply.vertices))
+    if again:
+        report["upright"] = estimated_again(folder, ply)
+        turn = np.asarray(report["upright"]["transform"])[:3, :3]
+        glb = trimesh.Trimesh(to_gltf_axes(np.asarray(ply.vertices), turn), np.asarray(ply.triangles), process=False)
+    else:
+        glb = trimesh.load(folder / "mesh.glb", file_type="glb", force="mesh", process=False)
     upright = report.get("upright") or {}
     return {"folder": str(folder), "tilt_deg": upright.get("tilt_deg"), "source": upright.get("source"),
             "glb": summary(horizontal_planes(np.asarray(glb.vertices), window_deg)),
@@ -131,10 +145,12 @@ def main() -> int:
     parser.add_argument("folders", nargs="+", type=Path, help="output folders of recon run")
     parser.add_argument("--gt", nargs="*", type=Path, default=[], help="the dataset of each folder (or none)")
     parser.add_argument("--window", type=float, default=25.0, help="degrees from +y a surface may be to count")
+    parser.add_argument("--again", action="store_true",
+                        help="estimate the up again with this checkout's code from mesh.ply and trajectory.txt")
     parser.add_argument("--json", default="upright", help="results file name under benchmarks/results")
     args = parser.parse_args()
     gts = list(args.gt) + [None] * (len(args.folders) - len(args.gt))
-    rows = [measure(f, g, args.window) for f, g in zip(args.folders, gts)]
+    rows = [measure(f, g, args.window, args.again) for f, g in zip(args.folders, gts)]
 
     def fmt(x):
         return "-" if x is None else f"{x:.1f}"

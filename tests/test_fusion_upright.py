@@ -59,11 +59,14 @@ def test_cameras_alone_carry_their_pitch():
     assert 10.0 < _angle(result.up, TILT @ UPRIGHT_UP) < 12.5  # the pans average a little of it out
 
 
-def test_floors_and_walls_correct_the_cameras_pitch():
+@pytest.mark.parametrize("pitch_deg", [18.0, 28.0])
+def test_floors_and_walls_correct_the_cameras_pitch(pitch_deg):
+    """Cameras pitched down as far as 7-Scenes' kitchen is filmed (25 degrees on average,
+    beyond a first cone of 20 around their guess): the vote finds the floor."""
     rng = np.random.default_rng(0)
-    poses, points = _tilted(_cameras(np.zeros(20), pitch_down_deg=18.0, roll_deg=4.0), _room_points(rng), TILT)
+    poses, points = _tilted(_cameras(np.zeros(20), pitch_down_deg=pitch_deg, roll_deg=4.0), _room_points(rng), TILT)
     truth = TILT @ UPRIGHT_UP
-    assert _angle(camera_up(poses), truth) > 15.0
+    assert _angle(camera_up(poses), truth) > pitch_deg - 3.0
     result = estimate_upright(poses, points)
     assert result.source == "surfaces"
     assert result.horizontal > 0.2 and result.vertical > 0.2

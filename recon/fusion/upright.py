@@ -16,8 +16,13 @@ The estimate has two parts:
 2. **The scene's surfaces** (the Manhattan-world prior of indoor scene understanding, e.g.
    Gupta et al., CVPR 2013): floors and table tops have their normal along up, walls,
    doors and cupboard fronts across it. The fused surface's normals (smoothed over a few
-   grid cells, so that the mesh's noise averages out) within a cone of either pull the
-   guess, the cone narrowing in rounds (``CONES_DEG``) so that slanted surfaces drop
+   grid cells, so that the mesh's noise averages out) first vote (a Hough transform over
+   the directions within ``SEARCH_DEG`` of the cameras' guess): each direction scores the
+   share of normals within ``VOTE_CONE_DEG`` of it (floors) plus the share within as much
+   of square to it (walls). The cameras' pitch can be large (7-Scenes' kitchen is filmed
+   looking down at its counters, 25 degrees below level on average), too large for a
+   cone around the guess alone. From the winner, normals within a cone of either pull the
+   estimate, the cone narrowing in rounds (``CONES_DEG``) so that slanted surfaces drop
    out; up is the direction most along the first and most across the second (one 3x3
    eigenproblem per round).
 
@@ -42,6 +47,14 @@ CONES_DEG = (20.0, 10.0, 5.0)
 # fitted over NORMAL_CELLS cells around its point.
 GRID_SHARE = 1.0 / 150.0
 NORMAL_CELLS = 4.0
+# The vote: candidate ups within SEARCH_DEG of the cameras' guess, VOTE_STEP_DEG apart; a
+# normal votes within VOTE_CONE_DEG (of the direction: floor; of square to it: wall). Of
+# directions that score alike (a wall alone leaves a ridge of them) the one nearest the
+# guess wins: each degree away costs VOTE_DEG_COST of share.
+SEARCH_DEG = 35.0
+VOTE_STEP_DEG = 1.0
+VOTE_CONE_DEG = 4.0
+VOTE_DEG_COST = 5e-4
 # Surfaces in the cones must make at least this share of the surface to move the guess.
 MIN_SURFACE_SHARE = 0.02
 # The cameras' guess keeps this weight against the surfaces' (shares of the surface).
@@ -141,6 +154,41 @@ def refine_with_surfaces(guess: np.ndarray, normals: np.ndarray, cones_deg=CONES
     return up, len(floors) / len(normals), len(walls) / len(normals)
 
 
+def directions_around(axis: np.ndarray, max_deg: float, step_deg: float) -> np.ndarray:
+    """(K, 3) unit directions spread evenly (a Fibonacci spiral) over the cap within
+    ``max_deg`` of unit ``axis``, about ``step_deg`` apart, the axis itself first."""
+    axis = _unit(np.asarray(axis, dtype=np.float64))
+    cap = 2.0 * np.pi * (1.0 - np.cos(np.radians(max_deg)))
+    count = max(int(np.ceil(cap / np.radians(step_deg) ** 2)), 1)
+    k = np.arange(count) + 0.5
+    cos_polar = 1.0 - (1.0 - np.cos(np.radians(max_deg))) * k / count
+    azimuth = np.pi * (3.0 - np.sqrt(5.0)) * k
+    sin_polar = np.sqrt(1.0 - cos_polar**2)
+    local = np.stack([sin_polar * np.cos(azimuth), sin_polar * np.sin(azimuth), cos_polar], axis=1)
+    # A frame whose third axis is `axis`.
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    e1 = _unit(np.cross(axis, helper))
+    frame = np.stack([e1, np.cross(axis, e1), axis], axis=1)
+    return np.concatenate([axis[None], local @ frame.T])
+
+
+def vote_up(guess: np.ndarray, normals: np.ndarray, search_deg: float = SEARCH_DEG) -> tuple[np.ndarray, float]:
+    """The candidate up (within ``search_deg`` of ``guess``) that the most normals vote for
+    as floors and walls (module docstring, part 2), and its score (a share of the normals).
+
+    guess: (3,) unit; normals: (K, 3) unit, sign arbitrary.
+    """
+    candidates = directions_around(guess, search_deg, VOTE_STEP_DEG)
+    along, across = np.cos(np.radians(VOTE_CONE_DEG)), np.sin(np.radians(VOTE_CONE_DEG))
+    score = np.empty(len(candidates))
+    for start in range(0, len(candidates), 256):  # (256, K) at a time
+        cosine = np.abs(candidates[start : start + 256] @ normals.T)
+        score[start : start + 256] = ((cosine >= along) | (cosine <= across)).mean(axis=1)
+    away = np.degrees(np.arccos(np.clip(candidates @ _unit(guess), -1.0, 1.0)))
+    best = int(np.argmax(score - VOTE_DEG_COST * away))
+    return candidates[best], float(score[best])
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues)."""
     a, b = _unit(np.asarray(a, float)), _unit(np.asarray(b, float))
@@ -169,11 +217,15 @@ def estimate_upright(poses: np.ndarray, points: np.ndarray | None = None) -> Upr
     if guess is None:
         return Upright(np.eye(3), UPRIGHT_UP.copy(), 0.0, "none")
     normals = surface_normals(points) if points is not None else np.zeros((0, 3))
-    up, horizontal, vertical = refine_with_surfaces(guess, normals)
+    up, horizontal, vertical = guess, 0.0, 0.0
+    if len(normals):
+        voted, score = vote_up(guess, normals)
+        if score >= MIN_SURFACE_SHARE:
+            up, horizontal, vertical = refine_with_surfaces(voted, normals)
     tilt = float(np.degrees(np.arccos(np.clip(up @ UPRIGHT_UP, -1.0, 1.0))))
     source = "surfaces" if horizontal + vertical > 0 else "cameras"
     return Upright(rotation_between(up, UPRIGHT_UP), up, tilt, source, horizontal, vertical)
 
 
-__all__ = ["Upright", "camera_up", "estimate_upright", "refine_with_surfaces", "rotation_between", "surface_normals",
-           "UPRIGHT_UP"]
+__all__ = ["Upright", "camera_up", "directions_around", "estimate_upright", "refine_with_surfaces", "rotation_between",
+           "surface_normals", "vote_up", "UPRIGHT_UP"]
