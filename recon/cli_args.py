@@ -393,6 +393,18 @@ def pose_options_from_args(args: argparse.Namespace) -> dict:
 
 
 def pipeline_config_from_args(args: argparse.Namespace):
+    """The run's PipelineConfig: the flags, over the settings of --config FILE if given
+    (recon.config_file: a flag overrides the file where it differs from its default)."""
+    config = _config_from_flags(args)
+    if getattr(args, "config", None) is None:
+        return config
+    from .config_file import merged, read_config_file
+
+    bare = build_parser().parse_args(["run", str(args.input), "-o", str(args.output)])
+    return merged(read_config_file(args.config), config, _config_from_flags(bare))
+
+
+def _config_from_flags(args: argparse.Namespace):
     from .pipeline import PipelineConfig
 
     medea = medea_config_from_args(args)
@@ -459,6 +471,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", required=True, help="output folder (must be empty unless --overwrite)")
     run.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
     add_rerun_argument(run, None, "the run")
+    run.add_argument("--config", type=Path, metavar="FILE",
+                     help="settings from a YAML or JSON file: PipelineConfig's fields by name, a section per stage "
+                          "(medea, mvs, fusion, polish_config), as report.json's options, or a report.json itself to "
+                          "run a result again; flags given with other values than their defaults override it")
     run.add_argument("--export", metavar="FORMATS",
                      help="when the run is done, export the output folder for other tools: colmap, nerfstudio or "
                           "colmap,nerfstudio, into OUT/colmap/ and OUT/nerfstudio/ (as `recon export OUT --to ...`)")

@@ -16,6 +16,7 @@ import pytest
 import trimesh
 
 from recon.cli import build_parser, main
+from recon.cli_args import pipeline_config_from_args
 from recon.demo import pose_estimator_available
 from recon.export.writers import to_gltf_axes
 from recon.fusion.upright import camera_up
@@ -70,6 +71,15 @@ def test_demo_writes_every_output(demo):
     assert stage1["epochs"] > 1 and stage1["last"]["total"] < stage1["first"]["total"]
     assert {"recon", "torch", "open3d", "rerun"} <= set(report["versions"])
     assert report["options"]["poses"].endswith("poses_gt.txt") and report["intrinsics"]["source"] == "given"
+
+
+def test_a_runs_report_reruns_it_with_the_same_config(demo):
+    """`recon run IN -o OUT --config OUT/report.json` is the run's config again, exactly."""
+    out, report = demo
+    options = report["options"]
+    args = build_parser().parse_args(["run", options["input"], "-o", options["output"], "--config",
+                                      str(out / "report.json")])
+    assert json.loads(json.dumps(pipeline_config_from_args(args).to_dict())) == options  # as report.json holds it
 
 
 def test_demo_mesh_quality(demo):
