@@ -33,7 +33,7 @@ RERUN_MODES = ("spawn", "save", "serve", "off")
 # separate reconstructions, one per stretch; a stop naming the frames; one trajectory, warned.
 ON_BREAK_CHOICES = ("segments", "stop", "keep")
 
-# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs longer than the frame budget
+# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs the frame budget cannot hold
 # and videos whose poses are estimated (recon.pipeline.stream_reason).
 STREAM_CHOICES = ("auto", "on", "off")
 

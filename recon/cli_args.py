@@ -156,8 +156,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--start", type=float, dest="start_time", help="first second of the video to use")
     g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
     g.add_argument("--frame-budget", type=int, default=d.frame_budget,
-                   help="the most frames a one-shot run holds in memory; longer inputs are streamed (see --stream) "
-                        "(default %(default)s)")
+                   help="the most frames a one-shot run holds in memory, counted at 640x480 (larger frames count "
+                        "for more; 100 keeps a one-shot run within about 3 GB); longer inputs are streamed (see "
+                        "--stream) (default %(default)s)")
     g.add_argument("--stream", choices=STREAM_CHOICES, default=d.stream,
                    help="stream the frames through the stages in bounded memory, MEDeA on overlapping windows, the "
                         "mesh growing as it goes: auto = when the input has more frames than --frame-budget, and "
@@ -175,7 +176,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                    help="streamed runs, --depth-frames motion: the turn in degrees that takes a frame "
                         "(default %(default)s)")
     g.add_argument("--window", type=int, default=d.window,
-                   help="streamed runs: frames per MEDeA window (default %(default)s)")
+                   help="streamed runs: frames per MEDeA window, counted at 640x480 like --frame-budget (default "
+                        "%(default)s)")
     g.add_argument("--window-overlap", type=int, default=d.window_overlap,
                    help="streamed runs: frames shared by consecutive windows (default %(default)s)")
     g.add_argument("--mesh-every", type=int, default=d.mesh_every,

@@ -52,15 +52,18 @@ class PipelineConfig:
 
     input, output: paths. overwrite: write into a non-empty output folder.
     stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
-    frame_budget: the most frames a one-shot run holds in memory. stream: "auto" streams
-        inputs with more frames than frame_budget (recon.stream: frames flow through the
-        stages, memory flat in the video's length) and videos whose poses are estimated
-        (recon.pipeline.stream_reason), "on" always, "off" never (then, with no stride
-        given, the stride is raised so that at most frame_budget frames are used).
+    frame_budget: the most frames a one-shot run holds in memory, counted at 640x480 (a
+        frame of more pixels counts for more: recon.stages.budget_capacity); 100 keeps a
+        one-shot run within about 3 GB. stream: "auto" streams inputs with more frames than
+        the budget holds (recon.stream: frames flow through the stages, memory flat in the
+        video's length) and videos whose poses are estimated (recon.pipeline.stream_reason),
+        "on" always, "off" never (then, with no stride given, the stride is raised so that
+        the frames fit the budget).
     depth_frames: which tracked frames get depth and are fused in a streamed run: "motion"
         (a frame each time the camera moved depth_motion x the median depth or turned
         depth_rotation degrees since the last one), "all", or "K" (every K-th frame).
-    window, window_overlap: frames per MEDeA window of a streamed run and frames shared by
+    window, window_overlap: frames per MEDeA window of a streamed run (counted at 640x480
+        like frame_budget: recon.stream_depth.window_frames) and frames shared by
         consecutive windows. mesh_every: re-extract the mesh for live Rerun every this many
         fused frames (0: only at the end).
     width: working width in pixels (None: the input's own); fps: frame rate of an image folder.
@@ -124,7 +127,7 @@ class PipelineConfig:
     max_frames: int | None = None
     start_time: float | None = None
     end_time: float | None = None
-    frame_budget: int = 600
+    frame_budget: int = 100
     stream: str = "auto"
     depth_frames: str = "motion"
     depth_motion: float = 0.02

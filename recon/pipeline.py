@@ -63,6 +63,7 @@ from .segments import estimator_options, join_breaks, say_joins, stop_at_breaks,
 from .sequence import Sequence
 from .stages import (
     adjust_with_medea,
+    budget_capacity,
     camera_poses,
     decode,
     default_intrinsics,
@@ -145,7 +146,9 @@ def run_pipeline(config: PipelineConfig,
 def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
     """Why this run is streamed (the line said), or None for a one-shot run.
 
-    ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget) and
+    ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget
+    holds at their size, stages.budget_capacity: a one-shot run's memory grows with its
+    frames' pixels, a streamed run's does not) and
     video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
     the streamed run gives depth only to the frames the camera moved to reach, which on the
     videos measured was 1.1-1.9x faster for a mesh as good (docs/benchmarks.md, "Videos
@@ -157,8 +160,11 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
         return "streaming"
     if config.stream == "off":
         return None
-    if source.count > config.frame_budget:
-        return f"streaming {source.count} frames (more than the frame budget of {config.frame_budget})"
+    capacity = budget_capacity(config.frame_budget, source.shape)
+    if source.count > capacity:
+        height, width = source.shape
+        return (f"streaming {source.count} frames at {width}x{height} (a one-shot run holds {capacity} such frames "
+                f"within the frame budget of {config.frame_budget} at 640x480)")
     if _streamed_as_video(config, source, pose_plan):
         return ("streaming the video (estimated poses: depth for the frames the camera moved to reach; "
                 "--stream off gives every frame depth)")
@@ -168,7 +174,8 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
 def _streamed_as_video(config: PipelineConfig, source, pose_plan) -> bool:
     """auto's video rule (stream_reason): a video within the frame budget, poses estimated,
     not by SfM, no rolling shutter. Such a run that loses the camera can be run again at once."""
-    return (config.stream == "auto" and source.count <= config.frame_budget and source.kind == "video"
+    return (config.stream == "auto" and source.count <= budget_capacity(config.frame_budget, source.shape)
+            and source.kind == "video"
             and pose_plan.estimated and config.pose_method != "sfm" and config.rolling_shutter == 0)
 
 

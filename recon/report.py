@@ -165,6 +165,8 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
     the tracked frames, the depth frames, per window MEDeA's epochs and seconds (or why its
     gate skipped it, with the given poses' fit), the scale anchor and the refinement's
     share, and the bytes the frame store parked on disk (store_bytes)."""
+    from .stream_depth import window_frames
+
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     depth_idx = video.indices[video.depth_frame]
     anchors = [w["anchor"] for w in windows[1:]]
@@ -178,7 +180,8 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
         "intrinsics": _intrinsics_section(video.intrinsics, video.intrinsics_from, source),
         "poses": {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1},
         "prior": {"name": config.prior, "kind": "metric", "info": video.prior_info, "features": video.feature_shape},
-        "windows": {"count": len(windows), "size": config.window, "overlap": config.window_overlap,
+        "windows": {"count": len(windows), "size": window_frames(config, video.size), "size_at_640x480": config.window,
+                    "overlap": config.window_overlap,
                     "anchor_factors": {"min": min(anchors, default=1.0), "max": max(anchors, default=1.0)},
                     "medea_skipped": sum(1 for w in windows if w.get("medea_skipped")),
                     "each": windows},

@@ -31,22 +31,40 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- decode
 
 
+# The frame budget counts frames of this many pixels (640x480); a larger frame counts for
+# more, a smaller one for one: what a one-shot run holds grows with the frames' pixels
+# (its depth maps, confidences and refinement buffers), not below a frame's fixed share
+# (its MEDeA grid and features).
+BUDGET_FRAME_PIXELS = 640 * 480
+
+
+def budget_capacity(frame_budget: int, shape: tuple[int, int]) -> int:
+    """How many frames of ``shape`` (H, W) at working size a one-shot run of
+    ``frame_budget`` (frames at 640x480) holds."""
+    weight = max(1.0, shape[0] * shape[1] / BUDGET_FRAME_PIXELS)
+    return max(2, int(frame_budget / weight))
+
+
 def select_frames(path: Path, *, stride: int | None = None, max_frames: int | None = None,
                   start_time: float | None = None, end_time: float | None = None, width: int | None = None,
-                  fps: float | None = None, frame_budget: int | None = 600) -> FrameSource:
+                  fps: float | None = None, frame_budget: int | None = 100) -> FrameSource:
     """Open the input with the selection (recon.io.source.Selection; width: working width,
     fps: frame rate of an image folder), raising the stride when no stride is given and the
-    input has more than ``frame_budget`` frames (None: never; the streamed pipeline takes
-    every frame)."""
+    input has more frames than ``frame_budget`` holds (budget_capacity; None: never; the
+    streamed pipeline takes every frame)."""
     def open_with(step):
         return open_source(path, stride=step, max_frames=max_frames, start_time=start_time, end_time=end_time,
                            width=width, min_frames=2, fps=fps)
 
     source = open_with(1 if stride is None else stride)
-    if frame_budget is not None and stride is None and max_frames is None and source.count > frame_budget:
-        step = math.ceil(source.count / frame_budget)
-        log.warning("%d frames exceed the frame budget of %d; using every %dth frame (set --stride or --max-frames "
-                    "to choose)", source.count, frame_budget, step)
+    if frame_budget is None or stride is not None or max_frames is not None:
+        return source
+    capacity = budget_capacity(frame_budget, source.shape)
+    if source.count > capacity:
+        step = math.ceil(source.count / capacity)
+        log.warning("%d frames at %dx%d exceed the frame budget (%d such frames); using every %dth frame (set "
+                    "--stride or --max-frames to choose)", source.count, source.shape[1], source.shape[0], capacity,
+                    step)
         source = open_with(step)
     return source
 

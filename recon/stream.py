@@ -41,7 +41,7 @@ from .report import segments_summary, segments_warning
 from .rolling_shutter import angular_velocity
 from .segments import join_breaks, say_joins, stop_at_breaks, trajectory_stretches
 from .stages import PosePlan, shutter_summary
-from .stream_depth import depth_windows
+from .stream_depth import depth_windows, window_frames
 from .stream_track import TrackedVideo, track_video
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,8 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
             result = _run_segments(config, source, out, pose_plan, video, stretch, store, logger, clock, say)
             result.rerun_url = logger.url if logger is not None else None
             return _with_summary(result, out, rec_path)
-        say(f"depth: {int(video.depth_frame.sum())} of {len(video.indices)} frames in windows of {config.window}")
+        say(f"depth: {int(video.depth_frame.sum())} of {len(video.indices)} frames in windows of "
+            f"{window_frames(config, video.size)}")
         omega = _turn_rate(config, pose_plan, video, say)
         volume, windows, shifts = depth_windows(config, video, pose_plan, store, out, logger, clock, omega)
         if omega is not None and shifts:

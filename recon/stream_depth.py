@@ -28,7 +28,7 @@ from .io.frame_store import FrameStore
 from .io.output_folder import OutputFolder
 from .lens import worth_undistorting
 from .sequence import Sequence
-from .stages import PosePlan
+from .stages import PosePlan, budget_capacity
 from .stream_plan import anchor_factor, anchor_pixels, plan_windows
 from .stream_track import TrackedVideo
 
@@ -71,6 +71,13 @@ class _WindowRecord:
     medea_skipped: str | None = None
 
 
+def window_frames(config: PipelineConfig, size: tuple[int, int]) -> int:
+    """Frames per MEDeA window for frames of ``size`` (H, W): a window holds its frames at
+    working size as a one-shot run does, so ``config.window`` counts frames at 640x480 as
+    the frame budget does (stages.budget_capacity), and never fewer than the overlap and two."""
+    return max(budget_capacity(int(config.window), size), int(config.window_overlap) + 2)
+
+
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
                   out: OutputFolder, logger, clock: StageClock, omega: np.ndarray | None = None):
     """MEDeA, refinement, depth files and fusion window by window: ((volume, fusion options),
@@ -92,7 +99,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     if logger is not None and plan.estimated:
         with clock.stage("logging"):
             _log_final_cameras(logger, video)
-    windows = plan_windows(len(positions), int(config.window), int(config.window_overlap))
+    windows = plan_windows(len(positions), window_frames(config, video.size), int(config.window_overlap))
     options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": False})
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
