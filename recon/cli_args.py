@@ -157,7 +157,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
     g.add_argument("--frame-budget", type=int, default=d.frame_budget,
                    help="the most frames a one-shot run holds in memory, counted at 640x480 (larger frames count "
-                        "for more; 100 keeps a one-shot run within about 3 GB); longer inputs are streamed (see "
+                        "for more; 150 holds a one-shot run to about 3 GB); longer inputs are streamed (see "
                         "--stream) (default %(default)s)")
     g.add_argument("--stream", choices=STREAM_CHOICES, default=d.stream,
                    help="stream the frames through the stages in bounded memory, MEDeA on overlapping windows, the "

@@ -47,7 +47,7 @@ def budget_capacity(frame_budget: int, shape: tuple[int, int]) -> int:
 
 def select_frames(path: Path, *, stride: int | None = None, max_frames: int | None = None,
                   start_time: float | None = None, end_time: float | None = None, width: int | None = None,
-                  fps: float | None = None, frame_budget: int | None = 100) -> FrameSource:
+                  fps: float | None = None, frame_budget: int | None = 150) -> FrameSource:
     """Open the input with the selection (recon.io.source.Selection; width: working width,
     fps: frame rate of an image folder), raising the stride when no stride is given and the
     input has more frames than ``frame_budget`` holds (budget_capacity; None: never; the

@@ -454,6 +454,20 @@ def test_frame_budget_raises_the_stride(tmp_path):
     assert source.count == 12
 
 
+def test_the_frame_budget_counts_frames_at_640x480():
+    """A one-shot run's memory grows with its frames' pixels: a larger frame counts for
+    more, a smaller one for one; streamed windows count the same way."""
+    from recon.config import PipelineConfig
+    from recon.stages import budget_capacity
+    from recon.stream_depth import window_frames
+
+    assert budget_capacity(150, (480, 640)) == 150 and budget_capacity(150, (240, 320)) == 150
+    assert budget_capacity(150, (960, 1280)) == 37 and budget_capacity(150, (1138, 640)) == 63
+    config = PipelineConfig(Path("in.mp4"), Path("out"))
+    assert window_frames(config, (480, 640)) == 48 and window_frames(config, (1138, 640)) == 20
+    assert window_frames(config, (4000, 3000)) == config.window_overlap + 2
+
+
 def test_help_texts():
     parser = build_parser()
     texts = {}
