@@ -55,7 +55,15 @@ from .config import PipelineConfig
 from .errors import ReconInputError
 from .export import export_reconstruction
 from .fusion import FusionOptions
-from .io.output_folder import RECORDING, REPORT_JSON, OutputFolder, atomic_path
+from .io.output_folder import (
+    RECORDING,
+    REPORT_JSON,
+    UNFINISHED,
+    OutputFolder,
+    atomic_path,
+    mark_finished,
+    mark_unfinished,
+)
 from .lens import worth_undistorting
 from .refine import default_min_confidence, fusion_confidence
 from .report import build_report, segments_summary, segments_warning
@@ -136,11 +144,13 @@ def run_pipeline(config: PipelineConfig,
     """
     created = not Path(config.output).exists()
     try:
-        return _run_stages(config, on_stage)
+        result = _run_stages(config, on_stage)
     except BaseException:
         if created and Path(config.output).is_dir():
             _remove_if_empty(Path(config.output))
         raise
+    mark_finished(config.output)
+    return result
 
 
 def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
@@ -180,7 +190,10 @@ def _streamed_as_video(config: PipelineConfig, source, pose_plan) -> bool:
 
 
 def _remove_if_empty(folder: Path) -> None:
-    """rmdir `folder` and its empty subfolders; anything holding a file stays."""
+    """rmdir `folder` and its empty subfolders; anything holding a file other than the
+    UNFINISHED.txt mark stays (with the mark: the remains of a failed run)."""
+    if [p.name for p in folder.rglob("*") if p.is_file()] == [UNFINISHED]:
+        mark_finished(folder)
     for sub in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
         if not any(sub.iterdir()):
             sub.rmdir()
@@ -200,6 +213,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult:
         intrinsics, intrinsics_from = given_intrinsics(source, config.intrinsics, config.fov)
         undistort_known_lens(source, intrinsics, intrinsics_from, config.distortion)
         out = OutputFolder(config.output, config.overwrite)
+        mark_unfinished(out)
         pose_plan = plan_poses(config.poses, source)
         say(f"input: {source.description}")
     why = stream_reason(config, source, pose_plan)

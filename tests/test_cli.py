@@ -658,6 +658,38 @@ def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path,
     assert sorted(frames["/tracking"]) == list(range(27))
 
 
+def test_a_run_that_dies_leaves_a_folder_that_says_so(demo, tmp_path, capsys, monkeypatch):
+    """UNFINISHED.txt is there from the start of a run and goes at its end: the remains of a
+    run that failed (or crashed in native code, where nothing can clean up) say so, even
+    over an earlier run's files, and recon eval, view and export refuse them."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    folder = tmp_path / "run"
+    args = ["run", str(out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
+            str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
+            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
+            "--refine", "none", "--quiet", "--rerun", "off"]
+    assert main(args) == 0
+    assert (folder / "report.json").is_file() and not (folder / "UNFINISHED.txt").exists()
+
+    def dies(*_, **__):
+        raise MemoryError("out of memory in fusion (simulated)")
+
+    with monkeypatch.context() as patch:
+        patch.setattr("recon.fusion.fuse", dies)
+        with pytest.raises(MemoryError):
+            main([*args, "--overwrite"])
+    assert (folder / "UNFINISHED.txt").is_file() and (folder / "report.json").is_file()  # the earlier run's
+    capsys.readouterr()
+    for command in (["eval", str(folder), "--gt", str(out / "input")], ["export", str(folder), "--to", "colmap"],
+                    ["view", str(folder), "--rerun", "save", str(tmp_path / "v.rrd")]):
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "did not finish (UNFINISHED.txt is there)" in err[0], (command, err)
+    assert main([*args, "--overwrite"]) == 0
+    assert not (folder / "UNFINISHED.txt").exists()
+
+
 @pytest.mark.parametrize("output", ["/proc/recon_out", "/proc/self/status/out"])
 def test_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys, output):
     """/proc cannot hold a folder (mkdir fails) and a file cannot hold one either: the one-line

@@ -23,6 +23,9 @@ Layout (written by :func:`recon.export.export_reconstruction` and the pipeline):
     depth/<name>.npy  float32 metres, 0 = invalid (lossless; one file per frame so frames
                       stream to disk and can be memory-mapped back: ``np.load(p, mmap_mode="r")``)
     recording.rrd     optional Rerun recording of the run
+    UNFINISHED.txt    there while a run writes the folder, removed when it has finished:
+                      a folder that keeps it is the remains of a run that failed or
+                      crashed, not a result (readers refuse it)
     report.json       whatever the pipeline reports (options, timings, metrics); its
                       ``frames.indices`` are the source frame numbers of the depth maps and
                       poses, ``frames.names`` the depth file stems (default frame_000123)
@@ -56,6 +59,7 @@ MESH_GLB = "mesh.glb"
 POINT_CLOUD_PLY = "point_cloud.ply"
 TRAJECTORY = "trajectory.txt"
 INTRINSICS_JSON = "intrinsics.json"
+UNFINISHED = "UNFINISHED.txt"
 DEPTH_DIR = "depth"
 DEPTH_PNG = ".png"  # 16-bit millimetres
 DEPTH_NPY = ".npy"  # float32 metres
@@ -290,11 +294,40 @@ def intrinsics_dict(intrinsics, width: int, height: int, per_frame=None) -> dict
     return out
 
 
+# --------------------------------------------------------------------------- unfinished runs
+
+
+def mark_unfinished(out: OutputFolder) -> Path:
+    """Say in ``out`` that a run is writing it (UNFINISHED.txt), until mark_finished: a
+    native crash cannot clean up after itself, so the folder says so from the start."""
+    import time
+
+    return out.write_text(UNFINISHED, (
+        f"recon run (process {os.getpid()}) started writing this folder at {time.strftime('%Y-%m-%d %H:%M:%S')} "
+        "and has not finished. Until this file is gone the folder is not a result: if no recon run is at work on "
+        "it, that run failed or crashed (its stderr says how: a crash in native code leaves a Python stack "
+        "there). Run it again with --overwrite.\n"))
+
+
+def mark_finished(folder) -> None:
+    """The run writing `folder` has finished: UNFINISHED.txt goes."""
+    (Path(folder) / UNFINISHED).unlink(missing_ok=True)
+
+
+def check_finished(folder) -> None:
+    """ReconInputError when `folder` holds the remains of a run that did not finish."""
+    if (Path(folder) / UNFINISHED).is_file():
+        raise ReconInputError(f"{folder}: the run that wrote this folder did not finish ({UNFINISHED} is there): "
+                              "not a result; run it again with --overwrite")
+
+
 # --------------------------------------------------------------------------- reading back
 
 
 def read_report(folder) -> dict | None:
-    """report.json of `folder` parsed, or None when there is none."""
+    """report.json of `folder` parsed, or None when there is none; ReconInputError for the
+    folder of a run that did not finish (check_finished)."""
+    check_finished(folder)
     path = Path(folder) / REPORT_JSON
     if not path.is_file():
         return None
@@ -412,6 +445,10 @@ def load_output(path) -> OutputFolderData:
 
 
 __all__ = [
+    "UNFINISHED",
+    "check_finished",
+    "mark_finished",
+    "mark_unfinished",
     "DEPTH_DIR",
     "DEPTH_NPY",
     "DEPTH_PNG",
