@@ -65,6 +65,7 @@ from .io.output_folder import (
     mark_unfinished,
 )
 from .lens import worth_undistorting
+from .memory import release_memory
 from .refine import default_min_confidence, fusion_confidence
 from .report import build_report, segments_summary, segments_warning
 from .segments import estimator_options, join_breaks, say_joins, stop_at_breaks, trajectory_stretches
@@ -104,7 +105,8 @@ class PipelineResult:
     (N, H, W) metres (depth is the final depth: refined, else MEDeA-adjusted, else the
     prior); adjusted_depth: MEDeA's (the prior when adjust=False); poses (N, 4, 4)
     camera-to-world; intrinsics (fx, fy, cx, cy) at working size; fusion: FusionResult;
-    medea: MedeaResult or None; refined: mvs_core.RefineResult or None; seconds: {stage:
+    medea: MedeaResult or None; refined: mvs_core.RefineResult or None (its support and
+    swept depth dropped once the fusion confidence is made, to bound memory); seconds: {stage:
     wall seconds}; files: {label: path}; report: what report.json holds.
     """
 
@@ -322,6 +324,11 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
     fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress})
     with timer.stage("fusion"):
         confidence = None if refined is None else fusion_confidence(refined)
+        if refined is not None:
+            # Their use is over (the confidence is made; a later call's `known` is the
+            # streamed run's): a frame's worth each, dropped before the volume is built.
+            refined.support, refined.swept = None, None
+            release_memory()
         if fusion_options.min_confidence is None:
             fusion_options.min_confidence = default_min_confidence(pose_plan.estimated)
         fused = fuse(depth, seq.rgb, seq.poses, seq.intrinsics, fusion_options, confidence=confidence)
