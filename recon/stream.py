@@ -223,15 +223,16 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
     with clock.stage("fusion"):
         mesh, removed = volume.mesh(options)
         full = len(mesh.triangles)
-        mesh = within_budget(mesh, options.max_triangles)
         cloud = volume.point_cloud(options) if options.point_cloud else None
+        if full == 0:
+            warn_empty_mesh(volume, options, config.refine != "none")
+        volume.close()
+        mesh = within_budget(mesh, options.max_triangles)
     fusion = FusionResult(mesh=mesh, point_cloud=cloud, voxel_size=volume.voxel, trunc=volume.trunc,
                           seconds=time.perf_counter() - start, max_depth=volume.max_depth,
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,
                           fragments_removed=removed, triangles_full=full,
                           upright=estimate_upright(video.poses, np.asarray(mesh.vertices)))
-    if full == 0:
-        warn_empty_mesh(volume, options, config.refine != "none")
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     with clock.stage("export"):
         files = export_reconstruction(out, mesh=mesh, poses=video.poses[kept], timestamps=video.timestamps[kept],

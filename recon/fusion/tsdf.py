@@ -416,9 +416,10 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     full = len(mesh.triangles)
     if len(mesh.triangles) == 0:
         warn_empty_mesh(volume, options, confidence is not None)
-    mesh = within_budget(mesh, options.max_triangles)
     cloud = volume.point_cloud(options) if options.point_cloud else None
     fused, blocks_used = volume.frames_fused, volume.blocks_used
+    volume.close()
+    mesh = within_budget(mesh, options.max_triangles)
     return FusionResult(
         mesh=mesh,
         point_cloud=cloud,

@@ -170,7 +170,18 @@ class TsdfVolume:
 
     @property
     def blocks_used(self) -> int:
-        return int(self.grid.hashmap().size())
+        return self._blocks_closed if self.grid is None else int(self.grid.hashmap().size())
+
+    def close(self) -> None:
+        """Free the voxels (their counts stay readable): once the mesh and points are out,
+        before the decimation, which needs most of the memory the voxels held (+0.8 GB for
+        2.5 M triangles)."""
+        if self.grid is not None:
+            self._blocks_closed = self.blocks_used
+            self.grid = None
+            from recon.memory import release_memory
+
+            release_memory()
 
     def mesh(self, options) -> tuple[o3d.geometry.TriangleMesh, int]:
         """(legacy mesh, triangles removed as fragments) of what is fused so far; options:
