@@ -1,11 +1,12 @@
 # Two entry points (see README "Quick start"):
 #   make demo   set up .venv and run the built-in synthetic sample end to end
-#   make test   set up .venv, lint (ruff check) and run the test suite
+#   make test   set up .venv, lint (ruff check) and run the test suite (slowest 25 timed)
+#   make test-fast   the same without the end-to-end runs marked slow
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.recon-installed
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test test-fast lint bench clean
 
 setup: $(STAMP)
 
@@ -18,7 +19,12 @@ demo: setup
 
 test: setup
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=25
+
+# Everything but the end-to-end runs marked slow: a few minutes instead of the whole suite's.
+test-fast: setup
+	$(VENV)/bin/ruff check .
+	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -18,6 +18,8 @@ from recon.batch import BatchOptions, Job, earlier_outcome, format_table, lost_t
 from recon.cli import main
 from recon.errors import ReconInputError
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 FRAMES, WIDTH, HEIGHT, FPS = 8, 160, 120, 10.0
 
 

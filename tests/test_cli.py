@@ -25,6 +25,8 @@ from recon.io.trajectories import read_poses
 
 from helpers import glb_vertex_colors, read_recording, save_tiny_depth_anything, save_tiny_dpt
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 FRAMES, WIDTH, HEIGHT = 24, 320, 240
 
 

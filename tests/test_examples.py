@@ -11,6 +11,8 @@ from recon.demo import write_demo_inputs
 from recon.io.output_folder import OutputFolder, load_output
 from recon.synthetic import render_sequence
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

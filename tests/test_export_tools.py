@@ -25,6 +25,8 @@ from recon.io.trajectories import read_poses
 
 from helpers import no_temp_files, random_poses
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 FRAMES, WIDTH, HEIGHT = 8, 160, 120
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: OpenCV (x right, y down, z forward) -> OpenGL
 QUIET = ExportOptions(progress=False)

@@ -20,6 +20,8 @@ from recon.pipeline import run_pipeline
 from recon.synthetic import render_sequence, simulate_prior
 from viewer import RerunLogger
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 rr_chunk = pytest.importorskip("rerun.chunk", reason="needs rerun-sdk with rerun.chunk (0.41+)")
 
 FRAMES = 36

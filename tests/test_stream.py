@@ -19,6 +19,8 @@ from recon.synthetic import render_sequence, simulate_prior
 
 from helpers import read_recording, recording_blueprint
 
+pytestmark = pytest.mark.slow  # end-to-end runs: `make test-fast` leaves them out
+
 FRAMES = 36
 
 
