@@ -107,6 +107,36 @@ def gravity_error(folder: Path, report: dict, gt: Path) -> float | None:
     return _angle(np.asarray(report["upright"]["up_in_world"]), world.T @ GRAVITY_UP[kind])
 
 
+def reference_up(folder: Path) -> np.ndarray:
+    """The floor's normal in the world of ``folder``, a run of the same recording with its
+    poses given and the sensor's depth fused (``--prior sensor --no-medea --refine none``):
+    of the directions within 35 degrees of its cameras' up, the one the most triangle area
+    lies within 4 degrees of (floors and table tops), refined by the area-weighted mean of
+    those triangles' normals. Sensor depth is flat where the floor is, FastDepth's is not."""
+    import open3d as o3d
+
+    from recon.fusion.upright import camera_up, directions_around
+    from recon.io.trajectories import read_poses
+
+    mesh = o3d.io.read_triangle_mesh(str(folder / "mesh.ply"))
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    area = np.linalg.norm(cross, axis=1)
+    keep = area > 0
+    normals, area = cross[keep] / area[keep, None], area[keep]
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(area), size=min(len(area), 50_000), replace=False, p=area / area.sum())
+    sample = normals[pick]  # drawn by area: each counts alike
+    guess = camera_up(read_poses(folder / "trajectory.txt").poses)
+    candidates = directions_around(guess, 35.0, 0.5)
+    score = np.concatenate([(np.abs(candidates[s : s + 256] @ sample.T) >= np.cos(np.radians(4.0))).mean(axis=1)
+                            for s in range(0, len(candidates), 256)])
+    best = candidates[int(np.argmax(score))]
+    near = np.abs(normals @ best) >= np.cos(np.radians(3.0))
+    mean = (normals[near] * np.sign(normals[near] @ best)[:, None] * area[near, None]).sum(axis=0)
+    return mean / np.linalg.norm(mean)
+
+
 def estimated_again(folder: Path, ply) -> dict:
     """report.json's "upright" as this checkout's estimator gives it from the folder's
     mesh.ply and trajectory.txt (for folders an earlier version wrote)."""
@@ -116,7 +146,8 @@ def estimated_again(folder: Path, ply) -> dict:
     return estimate_upright(read_poses(folder / "trajectory.txt").poses, np.asarray(ply.vertices)).to_dict()
 
 
-def measure(folder: Path, gt: Path | None, window_deg: float, again: bool = False) -> dict:
+def measure(folder: Path, gt: Path | None, window_deg: float, again: bool = False,
+            reference: np.ndarray | None = None) -> dict:
     import open3d as o3d
     import trimesh
 
@@ -137,7 +168,9 @@ def measure(folder: Path, gt: Path | None, window_deg: float, again: bool = Fals
             "without_rotation": summary(horizontal_planes(raw, window_deg)),
             "glb_faces": horizontal_faces(np.asarray(glb.vertices), np.asarray(glb.faces), window_deg),
             "without_rotation_faces": horizontal_faces(raw, np.asarray(ply.triangles), window_deg),
-            "gravity_error_deg": gravity_error(folder, report, gt) if gt else None}
+            "gravity_error_deg": gravity_error(folder, report, gt) if gt else None,
+            "reference_error_deg": None if reference is None or not upright else
+            _angle(np.asarray(upright["up_in_world"]), reference)}
 
 
 def main() -> int:
@@ -147,23 +180,29 @@ def main() -> int:
     parser.add_argument("--window", type=float, default=25.0, help="degrees from +y a surface may be to count")
     parser.add_argument("--again", action="store_true",
                         help="estimate the up again with this checkout's code from mesh.ply and trajectory.txt")
+    parser.add_argument("--reference", type=Path,
+                        help="a sensor-depth run of the same recording and world: its floor normal (reference_up) "
+                             "is the truth every folder's up is measured against")
     parser.add_argument("--json", default="upright", help="results file name under benchmarks/results")
     args = parser.parse_args()
     gts = list(args.gt) + [None] * (len(args.folders) - len(args.gt))
-    rows = [measure(f, g, args.window, args.again) for f, g in zip(args.folders, gts)]
+    reference = reference_up(args.reference) if args.reference else None
+    rows = [measure(f, g, args.window, args.again, reference) for f, g in zip(args.folders, gts)]
 
     def fmt(x):
         return "-" if x is None else f"{x:.1f}"
 
     print(table(["folder", "tilt", "source", "GLB faces deg (share)", "before faces deg", "GLB planes",
-                 "GLB mean / max deg", "before mean / max deg", "vs gravity deg"],
+                 "GLB mean / max deg", "before mean / max deg", "vs gravity deg",
+                 "vs reference deg"],
                 [[Path(r["folder"]).name, fmt(r["tilt_deg"]), r["source"] or "-",
                   f"{fmt(r['glb_faces']['mean_normal_deg'])} ({r['glb_faces']['share']:.2f})",
                   fmt(r["without_rotation_faces"]["mean_normal_deg"]), r["glb"]["planes"],
                   f"{fmt(r['glb']['mean_deg'])} / {fmt(r['glb']['max_deg'])}",
                   f"{fmt(r['without_rotation']['mean_deg'])} / {fmt(r['without_rotation']['max_deg'])}",
-                  fmt(r["gravity_error_deg"])] for r in rows]))
-    path = write_json(args.json, {"machine": machine(), "window_deg": args.window, "rows": rows})
+                  fmt(r["gravity_error_deg"]), fmt(r["reference_error_deg"])] for r in rows]))
+    path = write_json(args.json, {"machine": machine(), "window_deg": args.window, "rows": rows,
+                                  "reference": None if reference is None else reference.tolist()})
     print(f"written {path}")
     return 0
 
