@@ -328,7 +328,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
             # Their use is over (the confidence is made; a later call's `known` is the
             # streamed run's): a frame's worth each, dropped before the volume is built.
             refined.support, refined.swept = None, None
-            release_memory()
+            release_memory(force=True)
         if fusion_options.min_confidence is None:
             fusion_options.min_confidence = default_min_confidence(pose_plan.estimated)
         fused = fuse(depth, seq.rgb, seq.poses, seq.intrinsics, fusion_options, confidence=confidence)

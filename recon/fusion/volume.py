@@ -181,7 +181,7 @@ class TsdfVolume:
             self.grid = None
             from recon.memory import release_memory
 
-            release_memory()
+            release_memory(force=True)
 
     def mesh(self, options) -> tuple[o3d.geometry.TriangleMesh, int]:
         """(legacy mesh, triangles removed as fragments) of what is fused so far; options:
