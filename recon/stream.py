@@ -213,21 +213,14 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
             store_bytes: int):
     from .export import export_reconstruction
     from .fusion import FusionResult
-    from .fusion.tsdf import warn_empty_mesh
+    from .fusion.tsdf import finished_mesh
     from .fusion.upright import estimate_upright
-    from .fusion.volume import within_budget
     from .report import stream_report
 
     (volume, options) = fusion_state
     start = time.perf_counter()
     with clock.stage("fusion"):
-        mesh, removed = volume.mesh(options)
-        full = len(mesh.triangles)
-        cloud = volume.point_cloud(options) if options.point_cloud else None
-        if full == 0:
-            warn_empty_mesh(volume, options, config.refine != "none")
-        volume.close()
-        mesh = within_budget(mesh, options.max_triangles)
+        mesh, cloud, removed, full = finished_mesh(volume, options, config.refine != "none")
     fusion = FusionResult(mesh=mesh, point_cloud=cloud, voxel_size=volume.voxel, trunc=volume.trunc,
                           seconds=time.perf_counter() - start, max_depth=volume.max_depth,
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,

@@ -363,6 +363,19 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
                 volume.frames_fused, volume.max_depth, options.weight_threshold, gate)
 
 
+def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: bool):
+    """(mesh within options.max_triangles, point cloud or None, fragment triangles removed,
+    triangles before the budget) of a volume whose fusion is done; its voxels are freed
+    before the decimation (TsdfVolume.close), which needs most of the memory they held."""
+    mesh, removed = volume.mesh(options)
+    full = len(mesh.triangles)
+    if full == 0:
+        warn_empty_mesh(volume, options, confidence_used)
+    cloud = volume.point_cloud(options) if options.point_cloud else None
+    volume.close()
+    return within_budget(mesh, options.max_triangles), cloud, removed, full
+
+
 def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, confidence=None) -> FusionResult:
     """Fuse metric depth maps (and colour) into a mesh by TSDF integration.
 
@@ -412,14 +425,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
                         block_resolution=options.block_resolution, device=device)
     for i in tqdm(frames, desc="TSDF fusion", unit="frame", disable=not options.progress, leave=False):
         volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i])
-    mesh, removed = volume.mesh(options)
-    full = len(mesh.triangles)
-    if len(mesh.triangles) == 0:
-        warn_empty_mesh(volume, options, confidence is not None)
-    cloud = volume.point_cloud(options) if options.point_cloud else None
+    mesh, cloud, removed, full = finished_mesh(volume, options, confidence is not None)
     fused, blocks_used = volume.frames_fused, volume.blocks_used
-    volume.close()
-    mesh = within_budget(mesh, options.max_triangles)
     return FusionResult(
         mesh=mesh,
         point_cloud=cloud,
