@@ -79,7 +79,7 @@ def make_inputs(folder: Path, frames: int) -> None:
     """The rendered video with its poses, and 7-Scenes as JPEG frames + TUM poses + sensor depth."""
     import cv2
 
-    from recon.demo import write_demo_inputs
+    from recon.commands.demo import write_demo_inputs
     from recon.io.datasets import open_dataset
     from recon.io.output_folder import OutputFolder
     from recon.io.trajectories import write_poses

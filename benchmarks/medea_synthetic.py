@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, table, write_json  # noqa: E402
 
 from medea_core import MedeaConfig  # noqa: E402
-from recon.demo import depth_report  # noqa: E402
-from recon.medea import adjust_sequence  # noqa: E402
+from recon.commands.demo import depth_report  # noqa: E402
+from recon.core.medea import adjust_sequence  # noqa: E402
 from recon.synthetic import render_sequence, simulate_prior  # noqa: E402
 
 

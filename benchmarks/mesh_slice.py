@@ -31,9 +31,9 @@ from priors import MAX_DEPTH, VARIANTS, medea_config  # noqa: E402
 from report import DATA  # noqa: E402
 from report_runs import refined_run  # noqa: E402
 
+from recon.core.medea import adjust_sequence  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
-from recon.medea import adjust_sequence  # noqa: E402
 from recon.poses.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
 

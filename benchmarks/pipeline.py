@@ -33,7 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import machine, table, write_json  # noqa: E402
-from recon.demo import DemoOptions, pose_estimator_available, run_demo, write_demo_inputs  # noqa: E402
+from recon.commands.demo import DemoOptions, pose_estimator_available, run_demo, write_demo_inputs  # noqa: E402
 from recon.io.output_folder import OutputFolder  # noqa: E402
 from recon.pipeline import STAGES, PipelineConfig, run_pipeline  # noqa: E402
 from recon.synthetic import render_sequence  # noqa: E402

@@ -52,7 +52,7 @@ def fastdepth(rgb: np.ndarray, intrinsics) -> tuple[np.ndarray, float]:
 def undistort_radial(rgb: np.ndarray, prior: np.ndarray, intrinsics, k1: float) -> tuple[np.ndarray, np.ndarray]:
     """Frames (N, H, W, 3) and prior (N, H, W) resampled as if taken through a lens with
     radial coefficient k1 removed (same pinhole intrinsics). Diagnostic for --k1 only."""
-    from recon.lens import undistort_images
+    from recon.geometry.lens import undistort_images
 
     return undistort_images(rgb, intrinsics, k1), undistort_images(prior, intrinsics, k1, nearest=True)
 

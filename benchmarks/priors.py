@@ -33,10 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, best_ms_per_item, machine, table, write_json  # noqa: E402
 
 from medea_core import MedeaConfig, adjust_depth, median_pool_to_grid  # noqa: E402
+from recon.core.medea import adjust_sequence  # noqa: E402
 from recon.eval.depth import depth_metrics, multiview_inconsistency  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
 from recon.io.datasets.sevenscenes import DEPTH_INTRINSICS  # noqa: E402
-from recon.medea import adjust_sequence  # noqa: E402
 from recon.priors import FastDepthPrior, make_prior  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

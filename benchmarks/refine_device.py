@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import machine, table, write_json  # noqa: E402
 
 from mvs_core import MvsConfig  # noqa: E402
-from recon.refine import refine_sequence  # noqa: E402
+from recon.core.refine import refine_sequence  # noqa: E402
 
 
 def write_input(path: Path, rgb, depth, poses, intrinsics) -> None:
@@ -63,7 +63,7 @@ def make_input(path: Path) -> None:
     from refine_study import load_set
 
     from medea_core import MedeaConfig
-    from recon.medea import adjust_sequence
+    from recon.core.medea import adjust_sequence
 
     rgb, _, poses, intrinsics, prior, features = load_set("7s4")
     depth = adjust_sequence(rgb, prior, poses, tuple(intrinsics), features, MedeaConfig.fast(),

@@ -38,22 +38,22 @@ from common import RESULTS, machine, say, table, write_json  # noqa: E402
 
 from medea_core import MedeaConfig  # noqa: E402
 from mvs_core import MvsConfig  # noqa: E402
-from recon.eval.depth import depth_metrics  # noqa: E402
-from recon.eval.mesh import mesh_metrics  # noqa: E402
-from recon.eval.trajectory import move_points, pose_alignment  # noqa: E402
-from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
-from recon.io.datasets import open_dataset  # noqa: E402
-from recon.lens import undistort_features, undistort_images, worth_undistorting  # noqa: E402
-from recon.medea import adjust_sequence  # noqa: E402
-from recon.poses.polish import PolishConfig, polish_poses  # noqa: E402
-from recon.priors import make_prior  # noqa: E402
-from recon.refine import (  # noqa: E402
+from recon.core.medea import adjust_sequence  # noqa: E402
+from recon.core.refine import (  # noqa: E402
     FILLED_CONFIDENCE,
     MIN_CONFIDENCE_GIVEN,
     default_min_confidence,
     fusion_confidence,
     refine_sequence,
 )
+from recon.eval.depth import depth_metrics  # noqa: E402
+from recon.eval.mesh import mesh_metrics  # noqa: E402
+from recon.eval.trajectory import move_points, pose_alignment  # noqa: E402
+from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
+from recon.geometry.lens import undistort_features, undistort_images, worth_undistorting  # noqa: E402
+from recon.io.datasets import open_dataset  # noqa: E402
+from recon.poses.polish import PolishConfig, polish_poses  # noqa: E402
+from recon.priors import make_prior  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 MAX_DEPTH = 10.0
@@ -81,7 +81,7 @@ VARIANTS = {
 
 
 # Fusion policies: which pixels of a refined frame reach the TSDF, as thresholds on
-# recon.refine.fusion_confidence (filled pixels: FILLED_CONFIDENCE x support); "pipeline":
+# recon.core.refine.fusion_confidence (filled pixels: FILLED_CONFIDENCE x support); "pipeline":
 # the pipeline's default for the pose source; "share0.15": reconstructed pixels, and frames
 # under 15 % reconstructed whole.
 FUSION = {"pipeline": None, "rec": MIN_CONFIDENCE_GIVEN, "all": 0.0, "sup0.3": 0.3 * FILLED_CONFIDENCE,

@@ -22,13 +22,13 @@ sys.path.insert(0, str(ROOT))
 from priors import MAX_DEPTH, VARIANTS, medea_config  # noqa: E402
 from report_text import PRESET  # noqa: E402
 
+from recon.core.medea import adjust_sequence  # noqa: E402
+from recon.core.refine import fusion_confidence, refine_sequence  # noqa: E402
 from recon.eval.depth import METRIC_NAMES, depth_metrics, multiview_inconsistency  # noqa: E402
 from recon.eval.mesh import icp_registered, mesh_metrics  # noqa: E402
 from recon.eval.trajectory import move_points  # noqa: E402
-from recon.lens import undistort_features, undistort_images, worth_undistorting  # noqa: E402
-from recon.medea import adjust_sequence  # noqa: E402
+from recon.geometry.lens import undistort_features, undistort_images, worth_undistorting  # noqa: E402
 from recon.pipeline import STAGES  # noqa: E402
-from recon.refine import fusion_confidence, refine_sequence  # noqa: E402
 
 # ------------------------------------------------------------------ scoring
 

@@ -37,6 +37,7 @@ from report_text import (  # noqa: E402
     paper_text,
 )
 
+from recon.core.refine import default_min_confidence, fusion_confidence, refine_sequence  # noqa: E402
 from recon.eval.depth import METRIC_NAMES  # noqa: E402
 from recon.eval.evaluate import reference_tsdf_mesh  # noqa: E402
 from recon.eval.trajectory import ate_rmse, path_length, pose_alignment, scale_error  # noqa: E402
@@ -44,7 +45,6 @@ from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
 from recon.poses.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
-from recon.refine import default_min_confidence, fusion_confidence, refine_sequence  # noqa: E402
 
 # MEDeA rows of tables A and B: key -> (label, priors.VARIANTS key). Stride-8 features are
 # the pipeline's (FastDepthPrior's default feature_layer).
@@ -425,7 +425,7 @@ def mesh_refinement(rec: Recording, options, reference, points: int, rows_c: dic
         start = time.perf_counter()
         confidence = run["confidence"] if depth_key != "medea" else None
         depth = run["refined"] if depth_key != "medea" else run["medea"]
-        # The pipeline's fusion threshold for where the poses came from (recon.refine).
+        # The pipeline's fusion threshold for where the poses came from (recon.core.refine).
         threshold = default_min_confidence(not run_key.startswith("gt"))
         mesh = fuse(depth, None, run["poses"], intrinsics, replace(options, min_confidence=threshold),
                     confidence=confidence).mesh

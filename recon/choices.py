@@ -23,7 +23,7 @@ PRIOR_CHOICES = ("fastdepth", "sensor", "folder", "hf")
 PRIOR_ALIGN_CHOICES = ("fastdepth", "sensor")
 # The prior of `recon demo` (DemoOptions.prior): ground truth distorted like a network, or the network.
 DEMO_PRIORS = ("simulated", "fastdepth")
-# The refinement after MEDeA (PipelineConfig.refine, recon.refine).
+# The refinement after MEDeA (PipelineConfig.refine, recon.core.refine).
 REFINE_CHOICES = ("mvs", "none")
 # Rerun logging (PipelineConfig.rerun, --rerun). The same as viewer.rerun_log.MODES, restated
 # so that the parser does not import the rerun SDK (a second, at every `recon --help`).
@@ -33,7 +33,7 @@ RERUN_MODES = ("spawn", "save", "serve", "off")
 # separate reconstructions, one per stretch; a stop naming the frames; one trajectory, warned.
 ON_BREAK_CHOICES = ("segments", "stop", "keep")
 
-# Streaming (PipelineConfig.stream, recon.stream): auto streams inputs the frame budget cannot hold
+# Streaming (PipelineConfig.stream, recon.drivers.streamed): auto streams inputs the frame budget cannot hold
 # and videos whose poses are estimated (recon.pipeline.stream_reason).
 STREAM_CHOICES = ("auto", "on", "off")
 

@@ -6,7 +6,7 @@ arrays has dropped them, the process's resident memory stays at that stage's pea
 the next stage adds its own on top. ``release_memory`` collects Python's garbage and asks
 glibc to return the free pages at the heap's top and inside it (``malloc_trim(0)``); it
 is a no-op where there is no glibc. The pipeline calls it at the end of every timed stage
-(recon.clock.StageClock).
+(recon.core.clock.StageClock).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""Shared fixtures: two torch threads per test, the ../shared data and weights (tests that need
-them skip when they are absent), and the synthetic rooms that several test files use,
-rendered once per session. Plain helper functions are in helpers.py."""
+"""Shared fixtures: two torch threads per test, the torch devices (`device`), the ../shared
+data and weights (tests that need them skip when they are absent), and the synthetic rooms
+that several test files use, rendered once per session. Plain helper functions are in helpers.py."""
 
 from __future__ import annotations
 
@@ -15,6 +15,17 @@ from helpers import FASTDEPTH_WEIGHTS, SHARED
 @pytest.fixture(autouse=True)
 def _two_threads():
     torch.set_num_threads(2)
+
+
+# The torch devices of this machine: every test that takes `device` runs once on each, so
+# that a machine with CUDA runs the GPU path of the same assertions (a CPU-only machine
+# runs "cpu" alone, without a skipped variant).
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    return request.param
 
 
 @pytest.fixture

@@ -352,7 +352,7 @@ def random_poses(n=6, seed=0):
     """n random camera-to-world poses (random rotations, unit-normal positions)."""
     from scipy.spatial.transform import Rotation
 
-    from recon.poses.rigid import make_poses
+    from recon.geometry.rigid import make_poses
 
     rng = np.random.default_rng(seed)
     return make_poses(Rotation.random(n, random_state=seed).as_matrix(), rng.normal(size=(n, 3)))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from recon.cli_args import build_parser
+from recon.commands.cli_args import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

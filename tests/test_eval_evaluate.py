@@ -137,7 +137,7 @@ def test_bad_folders(tmp_path, recording):
 
 
 def test_cli_writes_eval_json_and_refuses_to_overwrite(tmp_path, recording, capsys):
-    from recon.cli import main
+    from recon.commands.cli import main
 
     seq, root = recording
     indices = np.arange(0, 12, 3)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from recon.demo import write_demo_inputs
+from recon.commands.demo import write_demo_inputs
 from recon.io.output_folder import OutputFolder, load_output
 from recon.synthetic import render_sequence
 

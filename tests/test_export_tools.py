@@ -16,7 +16,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from recon.cli import main
+from recon.commands.cli import main
 from recon.errors import ReconInputError
 from recon.export import ExportOptions, export_colmap, export_folder, export_nerfstudio
 from recon.export.colmap_export import colmap_text_model
@@ -50,7 +50,7 @@ def runs(tmp_path_factory):
     quick runs of it (given poses, the true depth as the prior, no MEDeA, no refinement): a
     one-shot run with `--export colmap,nerfstudio`, and a streamed one that gives every other
     frame depth."""
-    from recon.demo import write_demo_inputs
+    from recon.commands.demo import write_demo_inputs
     from recon.io.output_folder import OutputFolder
     from recon.synthetic import render_sequence
 
@@ -303,7 +303,7 @@ def test_a_rolling_shutter_is_unrolled_as_the_run_did(runs, tmp_path):
     """--rolling-shutter with given poses: the run resampled every frame to one instant with
     the poses' turn rate; the exported images are those frames (the readout in seconds, each
     frame with its own turn rate), not the frames as recorded."""
-    from recon.rolling_shutter import angular_velocity, recorded_positions, unroll_images
+    from recon.geometry.rolling_shutter import angular_velocity, recorded_positions, unroll_images
 
     seq, inputs = runs["seq"], runs["inputs"]
     out = tmp_path / "shutter"

@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import make_poses
 from recon.io.trajectories import read_poses, write_poses
 from recon.poses.result import invert_poses
-from recon.poses.rigid import make_poses
 
 from helpers import POSE_FILE_INTRINSICS, random_poses
 

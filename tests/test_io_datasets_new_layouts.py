@@ -17,12 +17,12 @@ from scipy.spatial.transform import Rotation
 import recon.io.colmap
 from recon.errors import ReconInputError
 from recon.eval.trajectory import path_length
+from recon.geometry.rigid import make_poses, matrix_to_quat
 from recon.io.datasets import detect_kind, open_dataset
 from recon.io.datasets.base import upscale_nearest
 from recon.io.exr import read_exr
 from recon.io.trajectories import read_poses, write_poses
 from recon.poses.result import invert_poses
-from recon.poses.rigid import make_poses, matrix_to_quat
 
 from helpers import SHARED_DATA
 

@@ -1,33 +1,18 @@
 """The layering the code keeps: the method packages (medea_core, mvs_core) and the viewer
-never import recon or open3d, and recon's geometry modules never import its drivers.
-Read from the source (every import statement, also those inside functions), not from
-what happens to be loaded."""
+never import recon or open3d, no module imports a layer above its own, no files import
+each other in a loop. Read from the source (every import statement, also those inside
+functions), not from what happens to be loaded (scripts/import_graph.py prints the same
+reading as floors)."""
 
-import ast
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
 
-
-def imported_modules(package: str) -> dict[str, set[str]]:
-    """{file: top-level-qualified names it imports} for every .py file of `package`."""
-    found = {}
-    for path in sorted((ROOT / package).rglob("*.py")):
-        names = set()
-        here = list(path.relative_to(ROOT).with_suffix("").parts)  # recon/poses/ba -> [recon, poses, ba]
-        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-            if isinstance(node, ast.Import):
-                names.update(alias.name for alias in node.names)
-            elif isinstance(node, ast.ImportFrom):
-                # A relative import is resolved against the file's package (level 1: its own).
-                base = here[: len(here) - node.level] if node.level else []
-                module = ".".join(base + ([node.module] if node.module else []))
-                names.add(module)
-                names.update(f"{module}.{alias.name}" for alias in node.names)
-        found[str(path.relative_to(ROOT))] = names
-    return found
+from import_graph import LAYERS, file_edges, imported_modules, layer_of, loops, upward_imports  # noqa: E402
 
 
 @pytest.mark.parametrize("package", ["medea_core", "mvs_core", "viewer"])
@@ -39,15 +24,46 @@ def test_pure_packages_import_neither_recon_nor_open3d(package):
     assert not {f: n for f, n in offenders.items() if n}
 
 
-def test_geometry_and_io_do_not_import_the_drivers():
-    """recon/poses, recon/io, recon/fusion and recon/camera.py are below the pipeline: none
-    of them imports recon.pipeline, recon.stream* or recon.cli*."""
-    drivers = ("recon.pipeline", "recon.stream", "recon.stream_track", "recon.stream_depth", "recon.stream_plan",
-               "recon.cli", "recon.cli_args")
-    offenders = {}
-    for package in ("recon/poses", "recon/io", "recon/fusion"):
-        for f, names in imported_modules(package).items():
-            bad = sorted(n for n in names if n in drivers)
-            if bad:
-                offenders[f] = bad
-    assert not offenders
+def test_no_module_imports_a_higher_layer():
+    assert not upward_imports()
+
+
+def test_the_layers_are_real_and_the_top_level_is_small():
+    """Every layer holds code (a renamed package cannot leave the rule above checking nothing),
+    and recon/ itself holds only the ground modules and the pipeline."""
+    modules = {p.relative_to(ROOT).with_suffix("").as_posix().replace("/", ".")
+               for p in (ROOT / "recon").rglob("*.py")}
+    for k, (name, _) in enumerate(LAYERS):
+        assert any(layer_of(m) == k for m in modules), name
+    top = sorted(p.name for p in (ROOT / "recon").glob("*.py"))
+    assert top == ["__init__.py", "choices.py", "errors.py", "memory.py", "options.py", "pipeline.py"]
+
+
+def test_no_import_loop_between_files():
+    assert not loops(file_edges())
+
+
+def test_the_loop_and_layer_checks_can_fail():
+    """The two readings above on a made-up graph and module: a loop is found, an upward import named."""
+    assert loops({"a.py": {"b.py"}, "b.py": {"c.py"}, "c.py": {"a.py"}}) == [["a.py", "b.py", "c.py", "a.py"]]
+    assert layer_of("recon.core.stages") > layer_of("recon.geometry.lie") > layer_of("recon.errors")
+    assert layer_of("recon.commands.cli") == len(LAYERS) - 1
+
+
+# Test files that cover the repository rather than one module (tests/README.md).
+REPO_WIDE_TESTS = {"test_docs.py", "test_examples.py", "test_layers.py"}
+
+
+def test_every_test_file_is_named_after_the_module_it_tests():
+    """tests/README.md's rule: test_<package>_<module>[_<aspect>].py for recon/<package>/<module>.py
+    (recon's own package name left out; medea_core, mvs_core and viewer keep theirs)."""
+    modules = set()
+    for package in ("recon", "medea_core", "mvs_core", "viewer"):
+        for path in (ROOT / package).rglob("*.py"):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            parts = parts[:-1] if parts[-1] == "__init__" else parts
+            modules.add("_".join(parts[1:] if parts[0] == "recon" else parts))
+    modules.discard("")
+    misnamed = [p.name for p in sorted((ROOT / "tests").glob("test_*.py")) if p.name not in REPO_WIDE_TESTS
+                and not any(p.stem[5:] == m or p.stem[5:].startswith(m + "_") for m in modules)]
+    assert not misnamed

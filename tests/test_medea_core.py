@@ -185,17 +185,17 @@ def test_propagation_recovers_known_scale_field():
     assert (recovered - log_true).abs().mean() < 0.01
 
 
-def test_run_is_deterministic_for_a_seed_and_keeps_shapes():
+def test_run_is_deterministic_for_a_seed_and_keeps_shapes(device):
     from medea_core import run_medea
 
     images, depth, poses, intr = _plane_sequence(10)
     prior = depth * torch.linspace(0.8, 1.2, 10)[:, None, None]
-    config = MedeaConfig(image_scale=0.5, pixel_stride=2)
+    config = MedeaConfig(image_scale=0.5, pixel_stride=2, device=device)
     config.stage1.epochs, config.stage2.epochs = 8, 4
     first = run_medea(images, prior, poses, intr, config=config)
     second = run_medea(images, prior, poses, intr, config=config)
     assert torch.equal(first.depth, second.depth)
-    assert first.depth.shape == prior.shape
+    assert first.depth.shape == prior.shape and first.depth.device == prior.device  # back on the caller's device
     assert first.log_scales.shape == (10, 8, 10)
     assert first.keyframes.tolist() == [0, 8]
     assert first.history["stage1"].epochs == 8

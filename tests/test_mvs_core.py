@@ -100,13 +100,16 @@ def test_consistency_counts_views_that_agree():
     assert torch.allclose(mean[0][centre], d[0][centre], rtol=1e-3)
 
 
-def test_refinement_repairs_per_pixel_shape_on_texture_and_leaves_a_flat_wall_alone():
+def test_refinement_repairs_per_pixel_shape_on_texture_and_leaves_a_flat_wall_alone(device):
     poses = _sideways(8, step=0.08)
     grey, truth = render_wall(poses, INTR, H, W, flat_right=True)
     prior = _bumpy(truth, amplitude=0.15)
-    config = replace(MvsConfig(), image_scale=1.0, num_sources=4, keep_best=2, min_angle=1.0, max_angle=10.0)
+    config = replace(MvsConfig(), image_scale=1.0, num_sources=4, keep_best=2, min_angle=1.0, max_angle=10.0,
+                     device=device)
     result = refine_depth(torch.as_tensor(grey), torch.as_tensor(prior), torch.as_tensor(poses), torch.tensor(INTR),
                           config)
+    result.depth, result.reconstructed, result.confidence = (
+        t.cpu() for t in (result.depth, result.reconstructed, result.confidence))
     refined = result.depth.numpy()
     # Which half of each image shows the textured wall: world x < 0. The fill spreads
     # corrections ~3 fill_sigma (0.55 m here) into the flat half; beyond that it is untouched.

@@ -8,8 +8,8 @@ import logging
 import numpy as np
 import pytest
 
-from recon.camera import intrinsics_from_fov
 from recon.errors import ReconInputError
+from recon.geometry.camera import intrinsics_from_fov
 from recon.poses import TrackingLostError, estimate_poses
 from recon.poses.frontend import FrontendConfig
 from recon.poses.sfm import SfMConfig

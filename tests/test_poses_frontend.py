@@ -13,7 +13,7 @@ import torch
 
 from recon.errors import ReconInputError
 from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error
-from recon.lens import distort_images
+from recon.geometry.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import VANISHING_ACCURACY

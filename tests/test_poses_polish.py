@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from recon.poses import ba, lie
+from recon.geometry import lie
+from recon.poses import ba
 from recon.poses.polish import PolishConfig, polish_poses, pose_disagreement
 from recon.synthetic import render_sequence, simulate_prior
 

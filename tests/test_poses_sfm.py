@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon.eval.trajectory import ate_rmse, path_length, scale_error
-from recon.lens import distort_images
+from recon.geometry.lens import distort_images
 from recon.poses import TrackingLostError, estimate_poses, sfm
 from recon.poses import flow as fl
 from recon.poses.frontend_config import make_geometry

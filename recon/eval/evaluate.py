@@ -119,7 +119,7 @@ def in_run_camera(gt_depth: np.ndarray, report: dict) -> tuple[np.ndarray, tuple
     lens = camera.get("undistorted")
     if not lens:
         return gt_depth, None
-    from recon.camera import undistortion_maps
+    from recon.geometry.camera import undistortion_maps
     from recon.io.source import resize_depth
 
     width, height = report["frames"]["working_size"]

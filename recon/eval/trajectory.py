@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.poses.rigid import umeyama
+from recon.geometry.rigid import umeyama
 
 AlignMode = Literal["sim3", "se3", "none"]
 

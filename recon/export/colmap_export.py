@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.geometry.rigid import matrix_to_quat
 from recon.io.pose_files import PIXEL_CENTRE
 from recon.poses.result import invert_poses
-from recon.poses.rigid import matrix_to_quat
 
 from .run_folder import RunFiles
 

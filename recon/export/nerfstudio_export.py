@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import opencv_to_opengl
 from recon.io.output_folder import (
     DEPTH_DIR,
     DEPTH_PNG,
@@ -40,7 +41,6 @@ from recon.io.output_folder import (
     read_depth,
 )
 from recon.io.pose_files import PIXEL_CENTRE
-from recon.poses.rigid import opencv_to_opengl
 
 from .run_folder import RunFiles
 

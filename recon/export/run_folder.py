@@ -236,8 +236,8 @@ def _resampling(run: RunFiles) -> tuple[dict | None, np.ndarray | None, float, f
     """How the run resampled its frames: (the known lens undone as they were decoded or None,
     the angular velocity (N, 3) rad/s to unroll a rolling shutter with or None, its readout
     in seconds, the radial term undone after the poses or 0)."""
-    from recon.lens import worth_undistorting
-    from recon.rolling_shutter import angular_velocity
+    from recon.geometry.lens import worth_undistorting
+    from recon.geometry.rolling_shutter import angular_velocity
 
     report = run.report
     lens = (report.get("intrinsics") or {}).get("undistorted")
@@ -261,8 +261,8 @@ def decoded_frames(run: RunFiles, input_path, progress: bool = False) -> Iterato
     resampled as the run resampled them (module docstring)."""
     from tqdm.auto import tqdm
 
+    from recon.core.sequence import Sequence
     from recon.io.frames import open_source
-    from recon.sequence import Sequence
 
     options = run.report.get("options") or {}
     # Stride 1 unless the run gave one, and no frame limit: a superset of the run's frames

@@ -26,7 +26,7 @@ Automatic parameters (each can be overridden in :class:`FusionOptions`):
   truncation grow by sqrt(estimate / budget) (surface blocks scale as 1 / voxel^2) with a
   logged warning, instead of running out of memory mid-way.
 
-Confidence: with a per-pixel confidence map (the refinement's, ``recon.refine``), pixels
+Confidence: with a per-pixel confidence map (the refinement's, ``recon.core.refine``), pixels
 below ``min_confidence`` are left out of the integration: the depth the images could not
 confirm is not fused, so it cannot pull the surface or leave floaters. Textureless walls the
 refinement left to MEDeA then leave holes rather than wavy surfaces (see
@@ -64,7 +64,7 @@ VOXEL_PER_DEPTH = 1.0 / 200.0
 MAX_DEPTH_PERCENTILE = 99.0
 MAX_DEPTH_MARGIN = 1.1
 # Confidence threshold when none is set: the refinement's reconstructed pixels (whose
-# confidence is >= 1/3 by default) and no filled ones (< 0.1, recon.refine).
+# confidence is >= 1/3 by default) and no filled ones (< 0.1, recon.core.refine).
 DEFAULT_MIN_CONFIDENCE = 0.1
 _STAT_FRAMES = 64  # frames sampled for the depth statistics
 _STAT_STEP = 4  # pixel lattice step for the depth statistics

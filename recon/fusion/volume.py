@@ -3,7 +3,7 @@ time, marching-cubes extraction at any moment, and the removal of small disconne
 fragments from what is extracted.
 
 :func:`recon.fusion.tsdf.fuse` fills one volume from a whole sequence; the streamed pipeline
-(:mod:`recon.stream`) keeps one open for the whole video, integrates each frame as its depth
+(:mod:`recon.drivers.streamed`) keeps one open for the whole video, integrates each frame as its depth
 is finalised and extracts the mesh every so often for the live viewer. The choice of voxel
 size, truncation and depth range is :mod:`recon.fusion.tsdf`'s.
 """

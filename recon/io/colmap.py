@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import matrix_to_quat, quat_to_matrix
 from recon.io.naming import natural_key
 from recon.io.pose_files import (
     PIXEL_CENTRE,
@@ -38,7 +39,6 @@ from recon.io.pose_files import (
     read_text,
 )
 from recon.poses.result import invert_poses
-from recon.poses.rigid import matrix_to_quat, quat_to_matrix
 
 # COLMAP camera models whose first parameters are (f, cx, cy) rather than (fx, fy, cx, cy).
 _COLMAP_SINGLE_FOCAL = {"SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"}

@@ -1,6 +1,6 @@
 """Per-frame arrays parked on disk while a long video streams through the pipeline.
 
-The streamed pipeline (:mod:`recon.stream`) tracks every frame first and works on depth
+The streamed pipeline (:mod:`recon.drivers.streamed`) tracks every frame first and works on depth
 window by window afterwards; what it needs again later (the frame at working size, the
 prior's depth and features of the frames that get depth) waits here, one ``.npy`` file per
 frame and kind, so that memory does not grow with the length of the video. Files are read

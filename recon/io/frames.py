@@ -16,8 +16,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from recon.camera import resize_intrinsics
 from recon.errors import ReconInputError
+from recon.geometry.camera import resize_intrinsics
 from recon.io.datasets import detect_dataset
 from recon.io.datasets.base import RGBDDataset
 from recon.io.naming import natural_key
@@ -214,7 +214,7 @@ class DatasetSource(FrameSource):
     @property
     def distortion(self) -> tuple[float, ...] | None:
         """The published lens of the dataset's calibration (None when it has none or it is 0)."""
-        from recon.camera import is_pinhole
+        from recon.geometry.camera import is_pinhole
 
         lens = self.full.distortion
         return None if is_pinhole(lens) else tuple(float(v) for v in lens)

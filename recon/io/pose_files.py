@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.poses.rigid import rotation_errors
+from recon.geometry.rigid import rotation_errors
 
 # Tolerance on max |R^T R - I| after parsing: text files often carry 6-7 significant digits.
 ROTATION_TOL = 1e-3

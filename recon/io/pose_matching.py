@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.camera import resize_intrinsics
 from recon.errors import ReconInputError
+from recon.geometry.camera import resize_intrinsics
+from recon.geometry.rigid import interpolate_poses
 from recon.io.frames import DatasetSource, ImageFolderSource
 from recon.io.output_folder import frame_name
 from recon.io.pose_files import PoseData
 from recon.io.source import FrameSource
-from recon.poses.rigid import interpolate_poses
 
 
 def frame_names(source: FrameSource, indices) -> list[str]:

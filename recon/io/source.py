@@ -200,7 +200,7 @@ class FrameSource(ABC):
         where they came from). Returns what report.json says of it, also kept as
         ``undistorted``: the coefficients, their source and the largest shift (pixels) that
         moves a pixel. Pixels the lens did not record come out black (depth 0)."""
-        from recon.camera import largest_lens_shift, undistortion_maps
+        from recon.geometry.camera import largest_lens_shift, undistortion_maps
 
         self._lens_maps = undistortion_maps(intrinsics, distortion, self.shape)
         self.undistorted = {"distortion": [float(v) for v in distortion], "source": known_from,

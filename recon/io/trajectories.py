@@ -5,7 +5,7 @@ This module owns the pose-file formats and their two entry points, :func:`read_p
 and line (or frame) at fault; files are written atomically. What the formats share
 (:class:`~recon.io.pose_files.PoseData`, parsing, checks) is in :mod:`recon.io.pose_files`,
 COLMAP models in :mod:`recon.io.colmap`, and the pose maths (quaternions, interpolation
-in time) in :mod:`recon.poses.rigid`.
+in time) in :mod:`recon.geometry.rigid`.
 
 Every reader returns :class:`~recon.io.pose_files.PoseData` whose ``poses`` are
 camera-to-world (N, 4, 4) float64 with OpenCV camera axes (x right, y down, z forward),
@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import make_poses, matrix_to_quat, opencv_to_opengl, opengl_to_opencv, quat_to_matrix
 from recon.io.colmap import colmap_model_dir, read_colmap, write_colmap
 from recon.io.naming import natural_key
 from recon.io.pose_files import (
@@ -54,7 +55,6 @@ from recon.io.pose_files import (
     parse_table,
     read_text,
 )
-from recon.poses.rigid import make_poses, matrix_to_quat, opencv_to_opengl, opengl_to_opencv, quat_to_matrix
 
 FORMATS = ("tum", "colmap", "nerfstudio", "matrices", "log", "kitti")
 FORMAT_NAMES = {"tum": "a TUM trajectory", "matrices": "a 4x4 matrix file", "log": "an Open3D .log trajectory",

@@ -6,7 +6,7 @@ This module owns the least-squares problem of the front end and its solvers:
   pixel p of keyframe i on the BA grid, the residual is
   ``target_ij(p) - proj(T_j T_i^-1 X_i(p, d_i(p)))`` (pixels), weighted by the flow
   confidence and a robust (Huber) factor. Unknowns are world-to-camera poses (left
-  updates, ``recon.poses.lie``) and the inverse depth of every BA pixel of every keyframe.
+  updates, ``recon.geometry.lie``) and the inverse depth of every BA pixel of every keyframe.
   Each inverse depth is also tied to the metric prior by ``sqrt(prior_weight) * log(d /
   d0)`` (a relative error, so the tie is equally weak near and far; in logs because a
   network's depth errors are multiplicative: a quadratic tie on (d - d0) / d0 would bias
@@ -34,8 +34,9 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
-from recon.poses import lie, schur
-from recon.poses import projective as pj
+from recon.geometry import lie
+from recon.geometry import projective as pj
+from recon.poses import schur
 
 # Inverse depth is kept inside [MIN_DISP, MAX_DISP] (1/m): beyond 1 km nothing is
 # measurable from a hand-held video, and nearer than 5 cm nothing is in focus.

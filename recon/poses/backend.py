@@ -13,7 +13,8 @@ import logging
 import numpy as np
 import torch
 
-from recon.poses import ba, lie
+from recon.geometry import lie
+from recon.poses import ba
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses.frontend_config import ba_pixels

@@ -14,10 +14,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from recon.geometry import lie
+from recon.geometry import projective as pj
 from recon.poses import flow as fl
 from recon.poses import graph as gr
-from recon.poses import lie, motion_only
-from recon.poses import projective as pj
+from recon.poses import motion_only
 from recon.poses.frontend_config import FrontendConfig, ba_pixels
 from recon.poses.track_state import TrackState
 

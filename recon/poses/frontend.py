@@ -225,7 +225,7 @@ class StreamingFrontend:
         for k, i in enumerate(g.frames):
             s.frame_T[i] = g.poses([k])[0]
         prior, prior_w = g.priors()
-        # Said by the caller, which knows the video's frame numbers (recon.stages.gate_estimate).
+        # Said by the caller, which knows the video's frame numbers (recon.core.stages.gate_estimate).
         watch = scale_watch.watch_scale(g.disps().numpy(), prior.numpy(), (prior_w > 0).numpy(), g.frames)
         if watch.breaks and self.cfg.join_scale_breaks:
             backend.rescale_stretches(s, [(b.before, f) for b, f in zip(watch.breaks, watch.corrections)])

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from recon.geometry import projective as pj
 from recon.poses import ba
 from recon.poses import features as ft
 from recon.poses import flow as fl
-from recon.poses import projective as pj
 
 
 @dataclass

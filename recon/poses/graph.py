@@ -25,8 +25,9 @@ import cv2
 import numpy as np
 import torch
 
-from recon.poses import ba, lie
-from recon.poses import projective as pj
+from recon.geometry import lie
+from recon.geometry import projective as pj
+from recon.poses import ba
 
 
 @dataclass

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from recon.geometry import projective as pj
 from recon.poses import flow as fl
-from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig, Geometry
 
 

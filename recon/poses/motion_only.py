@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import torch
 
-from recon.poses import lie
-from recon.poses import projective as pj
+from recon.geometry import lie
+from recon.geometry import projective as pj
 from recon.poses.ba import Edges, huber_weights, pixel_sums
 
 

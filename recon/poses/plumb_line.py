@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import torch
 
-from recon.poses import projective as pj
+from recon.geometry import projective as pj
 
 
 @dataclass(frozen=True)

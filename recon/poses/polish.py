@@ -30,7 +30,8 @@ from tqdm.auto import tqdm
 
 from mvs_core.views import select_sources
 
-from . import ba, lie
+from ..geometry import lie
+from . import ba
 from . import flow as fl
 from .frontend_config import disp_from_depth, make_geometry
 from .result import invert_poses, pool_depth

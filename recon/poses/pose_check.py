@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from recon.camera import scale_intrinsics
+from recon.geometry.camera import scale_intrinsics
 from recon.poses import flow as fl
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from recon.poses import lie
+from recon.geometry import lie
 
 
 @dataclass

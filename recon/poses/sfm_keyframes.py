@@ -25,8 +25,8 @@ from bisect import bisect_left, bisect_right
 import cv2
 import numpy as np
 
+from recon.geometry import lie
 from recon.poses import flow as fl
-from recon.poses import lie
 from recon.poses.result import TRUSTED_STATES, TrackingLostError
 
 

@@ -17,10 +17,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from recon.geometry import projective as pj
 from recon.poses import ba
 from recon.poses import flow as fl
 from recon.poses import graph as gr
-from recon.poses import projective as pj
 from recon.poses.frontend_config import FrontendConfig, Geometry, disp_from_depth
 from recon.poses.result import PriorSource, pool_depth
 

@@ -15,7 +15,8 @@ import logging
 import numpy as np
 import torch
 
-from recon.poses import backend, features, lie, motion_filter, motion_only
+from recon.geometry import lie
+from recon.poses import backend, features, motion_filter, motion_only
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses.frontend_config import ba_pixels

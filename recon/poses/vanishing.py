@@ -35,8 +35,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from recon.geometry import projective as pj
 from recon.poses import plumb_line as pl
-from recon.poses import projective as pj
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import interpolate_poses, make_poses
 from recon.poses.result import invert_poses
-from recon.poses.rigid import interpolate_poses, make_poses
 
 from .base import RGBDDataset, check_exist, image_shape, list_images
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.poses.rigid import MIN_QUAT_NORM, make_poses, opengl_to_opencv, quat_to_matrix
+from recon.geometry.rigid import MIN_QUAT_NORM, make_poses, opengl_to_opencv, quat_to_matrix
 
 from .base import RGBDDataset, check_exist, image_shape, list_images, require_file
 

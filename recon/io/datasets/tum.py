@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.geometry.rigid import associate_timestamps, interpolate_poses
 from recon.io.trajectories import read_tum
-from recon.poses.rigid import associate_timestamps, interpolate_poses
 
 from .base import RGBDDataset, check_exist, image_shape, require_file
 

@@ -1,0 +1,3 @@
+"""The command line: ``recon run`` and its options (``cli``, ``cli_args``), ``recon view``,
+``recon demo``, ``recon batch``; each command calls the library (:mod:`recon.pipeline`,
+:mod:`recon.io`, :mod:`recon.export`) and prints."""

@@ -1,0 +1,28 @@
+"""Wall time per named stage, summed over however many blocks a stage runs in (the streamed
+pipeline enters each stage once per batch or window; the one-shot pipeline once). A stage's
+end is also where its temporary arrays have just been dropped: the memory they held is
+handed back to the OS there (recon.memory), so that stages do not stack their peaks."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+from ..memory import release_memory
+
+
+class StageClock:
+    """Wall seconds per stage name, summed over every block timed under it."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            release_memory()
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start

@@ -1,0 +1,348 @@
+"""The streamed pipeline's first pass (:mod:`recon.drivers.streamed`): decode, prior, track.
+
+Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at a
+time (the streaming front end, :class:`recon.poses.frontend.StreamingFrontend`, or the given
+poses). Each frame goes to a :class:`~recon.io.frame_store.FrameStore` on disk, and the
+frames that will get depth, chosen by motion as they come
+(:class:`recon.drivers.stream_plan.MotionSelector`), with their prior and features. The viewer
+shows each frame, its camera and the trajectory as it is tracked (an estimate's camera as
+known then; the depth pass logs every final camera again). At the end the estimate
+is closed (global BA, non-keyframes, metric scale) and passes the quality gate, exactly as
+in the one-shot run; what the depth pass needs is a :class:`TrackedVideo`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable, Iterator
+
+import numpy as np
+
+from ..core.clock import StageClock
+from ..core.config import PipelineConfig
+from ..core.sequence import Sequence
+from ..core.stages import (
+    PosePlan,
+    default_intrinsics,
+    gate_estimate,
+    ground_truth_kept,
+    judge_given_poses,
+    prior_function,
+)
+from ..errors import ReconInputError
+from ..io.frame_store import FrameStore
+from ..io.pose_matching import frame_names, match_pose_file
+from ..io.source import FrameSource
+from .segments import estimator_options
+from .stream_plan import MotionSelector, parse_depth_frames
+
+log = logging.getLogger(__name__)
+
+# Frames given their prior at once (FastDepth runs faster on a batch than frame by frame).
+PRIOR_BATCH = 8
+# Depth values kept per depth frame (a pixel lattice) to size the TSDF volume, and in all.
+_SAMPLE_STEP = 16
+_SAMPLE_MAX = 400_000
+
+@dataclass
+class TrackedVideo:
+    """What the tracking pass leaves: per frame (position in the selection) its source
+    index, timestamp, name, camera-to-world pose (NaN when it has none) and whether it got
+    depth; the camera; the lens term; the pose report; a sample of prior depth values."""
+
+    indices: np.ndarray
+    timestamps: np.ndarray
+    names: list[str]
+    poses: np.ndarray
+    depth_frame: np.ndarray
+    intrinsics: tuple[float, float, float, float]
+    intrinsics_from: str
+    size: tuple[int, int]
+    lens_k1: float = 0.0
+    pose_source: str = ""
+    pose_info: dict = field(default_factory=dict)
+    depth_sample: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    prior_info: dict = field(default_factory=dict)
+    feature_shape: list | None = None
+    # Given poses: why MEDeA is skipped (--medea-gate and the frames contradict them), else None.
+    medea_skipped: str | None = None
+
+
+
+def track_video(config: PipelineConfig, source: FrameSource, plan: PosePlan, given, store: FrameStore, logger,
+                clock: StageClock) -> TrackedVideo:
+    """Decode, prior, track (module docstring); every frame parked in ``store``."""
+    from tqdm.auto import tqdm
+
+    loop = _TrackLoop(config, source, plan, given, store, logger, clock)
+    total = source.count if source.count > 0 else None
+    with tqdm(total=total, desc="tracking", unit="frame", disable=not config.progress) as bar:
+        for batch in _batches(source, clock):
+            loop.add(batch)
+            bar.update(len(batch))
+    return loop.close()
+
+
+def _median_depth(depth: np.ndarray) -> float:
+    valid = depth[depth > 0]
+    return float(np.median(valid)) if valid.size else 0.0
+
+
+class _TrackLoop:
+    """The tracking pass's state: per-frame records (small), the poser, the depth-frame rule."""
+
+    def __init__(self, config: PipelineConfig, source: FrameSource, plan: PosePlan, given, store: FrameStore,
+                 logger, clock: StageClock):
+        self.config, self.source, self.store, self.logger, self.clock = config, source, store, logger, clock
+        self.intrinsics, self.intrinsics_from = given
+        self.prior = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
+                                    features=config.features and config.adjust, align=config.prior_align,
+                                    device=config.device, progress=False)
+        self.poser = _Poser(config, source, plan, self.intrinsics, store)
+        if plan.polishes(config):
+            log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
+                        "once); MEDeA and the refinement use the poses as given")
+        # Given poses are checked against the first frames, as they come (recon.poses.pose_check).
+        self.to_check: list[tuple[np.ndarray, np.ndarray]] | None = None if plan.estimated else []
+        self.pose_check: dict | None = None
+        self.medea_skipped: str | None = None
+        self.select = MotionSelector(config.depth_motion, config.depth_rotation,
+                                     parse_depth_frames(config.depth_frames))
+        self.names_of = _frame_namer(source)
+        self.indices, self.stamps, self.names, self.live, self.chosen, self.sample = [], [], [], [], [], []
+        self.prior_info, self.feature_shape = {}, None
+
+    def add(self, batch: Sequence) -> None:
+        """Prior, poses and depth-frame choice of a batch of frames; each frame parked."""
+        positions = np.arange(len(self.indices), len(self.indices) + len(batch))
+        batch = batch.with_(names=self.names_of(batch.indices, positions), intrinsics=self.intrinsics)
+        if self.poser.estimating:
+            # The front end needs every frame's prior; the depth frames are chosen on its
+            # live poses. A frame without a pose yet (the focal search still buffering)
+            # keeps its prior: the motion rule cannot judge it.
+            out = self._prior(batch, positions)
+            with self.clock.stage("poses"):
+                poses = self.poser.batch(positions, batch, out.depth)
+            take = np.array([self.select(pose, _median_depth(out.depth[k])) if np.isfinite(pose).all() else True
+                             for k, pose in enumerate(poses)], bool)
+            rows = np.arange(len(batch))
+        else:
+            # Given poses: only the depth frames need a prior.
+            with self.clock.stage("poses"):
+                poses = self.poser.batch(positions, batch, None)
+            take = np.array([self.select(pose) for pose in poses], bool)
+            with self.clock.stage("poses"):
+                self._check(batch, poses)
+            rows = np.flatnonzero(take)
+            out = self._prior(batch.take(rows), positions[rows]) if len(rows) else None
+            if out is not None:
+                self.select.depth = _median_depth(out.depth[-1]) or self.select.depth
+        with self.clock.stage("store"):
+            # A frame's colour is read again only if it gets depth; the front end's finish
+            # needs the others' grey image at its flow size, 1/48 of the bytes.
+            for k, position in enumerate(positions):
+                if take[k]:
+                    self.store.put(position, rgb=batch.rgb[k])
+                elif self.poser.estimating:
+                    self.store.put(position, grey=self.poser.frontend.finish_image(batch.rgb[k]))
+            for row, k in enumerate(rows):
+                if take[k]:
+                    self.store.put(positions[k], prior=out.depth[row],
+                                   features=None if out.features is None else out.features[row])
+                    self.sample.append(out.depth[row][::_SAMPLE_STEP, ::_SAMPLE_STEP].ravel())
+        self.indices += [int(i) for i in batch.indices]
+        self.stamps += [float(t) for t in batch.timestamps]
+        self.names += list(batch.names)
+        self.live += list(poses)
+        self.chosen += list(take)
+        self._log(batch, poses)
+
+    def _check(self, batch: Sequence | None, poses: np.ndarray | None) -> None:
+        """Collect the first frames with given poses; judge them once there are enough (or,
+        with batch None, at the end of a shorter video)."""
+        from ..poses.pose_check import PoseCheckConfig
+
+        if self.to_check is None:
+            return
+        wanted = PoseCheckConfig().max_pairs + 1
+        if batch is not None:
+            self.to_check += [(batch.rgb[k], pose) for k, pose in enumerate(poses)][:wanted - len(self.to_check)]
+        if len(self.to_check) >= wanted or (batch is None and len(self.to_check) >= 2):
+            rgb, given = (np.stack(x) for x in zip(*self.to_check))
+            self.pose_check, self.medea_skipped = judge_given_poses(
+                rgb, given, self.intrinsics, self.config.medea_gate and self.config.adjust)
+            self.to_check = None
+
+    def _prior(self, batch: Sequence, positions: np.ndarray):
+        with self.clock.stage("prior"):
+            out = self.prior(batch, positions)
+        self.prior_info = out.info
+        self.feature_shape = None if out.features is None else list(out.features.shape[1:])
+        return out
+
+    def _log(self, batch: Sequence, poses: np.ndarray) -> None:
+        """Each frame's RGB, with its camera as known now (an estimate's are logged again once
+        final: recon.drivers.stream_depth.depth_windows)."""
+        if self.logger is None:
+            return
+        with self.clock.stage("logging"):
+            camera = self._live_intrinsics()
+            for k, pose in enumerate(poses):
+                self.logger.log_frame(int(batch.indices[k]), batch.rgb[k],
+                                      pose=pose if np.isfinite(pose).all() else None, intrinsics=camera,
+                                      timestamp=float(batch.timestamps[k]))
+
+    def _live_intrinsics(self) -> tuple | None:
+        """The camera while tracking: given; else the front end's once its focal search is done
+        (None before); else the pose file's; else the field of view close() will assume."""
+        if self.intrinsics is not None:
+            return self.intrinsics
+        if self.poser.estimating:
+            return self.poser.frontend.intrinsics
+        if self.poser.file_intrinsics is not None:
+            return self.poser.file_intrinsics
+        return default_intrinsics(*self.source.shape)
+
+    def close(self) -> TrackedVideo:
+        """Close the poses (global BA, gate) and return what the depth pass needs."""
+        if len(self.indices) < 2:
+            raise ReconInputError(f"{self.source.path}: needs at least 2 frames, got {len(self.indices)} "
+                                  f"({self.source.selection.describe()})")
+        indices, stamps = np.asarray(self.indices, np.int64), np.asarray(self.stamps, np.float64)
+        with self.clock.stage("poses"):
+            self._check(None, None)
+            closed = self.poser.close(self.store, indices, stamps, np.asarray(self.live))
+        keep = np.isfinite(closed.poses).all(axis=(1, 2))
+        if closed.dropped_note:
+            log.warning(closed.dropped_note)
+        camera, camera_from = closed.intrinsics, closed.intrinsics_from
+        if camera is None:
+            camera, camera_from = default_intrinsics(*self.source.shape), "assumed (NYU field of view)"
+            log.warning("camera intrinsics unknown; assuming NYU Depth v2's field of view "
+                        "(pass --intrinsics or --fov for a better mesh)")
+        values = np.concatenate(self.sample) if self.sample else np.zeros(0, np.float32)
+        values = values[values > 0]
+        if len(values) > _SAMPLE_MAX:
+            values = values[np.linspace(0, len(values) - 1, _SAMPLE_MAX).astype(np.int64)]
+        return TrackedVideo(
+            indices=indices, timestamps=stamps, names=self.names, poses=closed.poses,
+            depth_frame=np.asarray(self.chosen, bool) & keep, intrinsics=tuple(float(v) for v in camera),
+            intrinsics_from=self.intrinsics_from if self.intrinsics is not None else camera_from,
+            size=tuple(self.source.shape), lens_k1=closed.lens_k1, pose_source=closed.source,
+            pose_info=closed.info if self.pose_check is None else {**closed.info, "check": self.pose_check},
+            depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
+            medea_skipped=self.medea_skipped,
+        )
+
+
+def _frame_namer(source: FrameSource) -> Callable[[np.ndarray, np.ndarray], list[str]]:
+    """names(indices, positions) of a batch: a dataset's names cover all its selected frames
+    at once (recon.io.pose_matching.frame_names), other sources name frames by index."""
+    from ..io.frames import DatasetSource
+
+    if isinstance(source, DatasetSource):
+        every = frame_names(source, None)
+        return lambda indices, positions: [every[int(p)] for p in positions]
+    return lambda indices, positions: frame_names(source, indices)
+
+
+def _batches(source: FrameSource, clock: StageClock) -> Iterator[Sequence]:
+    """The selected frames, PRIOR_BATCH at a time, as Sequences (decode time on the clock)."""
+    frames = iter(source)
+    while True:
+        with clock.stage("decode"):
+            chunk = [f for _, f in zip(range(PRIOR_BATCH), frames)]
+        if not chunk:
+            return
+        yield Sequence(np.asarray([f.index for f in chunk], np.int64), np.asarray([f.timestamp for f in chunk]),
+                       np.stack([f.rgb for f in chunk]), [""] * len(chunk))
+
+
+@dataclass
+class _Closed:
+    poses: np.ndarray
+    intrinsics: tuple | None
+    intrinsics_from: str
+    source: str
+    info: dict
+    lens_k1: float = 0.0
+    dropped_note: str = ""
+
+
+class _Poser:
+    """Poses frame by frame during tracking: the streaming front end, the dataset's ground
+    truth or a pose file, then closed once every frame is in."""
+
+    def __init__(self, config: PipelineConfig, source: FrameSource, plan: PosePlan, intrinsics, store: FrameStore):
+        self.plan, self.source, self.config, self.store = plan, source, config, store
+        self.estimating = plan.estimated
+        self.intrinsics = intrinsics
+        self.file_intrinsics = None
+        self.frontend = None
+        self.recent_prior: dict[int, np.ndarray] = {}
+        if self.estimating:
+            from ..poses.frontend import StreamingFrontend
+
+            if config.pose_method == "sfm":
+                raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
+            self.frontend = StreamingFrontend(intrinsics, self._prior,
+                                              _frontend_config(estimator_options(config), config.device))
+
+    def _prior(self, position: int, frame) -> np.ndarray:
+        # Recent frames from memory; older ones (frames buffered for the focal search,
+        # which have no pose yet and so keep their prior) from the store.
+        if position in self.recent_prior:
+            return self.recent_prior[position]
+        return self.store.get(position, "prior")
+
+    def batch(self, positions, seq: Sequence, prior_depth: np.ndarray) -> np.ndarray:
+        """(B, 4, 4) camera-to-world poses of a batch as known now (NaN where none)."""
+        if self.plan.kind == "gt":
+            return np.asarray(self.source.poses[positions], np.float64)
+        if self.plan.kind == "file":
+            poses, self.file_intrinsics = match_pose_file(self.plan.data, self.source, seq.indices, seq.timestamps)
+            return np.asarray(poses, np.float64)
+        out = []
+        for k, position in enumerate(positions):
+            self.recent_prior[int(position)] = prior_depth[k]
+            _, pose = self.frontend.add(int(position), seq.rgb[k])
+            out.append(np.full((4, 4), np.nan) if pose is None else pose)
+        # The tracker asks for a frame's prior when it tracks it or promotes it to a
+        # keyframe one frame later: a short history is enough.
+        for old in [p for p in self.recent_prior if p < positions[0] - 2 * PRIOR_BATCH]:
+            del self.recent_prior[old]
+        return np.asarray(out, np.float64)
+
+    def close(self, store: FrameStore, indices, timestamps, live: np.ndarray) -> _Closed:
+        """Final poses of every frame (NaN for frames left out) and what the report says."""
+        if self.plan.kind == "gt":
+            _, note = ground_truth_kept(self.source)
+            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {}, dropped_note=note)
+        if self.plan.kind == "file":
+            intr = self.intrinsics or self.file_intrinsics
+            return _Closed(live, intr, "poses (file)", f"file {self.plan.data.path}", {})
+        return self._close_estimate(store, indices)
+
+    def _close_estimate(self, store: FrameStore, indices) -> _Closed:
+        result = self.frontend.finish(
+            lambda position: store.get(position, "rgb" if store.has(position, "rgb") else "grey"),
+            self.config.progress)
+        kept, info, note = gate_estimate(result, indices)
+        poses = np.asarray(result.poses, np.float64).copy()
+        poses[~kept] = np.nan
+        return _Closed(poses, tuple(result.intrinsics), "poses (estimated)",
+                       "estimated (streamed front end)", info, float(result.diagnostics.get("lens_k1", 0.0)), note)
+
+
+def _frontend_config(options: dict, device: str = "cpu"):
+    from ..poses.frontend import FrontendConfig
+    from ..poses.options import configure_frontend
+
+    unknown = sorted(set(options) - set(FrontendConfig.__dataclass_fields__))
+    if unknown:
+        raise ReconInputError(f"streamed runs use the front end, which has no option {', '.join(unknown)}")
+    return configure_frontend(options, device)
+
+
+__all__ = ["PRIOR_BATCH", "TrackedVideo", "track_video"]

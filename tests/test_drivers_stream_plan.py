@@ -1,0 +1,66 @@
+"""The streamed pipeline's rules: depth frames by motion, windows, the scale anchor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recon.drivers.stream_plan import MotionSelector, anchor_factor, parse_depth_frames, plan_windows
+
+
+def _walk(steps: np.ndarray, turns_deg: np.ndarray | None = None) -> np.ndarray:
+    """Camera-to-world poses moving along x by `steps` (metres) and turning about y."""
+    poses = np.repeat(np.eye(4)[None], len(steps), axis=0)
+    poses[:, 0, 3] = np.cumsum(steps)
+    if turns_deg is not None:
+        angles = np.radians(np.cumsum(turns_deg))
+        c, s = np.cos(angles), np.sin(angles)
+        poses[:, 0, 0], poses[:, 0, 2], poses[:, 2, 0], poses[:, 2, 2] = c, s, -s, c
+    return poses
+
+
+def test_motion_rule_takes_a_frame_per_distance_relative_to_depth():
+    poses = _walk(np.full(200, 0.011))  # 1.1 cm per frame, 2 m away: 2 % of depth = 4 cm
+    select = MotionSelector(motion=0.02, rotation=90.0)
+    taken = np.flatnonzero([select(p, 2.0) for p in poses])
+    assert taken[0] == 0
+    assert np.all(np.diff(taken) == 4)
+    # Twice as far away: half as many frames.
+    select = MotionSelector(motion=0.02, rotation=90.0)
+    assert sum(select(p, 4.0) for p in poses) == pytest.approx(len(taken) / 2, abs=1)
+
+
+def test_motion_rule_takes_frames_when_turning_on_the_spot():
+    poses = _walk(np.zeros(60), np.full(60, 0.6))  # pure rotation, 0.6 degree per frame
+    select = MotionSelector(motion=0.02, rotation=2.0)
+    taken = np.flatnonzero([select(p, 2.0) for p in poses])
+    assert np.all(np.diff(taken) == 4)
+    still = MotionSelector(motion=0.02, rotation=2.0)
+    assert sum(still(np.eye(4), 2.0) for _ in range(50)) == 1  # a camera that never moves: one frame
+
+
+def test_every_kth_frame_and_choices():
+    select = MotionSelector(step=3)
+    assert [select(np.eye(4), 1.0) for _ in range(7)] == [True, False, False, True, False, False, True]
+    assert parse_depth_frames("motion") is None and parse_depth_frames("all") == 1 and parse_depth_frames("5") == 5
+
+
+@pytest.mark.parametrize("count", [2, 30, 48, 49, 100, 901])
+def test_windows_cover_every_frame_once_with_the_overlap(count):
+    windows = plan_windows(count, 48, 8)
+    assert all(w.stop - w.start <= 48 for w in windows)
+    new = np.concatenate([np.arange(w.new, w.stop) for w in windows])
+    assert np.array_equal(new, np.arange(count))  # each frame finished by exactly one window
+    assert windows[0].shared == 0 and all(w.shared == 8 for w in windows[1:])
+    sizes = [w.stop - w.start for w in windows]
+    assert max(sizes) - min(sizes) <= 2  # no sliver at the end
+
+
+def test_anchor_factor_is_the_median_ratio_and_ignores_invalid_pixels():
+    rng = np.random.default_rng(0)
+    current = rng.uniform(1, 3, (3, 20, 20)).astype(np.float32)
+    finished = current * 1.07
+    finished[0, :5] = 0  # invalid in one of the two
+    finished[1, :2] *= 5  # outliers do not move a median
+    assert anchor_factor(finished, current) == pytest.approx(1.07, rel=1e-5)
+    assert anchor_factor(np.zeros_like(current), current) == 1.0
