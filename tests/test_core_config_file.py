@@ -74,3 +74,71 @@ def test_bad_config_files_are_one_line(tmp_path, capsys, content, expected):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("recon: error:") and expected in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_set_types_each_setting_like_its_field_and_wins_over_flags_and_file(tmp_path):
+    path = tmp_path / "run.yaml"
+    path.write_text("fusion:\n  voxel_size: 0.02\n")
+    config = _config("in.mp4", "-o", "out", "--config", str(path), "--voxel-size", "0.005",
+                     "--set", "fusion.voxel_size=0.03", "--set", "medea.stage1.epochs=7", "--set", "fov=none",
+                     "--set", "intrinsics=500,510,320,240", "--set", "polish=yes", "--set", "weights=/tmp/w",
+                     "--set", "medea.feature_loss=M", "--set", 'pose_options={"window": 6}')
+    assert config.fusion.voxel_size == 0.03 and config.medea.stage1.epochs == 7 and config.fov is None
+    assert config.intrinsics == (500.0, 510.0, 320.0, 240.0) and config.polish is True
+    assert config.weights == Path("/tmp/w") and config.medea.feature_loss == "M"
+    assert config.pose_options == {"window": 6}
+
+
+@pytest.mark.parametrize("item, expected", [
+    ("medea.stage1.epoch=3", "--set medea.stage1.epoch: no such setting (did you mean medea.stage1.epochs,"),
+    ("frame_budget=lots", "--set frame_budget: 'lots' is not a valid int"),
+    ("medea.feature_loss=X", "--set medea.feature_loss: 'X' is not a valid"),
+    ("stride", "--set must be KEY=VALUE"),
+])
+def test_bad_settings_are_one_line(tmp_path, capsys, item, expected):
+    code = main(["run", str(tmp_path / "missing.mp4"), "-o", str(tmp_path / "out"), "--set", item])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("recon: error:") and expected in err[0], err
+
+
+def test_set_list_names_every_setting_with_its_default(capsys):
+    from recon.core.config_file import setting_types
+
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(["run", "--set", "list"])
+    assert stop.value.code == 0
+    listed = capsys.readouterr().out.splitlines()[1:]
+    defaults = PipelineConfig(Path("IN"), Path("OUT"))
+    assert [line.split()[0] for line in listed] == list(setting_types(defaults))
+    assert "medea.stage1.epochs" in {line.split()[0] for line in listed}
+    row = next(line.split() for line in listed if line.startswith("frame_budget "))
+    assert row[-1] == str(defaults.frame_budget)
+
+
+def test_the_command_line_of_a_config_makes_that_config(tmp_path):
+    """recon.commands.cli_args.command_line (what `recon demo` prints) parsed again is the same config."""
+    import shlex
+    from dataclasses import replace
+
+    from recon.commands.cli_args import command_line
+
+    original = _config("in.mp4", "-o", str(tmp_path / "a"), *RICH)
+    original = replace(original, pose_options={"window": 6, "keyframe_flow": 12.5}, overwrite=True,
+                       intrinsics=(500.0, 510.0, 320.0, 240.0), prior_path=tmp_path / "prior dir")
+    words = shlex.split(command_line(original))
+    assert words[:2] == ["recon", "run"]
+    assert _config(*words[2:]) == original
+
+
+@pytest.mark.parametrize("name", ["fast", "paper"])
+def test_presets_are_shipped_config_files(name, tmp_path):
+    """--preset NAME reads recon/core/presets/NAME.yaml (a medea section, nothing else), which
+    is medea_core's preset of that name; the same file works as --config."""
+    from medea_core import MedeaConfig
+    from recon.core.config_file import preset_path, read_config_file
+
+    path = preset_path(name)
+    assert set(read_config_file(path)) == {"medea"}
+    expected = MedeaConfig.fast() if name == "fast" else MedeaConfig()
+    assert _config("in.mp4", "-o", "out", "--preset", name).medea == expected
+    assert _config("in.mp4", "-o", "out", "--config", str(path)).medea == expected

@@ -33,10 +33,14 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     """Options mirroring MedeaConfig. Unset options keep the preset's value."""
     d, fast = MedeaConfig(), MedeaConfig.fast()
     g = parser.add_argument_group("MEDeA depth adjustment")
-    g.add_argument("--preset", choices=["paper", "fast"], default=preset,
-                   help=f"paper: the paper's settings; fast: pixel stride {fast.pixel_stride}, Stage II lr "
-                        f"{fast.stage2.lr:g} and Stage I at most {fast.stage1.epochs} epochs, about 2x faster at "
-                        "equal accuracy on our benchmarks (default %(default)s)")
+    from ..core.config_file import PRESETS, preset_names
+
+    g.add_argument("--preset", choices=preset_names(), default=preset,
+                   help=f"MEDeA's settings from a shipped config file ({PRESETS.name}/NAME.yaml beside "
+                        f"recon/core/config_file.py; the flags below change them): paper, the paper's; fast, pixel "
+                        f"stride {fast.pixel_stride}, Stage II lr {fast.stage2.lr:g} and Stage I at most "
+                        f"{fast.stage1.epochs} epochs, about 2x faster at equal accuracy on our benchmarks "
+                        "(default %(default)s)")
     g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
     g.add_argument("--image-scale", type=float,
                    help=f"working resolution relative to the input (paper {d.image_scale})")
@@ -62,7 +66,7 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
 
 
 def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
-    config = MedeaConfig.fast() if args.preset == "fast" else MedeaConfig()
+    config = preset_medea(args.preset)
     for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_stride", "feature_channels", "feature_loss"):
         if getattr(args, name) is not None:
             setattr(config, name, getattr(args, name))
@@ -81,6 +85,14 @@ def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
     config.seed = args.seed
     config.device = resolve_device(args.device)
     return config
+
+
+def preset_medea(name: str) -> MedeaConfig:
+    """The MEDeA settings of preset `name`: its shipped config file's ``medea`` section over
+    the paper's MedeaConfig (recon.core.config_file.preset_path)."""
+    from ..core.config_file import preset_path, read_config_file, updated
+
+    return updated(MedeaConfig(), read_config_file(preset_path(name)).get("medea", {}), "medea")
 
 
 def resolve_device(name: str) -> str:
@@ -313,6 +325,19 @@ class _PoseOptionAction(argparse.Action):
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
 
 
+class _SetAction(argparse.Action):
+    """Collects --set NAME=VALUE; `list` prints every setting and exits while parsing."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values == "list":
+            from ..core.config_file import settings_listing
+
+            print("settings (--set NAME=VALUE, and the names of a --config file's sections): name, type, default")
+            print(settings_listing(_config_from_flags(build_parser().parse_args(["run", "IN", "-o", "OUT"]))))
+            parser.exit()
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
 class _FieldOptionAction(argparse.Action):
     """Collects KEY=VALUE values of one config's fields; `list` prints the settings and exits
     while parsing. Subclasses name the config (``config()``) and how the table is headed."""
@@ -397,13 +422,29 @@ def pose_options_from_args(args: argparse.Namespace) -> dict:
 def pipeline_config_from_args(args: argparse.Namespace):
     """The run's PipelineConfig: the flags, over the settings of --config FILE if given
     (recon.core.config_file: a flag overrides the file where it differs from its default)."""
-    config = _config_from_flags(args)
-    if getattr(args, "config", None) is None:
-        return config
-    from ..core.config_file import merged, read_config_file
+    from ..core.config_file import merged, read_config_file, with_settings
 
-    bare = build_parser().parse_args(["run", str(args.input), "-o", str(args.output)])
-    return merged(read_config_file(args.config), config, _config_from_flags(bare))
+    config = _config_from_flags(args)
+    if getattr(args, "config", None) is not None:
+        bare = build_parser().parse_args(["run", str(args.input), "-o", str(args.output)])
+        config = merged(read_config_file(args.config), config, _config_from_flags(bare))
+    return with_settings(config, getattr(args, "settings", None) or [])
+
+
+def command_line(config) -> str:
+    """The `recon run` command line that makes `config`: its input and output, and a ``--set``
+    for every setting in which it differs from a bare `recon run IN -o OUT`
+    (recon.core.config_file.changed_settings), so that it cannot drift from the flags."""
+    import shlex
+
+    from ..core.config_file import changed_settings
+
+    bare = _config_from_flags(build_parser().parse_args(["run", str(config.input), "-o", str(config.output)]))
+    words = ["recon", "run", str(config.input), "-o", str(config.output)] + (["--overwrite"] * config.overwrite)
+    for item in changed_settings(config, bare):
+        if item.partition("=")[0] != "overwrite":
+            words += ["--set", item]
+    return shlex.join(words)
 
 
 def _config_from_flags(args: argparse.Namespace):
@@ -477,6 +518,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="settings from a YAML or JSON file: PipelineConfig's fields by name, a section per stage "
                           "(medea, mvs, fusion, polish_config), as report.json's options, or a report.json itself to "
                           "run a result again; flags given with other values than their defaults override it")
+    run.add_argument("--set", action=_SetAction, metavar="NAME=VALUE", default=[], dest="settings",
+                     help="one setting by its config name, typed like its field, over the flags and --config "
+                          "(repeatable): --set medea.stage1.epochs=200 --set fusion.voxel_size=0.02 --set "
+                          "frame_budget=100; `--set list` prints every name with its type and default")
     run.add_argument("--export", metavar="FORMATS",
                      help="when the run is done, export the output folder for other tools: colmap, nerfstudio or "
                           "colmap,nerfstudio, into OUT/colmap/ and OUT/nerfstudio/ (as `recon export OUT --to ...`)")

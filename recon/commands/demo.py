@@ -41,6 +41,7 @@ from ..fusion import FusionOptions, fuse
 from ..io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from ..pipeline import PipelineConfig, PipelineResult, run_pipeline
 from ..synthetic import SyntheticSequence, render_sequence, simulate_prior
+from .cli_args import command_line
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +202,6 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> 
     inputs = write_demo_inputs(out, seq, prior)
     seconds_render = time.perf_counter() - start
 
-    fx, fy, cx, cy = seq.intrinsics
     config = PipelineConfig(
         input=inputs["video"], output=out.path, overwrite=True, width=None, intrinsics=seq.intrinsics,
         poses=str(inputs["poses"]) if poses == "gt" else "estimate", pose_options=dict(options.pose_options),
@@ -209,17 +209,7 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> 
         adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device,
         progress=options.progress, stream="off",  # the scoring below reads the one-shot run's prior and MEDeA depth
     )
-    pose_options = ""
-    if config.pose_options:  # the estimator, which owns the syntax, is there when options are given
-        from ..poses.options import format_pose_option
-
-        pose_options = "".join(f" --pose-option {format_pose_option(k, v)}" for k, v in config.pose_options.items())
-    command = (
-        f"recon run {config.input} -o {out.path} --overwrite --width 0 --intrinsics {fx:g},{fy:g},{cx:g},{cy:g} "
-        f"--poses {config.poses} --stream off --prior {config.prior}{pose_options}"
-        + (f" --prior-path {config.prior_path}" if prior is not None else "")
-        + f" --rerun {options.rerun}"
-    )
+    command = command_line(config)
     say(f"running: {command}")
     result = run_pipeline(config, on_stage=lambda stage: say(f"  {stage}") if options.progress else None)
 

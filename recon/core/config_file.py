@@ -1,15 +1,21 @@
-"""`recon run --config FILE`: a run's settings from a YAML or JSON file.
+"""A run's settings from outside the flags: `recon run --config FILE` (a YAML or JSON file),
+`--preset NAME` (a shipped config file, ``presets/NAME.yaml`` beside this module) and
+`--set SECTION.KEY=VALUE` (one setting, typed like its field).
 
 The file holds :class:`recon.core.config.PipelineConfig`'s fields by name, a section (a mapping)
 for each nested config (``medea``, ``mvs``, ``fusion``, ``polish_config``): the same
 names and layout as ``report.json``'s ``options``, so a report itself (or its
 ``options``) can be given to run a result again with exactly its settings. Keys the config
 does not have are refused with their name. The command line's input and output always
-win; any other flag given with a value other than its default overrides the file.
+win; any other flag given with a value other than its default overrides the file, and
+every ``--set`` overrides both. The names ``--set`` takes are the file's, dotted
+(``medea.stage1.epochs``, ``fusion.voxel_size``, ``frame_budget``): ``recon run --set list``
+prints them all with their types and defaults.
 """
 
 from __future__ import annotations
 
+import difflib
 import json
 import types
 import typing
@@ -17,6 +23,9 @@ from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 
 from ..errors import ReconInputError
+from ..options import split_option, type_name, typed_value
+
+PRESETS = Path(__file__).with_name("presets")
 
 
 def read_config_file(path: Path) -> dict:
@@ -105,4 +114,118 @@ def _overlay(config, cli, defaults, top: bool = False):
     return replace(config, **changes)
 
 
-__all__ = ["merged", "read_config_file", "updated"]
+def preset_path(name: str) -> Path:
+    """The shipped config file of preset `name` (``presets/NAME.yaml``)."""
+    path = PRESETS / f"{name}.yaml"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in PRESETS.glob("*.yaml")))
+        raise ReconInputError(f"--preset {name}: no such preset (known: {known}; looked in {PRESETS})")
+    return path
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESETS.glob("*.yaml"))
+
+
+# --------------------------------------------------------------------------- --set
+
+
+def setting_types(config, prefix: str = "") -> dict[str, object]:
+    """{dotted name: annotated type} of every setting of dataclass `config`, the nested
+    sections flattened (``medea.stage1.epochs``)."""
+    hints = typing.get_type_hints(type(config))
+    table = {}
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if is_dataclass(value):
+            table.update(setting_types(value, f"{prefix}{f.name}."))
+        else:
+            table[f"{prefix}{f.name}"] = hints[f.name]
+    return table
+
+
+def setting_value(raw: str, kind, name: str):
+    """`raw` text as a value of the annotated type `kind` (options.typed_value, plus paths,
+    Literal choices and JSON mappings); ReconInputError naming the setting otherwise."""
+    args = [a for a in typing.get_args(kind) if a is not type(None)]
+    optional = typing.get_origin(kind) in (typing.Union, types.UnionType) and type(None) in typing.get_args(kind)
+    if optional and raw.lower() == "none":
+        return None
+    base = args[0] if optional and len(args) == 1 else kind
+    try:
+        if base is Path:
+            return Path(raw)
+        if typing.get_origin(base) is typing.Literal:
+            if raw not in typing.get_args(base):
+                raise ValueError(raw)
+            return raw
+        if base is dict or typing.get_origin(base) is dict:
+            value = json.loads(raw)
+            if not isinstance(value, dict):
+                raise ValueError(raw)
+            return value
+        return typed_value(raw, kind)
+    except ValueError:
+        raise ReconInputError(f"--set {name}: {raw!r} is not a valid {type_name(kind)}") from None
+
+
+def with_settings(config, items: list[str]):
+    """A copy of `config` with every ``SECTION.KEY=VALUE`` of `items` set, in order."""
+    table = setting_types(config)
+    for item in items:
+        name, raw = split_option(item, "--set")
+        if name not in table:
+            close = difflib.get_close_matches(name, list(table), n=3)
+            hint = f"did you mean {', '.join(close)}?" if close else "recon run --set list names them all"
+            raise ReconInputError(f"--set {name}: no such setting ({hint})")
+        config = _assigned(config, name.split("."), setting_value(raw, table[name], name))
+    return config
+
+
+def _assigned(config, path: list[str], value):
+    if len(path) == 1:
+        return replace(config, **{path[0]: value})
+    return replace(config, **{path[0]: _assigned(getattr(config, path[0]), path[1:], value)})
+
+
+def format_setting(value) -> str:
+    """The text --set takes for `value` (setting_value's inverse)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (tuple, list)):
+        return ",".join(format_setting(v) for v in value)
+    if isinstance(value, dict):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
+
+
+def changed_settings(config, defaults, prefix: str = "") -> list[str]:
+    """``NAME=VALUE`` for every setting in which `config` differs from `defaults`: the
+    --set arguments that make `defaults` into `config`."""
+    changed = []
+    for f in fields(config):
+        value, default = getattr(config, f.name), getattr(defaults, f.name)
+        if is_dataclass(value):
+            changed += changed_settings(value, default, f"{prefix}{f.name}.")
+        elif value != default:
+            changed.append(f"{prefix}{f.name}={format_setting(value)}")
+    return changed
+
+
+def settings_listing(config) -> str:
+    """Every setting --set takes, with its type and its value in `config` (the defaults)."""
+    table = setting_types(config)
+    rows = []
+    for name, kind in table.items():
+        value = config
+        for part in name.split("."):
+            value = getattr(value, part)
+        rows.append((name, type_name(kind), format_setting(value)))
+    widths = [max(len(r[i]) for r in rows) for i in range(2)]
+    return "\n".join(f"{n:<{widths[0]}}  {k:<{widths[1]}}  {v}" for n, k, v in rows)
+
+
+__all__ = ["changed_settings", "format_setting", "merged", "preset_names", "preset_path", "read_config_file",
+           "setting_types", "settings_listing", "updated", "with_settings"]
