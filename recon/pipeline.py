@@ -55,6 +55,7 @@ from .core.clock import StageClock
 from .core.config import PipelineConfig
 from .core.stages import budget_capacity, given_intrinsics, plan_poses, select_frames, undistort_known_lens
 from .drivers.oneshot import PipelineResult, run_oneshot
+from .drivers.result import RunResult
 from .drivers.streamed import StreamResult, run_streamed
 from .io.output_folder import UNFINISHED, OutputFolder, mark_finished, mark_unfinished
 from .poses import TrackingLostError
@@ -64,12 +65,12 @@ log = logging.getLogger(__name__)
 STAGES = ("decode", "prior", "poses", "undistort", "medea", "refine", "fusion", "export", "logging")
 
 
-def run_pipeline(config: PipelineConfig,
-                 on_stage: Callable[[str], None] | None = None) -> PipelineResult | StreamResult:
+def run_pipeline(config: PipelineConfig, on_stage: Callable[[str], None] | None = None) -> RunResult:
     """Run every stage (module docstring) and write the output folder; returns what was made:
-    a PipelineResult, or a streamed run's recon.drivers.streamed.StreamResult. Both give output, poses,
-    intrinsics, depth (a streamed run's read back from disk: its depth frames), fusion (its
-    mesh), seconds, files, report, rerun_url and segments.
+    a recon.drivers.result.RunResult (output, poses, intrinsics, depth, fusion, seconds,
+    files, report, rerun_url, segments), of the one-shot driver (a PipelineResult, with the
+    frames and depth in memory) or the streamed one (a StreamResult; its depth read back from
+    disk: its depth frames).
 
     The input is opened and the output folder checked before any heavy work, so bad input
     or a non-empty output folder fail at once, with nothing written. An output folder this
@@ -134,7 +135,7 @@ def _remove_if_empty(folder: Path) -> None:
         folder.rmdir()
 
 
-def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult | StreamResult:
+def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
     """The input opened and checked (the ``decode`` stage), then the driver that runs the rest."""
     config.validate()
     say = on_stage or (lambda _: None)
@@ -164,9 +165,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> PipelineResult | StreamResu
     return run_oneshot(config, source, out, pose_plan, (intrinsics, intrinsics_from), say, timer)
 
 
-def format_summary(result) -> str:
-    """The closing summary `recon run` prints: frames, time per stage, mesh, files (of a
-    PipelineResult or a streamed run's StreamResult)."""
+def format_summary(result: RunResult) -> str:
+    """The closing summary `recon run` prints: frames, time per stage, mesh, files."""
     frames = result.report["frames"]
     n = max(1, frames["count"])
     total = sum(result.seconds.values())
@@ -192,5 +192,5 @@ def format_summary(result) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["STAGES", "PipelineConfig", "PipelineResult", "StreamResult", "format_summary", "run_pipeline",
-           "stream_reason"]
+__all__ = ["STAGES", "PipelineConfig", "PipelineResult", "RunResult", "StreamResult", "format_summary",
+           "run_pipeline", "stream_reason"]

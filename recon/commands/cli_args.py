@@ -158,7 +158,7 @@ def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..fusion import FusionOptions
+    from ..fusion import FusionOptions, tsdf
     from ..pipeline import PipelineConfig
 
     d, fd = PipelineConfig(Path(), Path()), FusionOptions()
@@ -275,10 +275,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     gate.add_argument("--no-medea-gate", action="store_true", help="run MEDeA whatever the check says (the default)")
 
     g = parser.add_argument_group("TSDF fusion")
-    g.add_argument("--voxel-size", type=float, help="metres (default: median depth / 200, clamped to 5 mm - 5 cm)")
+    g.add_argument("--voxel-size", type=float,
+                   help=f"metres (default: median depth / {1 / tsdf.VOXEL_PER_DEPTH:g}, clamped to "
+                        f"{tsdf.MIN_VOXEL * 1000:g} mm - {tsdf.MAX_VOXEL * 100:g} cm)")
     g.add_argument("--trunc", type=float, help=f"truncation in metres (default {fd.trunc_voxels:g} voxels)")
-    g.add_argument("--max-depth", type=float, help="ignore depth beyond this many metres (default: 1.1 x the 99th "
-                                                   "percentile)")
+    g.add_argument("--max-depth", type=float,
+                   help=f"ignore depth beyond this many metres (default: {tsdf.MAX_DEPTH_MARGIN:g} x the "
+                        f"{tsdf.MAX_DEPTH_PERCENTILE:g}th percentile)")
     g.add_argument("--weight-threshold", type=float, default=fd.weight_threshold,
                    help="frames that must see a voxel for it to be meshed (default %(default)s)")
     g.add_argument("--min-fragment", type=int, default=fd.min_fragment_triangles,

@@ -110,14 +110,24 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
                   "features": None if features is None else list(features.shape[1:])},
         "medea": {"skipped": medea_skipped} if medea_skipped else medea_summary(medea_result),
         "refine": {"method": config.refine, **refine_summary(refined)},
+        **_closing_sections(config, fusion, min_confidence, seconds, len(seq)),
+        "files": dict(files),
+    }
+
+
+def _closing_sections(config, fusion, min_confidence: float | None, seconds: dict, frames: int,
+                      **memory) -> dict:
+    """The sections both drivers' reports end with: the fusion and its up axis, the memory
+    (``memory``: the driver's own figures beside the peak), the options that reproduce the
+    run, the versions, the seconds per stage and per frame (over `frames`)."""
+    return {
         "fusion": fusion_summary(fusion, min_confidence),
         "upright": upright_section(fusion),
-        "memory": {"peak_rss_mb": peak_memory_mb()},
+        "memory": {"peak_rss_mb": peak_memory_mb(), **memory},
         "options": config.to_dict(),
         "versions": versions(),
         "seconds": dict(seconds),
-        "seconds_per_frame": {k: v / len(seq) for k, v in seconds.items()},
-        "files": dict(files),
+        "seconds_per_frame": {k: v / frames for k, v in seconds.items()},
     }
 
 
@@ -132,11 +142,12 @@ def peak_memory_mb() -> float | None:
     return None
 
 
-def segments_summary(report: dict, pieces: list, pose_info: dict) -> dict:
+def segments_summary(report: dict, pieces: list, pose_info: dict, seconds_before: dict) -> dict:
     """The summary report.json of a run written as segments (--on-break segments): the
     largest segment's ``report`` with the whole run's frame counts, pose report ``pose_info``
     and ``segments``: per piece (a PipelineResult or StreamResult, each with its own folder
-    and report) its folder, first and last frame, frames with depth and triangles."""
+    and report) its folder, first and last frame, frames with depth and triangles; its
+    seconds: the stages before the split (``seconds_before``) and the pieces' summed."""
     segments = [{"folder": p.output.name, "frames": [int(p.report["frames"]["indices"][0]),
                                                     int(p.report["frames"]["indices"][-1])],
                  "depth_frames": int(p.report["frames"].get("depth_frames", p.report["frames"]["count"])),
@@ -149,7 +160,7 @@ def segments_summary(report: dict, pieces: list, pose_info: dict) -> dict:
         for stage, value in piece.report.get("seconds", {}).items():
             seconds[stage] = seconds.get(stage, 0.0) + value
     return {**report, "frames": frames, "poses": {**report["poses"], **pose_info}, "segments": segments,
-            "seconds": seconds}
+            "seconds": {**seconds_before, **seconds}}
 
 
 def segments_warning(summary: dict) -> str:
@@ -186,11 +197,6 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                     "medea_skipped": sum(1 for w in windows if w.get("medea_skipped")),
                     "each": windows},
         "refine": {"method": config.refine},
-        "fusion": fusion_summary(fusion, min_confidence),
-        "upright": upright_section(fusion),
-        "memory": {"peak_rss_mb": peak_memory_mb(), "frame_store_mb": store_bytes / 1e6},
-        "options": config.to_dict(),
-        "versions": versions(),
-        "seconds": dict(seconds),
-        "seconds_per_frame": {k: v / len(video.indices) for k, v in seconds.items()},
+        **_closing_sections(config, fusion, min_confidence, seconds, len(video.indices),
+                            frame_store_mb=store_bytes / 1e6),
     }

@@ -13,7 +13,8 @@ the frame budget) and has opened the input and the output folder. Its streamed s
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field, replace
+from contextlib import ExitStack
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -40,49 +41,36 @@ from ..errors import ReconInputError
 from ..export import export_reconstruction
 from ..fusion import FusionOptions
 from ..geometry.lens import worth_undistorting
-from ..io.output_folder import RECORDING, REPORT_JSON, OutputFolder, atomic_path
+from ..io.output_folder import REPORT_JSON, OutputFolder
 from ..io.source import FrameSource
 from ..memory import release_memory
-from .segments import estimator_options, join_breaks, say_joins, stop_at_breaks, trajectory_stretches
+from .recording import open_recording
+from .result import RunResult
+from .segments import estimator_options, settle_breaks, trajectory_stretches
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class PipelineResult:
-    """What a run produced (everything also on disk in ``output``).
+@dataclass(kw_only=True)
+class PipelineResult(RunResult):
+    """A one-shot run's result (RunResult), with what it held in memory: frames, the
+    sequence as fused (frames at working size, names, intrinsics, prior depth, poses; frames
+    the pose quality gate dropped are not in it); prior_depth, depth: (N, H, W) metres (depth
+    is the final depth: refined, else MEDeA-adjusted, else the prior); adjusted_depth:
+    MEDeA's (the prior when adjust=False); medea: MedeaResult or None; refined:
+    mvs_core.RefineResult or None (its support and swept depth dropped once the fusion
+    confidence is made, to bound memory)."""
 
-    frames: the sequence as fused (frames at working size, names, intrinsics, prior depth,
-    poses; frames the pose quality gate dropped are not in it); prior_depth, depth:
-    (N, H, W) metres (depth is the final depth: refined, else MEDeA-adjusted, else the
-    prior); adjusted_depth: MEDeA's (the prior when adjust=False); poses (N, 4, 4)
-    camera-to-world; intrinsics (fx, fy, cx, cy) at working size; fusion: FusionResult;
-    medea: MedeaResult or None; refined: mvs_core.RefineResult or None (its support and
-    swept depth dropped once the fusion confidence is made, to bound memory); seconds: {stage:
-    wall seconds}; files: {label: path}; report: what report.json holds.
-    """
-
-    output: Path
     frames: Sequence
     prior_depth: np.ndarray
     depth: np.ndarray
-    poses: np.ndarray
-    intrinsics: tuple[float, float, float, float]
-    fusion: object
     medea: object
-    seconds: dict[str, float]
-    files: dict[str, Path]
-    report: dict
-    rerun_url: str | None = None
     adjusted_depth: np.ndarray | None = None
     refined: object = None
-    # Where the trajectory's scale broke (--on-break segments): each stretch's own run.
-    segments: list["PipelineResult"] = field(default_factory=list)
 
     @property
-    def seconds_per_frame(self) -> dict[str, float]:
-        n = max(1, len(self.frames))
-        return {stage: s / n for stage, s in self.seconds.items()}
+    def frame_count(self) -> int:
+        return len(self.frames)
 
 
 def run_oneshot(config: PipelineConfig, source: FrameSource, out: OutputFolder, pose_plan,
@@ -120,17 +108,14 @@ def run_oneshot(config: PipelineConfig, source: FrameSource, out: OutputFolder, 
             pose_stage = polished_poses(pose_stage, seq, config.polish_config, config.progress, config.device)
             seq = seq.with_(poses=pose_stage.poses)
 
-    if pose_plan.estimated and config.on_break != "keep":
+    if pose_plan.estimated:
         stretch = trajectory_stretches(pose_stage.info, len(pose_stage.poses))
         stretch = stretch if pose_stage.keep is None else stretch[pose_stage.keep]
-        if stretch.max() > 0 and config.join_segments:
-            stretch, poses, joins = join_breaks(stretch, seq.poses, np.arange(len(seq)),
-                                                lambda p: (seq.rgb[p], seq.prior_depth[p]), seq.intrinsics)
-            seq, pose_stage = seq.with_(poses=poses), replace(pose_stage, info={**pose_stage.info, "joins": joins})
-            say_joins(joins)
+        stretch, poses, info = settle_breaks(config, stretch, seq.poses, np.arange(len(seq)),
+                                             lambda p: (seq.rgb[p], seq.prior_depth[p]), seq.intrinsics,
+                                             pose_stage.info)
+        seq, pose_stage = seq.with_(poses=poses), replace(pose_stage, info=info)
         if stretch.max() > 0:
-            if config.on_break == "stop":
-                stop_at_breaks(pose_stage.info)
             return _run_segments(out, seq, stretch, pose_stage, timer, say, lambda piece, piece_out: _reconstruct(
                 config, piece_out, source, piece, pose_stage, pose_plan, intrinsics_from, prior, StageClock(),
                 tracking, say))
@@ -141,7 +126,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
                  intrinsics_from: str, prior, timer: StageClock, tracking, say) -> PipelineResult:
     """The stages after the poses (undistortion, MEDeA, refinement, fusion, export, Rerun,
     report) on the posed sequence, into ``out``."""
-    from .fusion import fuse
+    from ..fusion import fuse
 
     undistorted = worth_undistorting(seq.intrinsics, seq.size, pose_stage.lens_k1)
     if undistorted:
@@ -243,8 +228,7 @@ def _run_segments(out: OutputFolder, seq: Sequence, stretch: np.ndarray, pose_st
         raise ReconInputError("no stretch of the trajectory between its scale breaks has two frames "
                               "(--on-break keep writes the trajectory as one)")
     largest = max(pieces, key=lambda p: len(p.frames))
-    summary = segments_summary(largest.report, pieces, pose_stage.info)
-    summary["seconds"] = {**timer.seconds, **summary["seconds"]}
+    summary = segments_summary(largest.report, pieces, pose_stage.info, timer.seconds)
     log.warning(segments_warning(summary))
     result = replace(largest, output=out.path, report=summary, files={p.output.name: p.output for p in pieces},
                      seconds=dict(summary["seconds"]), segments=pieces)
@@ -308,28 +292,11 @@ def log_to_rerun(logger, seq: Sequence, depth, mesh, medea_result, progress=True
 
 
 def _log_recording(config, out: OutputFolder, seq: Sequence, depth, mesh, medea_result, refined=None, tracking=None):
-    """Log to Rerun in the configured mode: (server URL or None, .rrd path or None).
-
-    A saved recording goes to a temporary name first, like every other output file.
-    """
-    from viewer import RerunLogger
-
-    def log_all(logger):
+    """Log to Rerun in the configured mode (recording.open_recording): (server URL or None,
+    .rrd path or None)."""
+    with ExitStack() as stack:
+        logger, rec_path = open_recording(config, out, stack)
         log_to_rerun(logger, seq, depth, mesh, medea_result, config.progress, refined, tracking)
-
-    if config.rerun == "save":
-        if config.rerun_path is None:
-            with out.atomic(RECORDING) as tmp:
-                with RerunLogger("save", tmp, max_width=config.rerun_max_width) as logger:
-                    log_all(logger)
-            return None, out.path_for(RECORDING)
-        with atomic_path(config.rerun_path, overwrite=config.overwrite) as tmp:
-            with RerunLogger("save", tmp, max_width=config.rerun_max_width) as logger:
-                log_all(logger)
-        return None, Path(config.rerun_path)
-    logger = RerunLogger(config.rerun, max_width=config.rerun_max_width)
-    log_all(logger)
-    logger.close()
-    return logger.url, None
+    return (None if rec_path is not None else logger.url), rec_path
 
 

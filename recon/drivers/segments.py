@@ -1,7 +1,7 @@
 """What an estimated trajectory becomes where its scale breaks (``--on-break``): the
 stretches between the scale watch's breaks (``recon.poses.scale_watch``), their joins
 (``recon.poses.join``), the stop, and the estimator options each choice implies. Both
-drivers (``recon.pipeline`` one-shot, ``recon.drivers.streamed`` streamed) call these after the
+drivers (``recon.drivers.oneshot``, ``recon.drivers.streamed``) call :func:`settle_breaks` after the
 poses and before depth; each writes the segments that stay apart its own way.
 """
 
@@ -73,6 +73,25 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
     return label.astype(np.int64), poses, report
 
 
+def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
+                  info: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    """An estimated trajectory at its scale breaks, as ``config.on_break`` says, the same in
+    both drivers: the stretches joined where the frames allow (``config.join_segments``;
+    stretch, poses, positions, frame and intrinsics as :func:`join_breaks` takes them), then
+    the stop ("stop"). Returns (stretch (N,), poses, the pose report ``info`` with the joins):
+    every stretch 0 where the run goes on as one trajectory ("keep", no break, or every break
+    joined); the driver writes what stays apart as segments."""
+    if config.on_break == "keep" or stretch.max() == 0:
+        return np.zeros_like(stretch), poses, info
+    if config.join_segments:
+        stretch, poses, joins = join_breaks(stretch, poses, positions, frame, intrinsics)
+        info = {**info, "joins": joins}
+        say_joins(joins)
+    if stretch.max() > 0 and config.on_break == "stop":
+        stop_at_breaks(info)
+    return stretch, poses, info
+
+
 def say_joins(joins: list[dict]) -> None:
     """One line on the breaks :func:`join_breaks` joined (and those it could not)."""
     joined = [j for j in joins if j["joined"]]
@@ -93,4 +112,4 @@ def stop_at_breaks(info: dict) -> None:
                               f"{ScaleWatch.from_dict(watch).describe()}")
 
 
-__all__ = ["estimator_options", "join_breaks", "say_joins", "stop_at_breaks", "trajectory_stretches"]
+__all__ = ["estimator_options", "join_breaks", "say_joins", "settle_breaks", "stop_at_breaks", "trajectory_stretches"]

@@ -24,6 +24,7 @@ from ..core.config import PipelineConfig
 from ..core.sequence import Sequence
 from ..core.stages import (
     PosePlan,
+    PoseStage,
     default_intrinsics,
     gate_estimate,
     ground_truth_kept,
@@ -212,11 +213,11 @@ class _TrackLoop:
         indices, stamps = np.asarray(self.indices, np.int64), np.asarray(self.stamps, np.float64)
         with self.clock.stage("poses"):
             self._check(None, None)
-            closed = self.poser.close(self.store, indices, stamps, np.asarray(self.live))
+            closed, camera_from = self.poser.close(self.store, indices, np.asarray(self.live))
         keep = np.isfinite(closed.poses).all(axis=(1, 2))
         if closed.dropped_note:
             log.warning(closed.dropped_note)
-        camera, camera_from = closed.intrinsics, closed.intrinsics_from
+        camera = closed.intrinsics
         if camera is None:
             camera, camera_from = default_intrinsics(*self.source.shape), "assumed (NYU field of view)"
             log.warning("camera intrinsics unknown; assuming NYU Depth v2's field of view "
@@ -257,17 +258,6 @@ def _batches(source: FrameSource, clock: StageClock) -> Iterator[Sequence]:
             return
         yield Sequence(np.asarray([f.index for f in chunk], np.int64), np.asarray([f.timestamp for f in chunk]),
                        np.stack([f.rgb for f in chunk]), [""] * len(chunk))
-
-
-@dataclass
-class _Closed:
-    poses: np.ndarray
-    intrinsics: tuple | None
-    intrinsics_from: str
-    source: str
-    info: dict
-    lens_k1: float = 0.0
-    dropped_note: str = ""
 
 
 class _Poser:
@@ -314,25 +304,26 @@ class _Poser:
             del self.recent_prior[old]
         return np.asarray(out, np.float64)
 
-    def close(self, store: FrameStore, indices, timestamps, live: np.ndarray) -> _Closed:
-        """Final poses of every frame (NaN for frames left out) and what the report says."""
+    def close(self, store: FrameStore, indices, live: np.ndarray) -> tuple[PoseStage, str]:
+        """The pose stage of every tracked frame (as the one-shot driver's, with NaN poses
+        for the frames left out instead of ``keep``) and where its intrinsics came from."""
         if self.plan.kind == "gt":
             _, note = ground_truth_kept(self.source)
-            return _Closed(live, self.intrinsics, "unknown", "dataset ground truth", {}, dropped_note=note)
+            return PoseStage(live, self.intrinsics, "dataset ground truth", dropped_note=note), "unknown"
         if self.plan.kind == "file":
             intr = self.intrinsics or self.file_intrinsics
-            return _Closed(live, intr, "poses (file)", f"file {self.plan.data.path}", {})
-        return self._close_estimate(store, indices)
+            return PoseStage(live, intr, f"file {self.plan.data.path}"), "poses (file)"
+        return self._close_estimate(store, indices), "poses (estimated)"
 
-    def _close_estimate(self, store: FrameStore, indices) -> _Closed:
+    def _close_estimate(self, store: FrameStore, indices) -> PoseStage:
         result = self.frontend.finish(
             lambda position: store.get(position, "rgb" if store.has(position, "rgb") else "grey"),
             self.config.progress)
         kept, info, note = gate_estimate(result, indices)
         poses = np.asarray(result.poses, np.float64).copy()
         poses[~kept] = np.nan
-        return _Closed(poses, tuple(result.intrinsics), "poses (estimated)",
-                       "estimated (streamed front end)", info, float(result.diagnostics.get("lens_k1", 0.0)), note)
+        return PoseStage(poses, tuple(result.intrinsics), "estimated (streamed front end)", info,
+                         lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
 
 
 def _frontend_config(options: dict, device: str = "cpu"):

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -38,37 +38,28 @@ from ..core.stages import PosePlan, shutter_summary, window_frames
 from ..errors import ReconInputError
 from ..geometry.rolling_shutter import angular_velocity
 from ..io.frame_store import FrameStore
-from ..io.output_folder import DEPTH_DIR, RECORDING, REPORT_JSON, OutputFolder, atomic_path
+from ..io.output_folder import DEPTH_DIR, REPORT_JSON, OutputFolder
 from ..io.source import FrameSource
-from .segments import join_breaks, say_joins, stop_at_breaks, trajectory_stretches
+from .recording import open_recording
+from .result import RunResult
+from .segments import settle_breaks, trajectory_stretches
 from .stream_depth import depth_windows
 from .stream_track import TrackedVideo, track_video
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class StreamResult:
-    """What a streamed run produced (everything also on disk in ``output``): the counts, the
-    trajectory of the tracked frames, the fusion figures, seconds per stage, files, report."""
+@dataclass(kw_only=True)
+class StreamResult(RunResult):
+    """A streamed run's result (RunResult): frames_tracked, the frames the trajectory
+    covers (its poses; NaN for frames left out); depth_frames, those that got depth."""
 
-    output: Path
     frames_tracked: int
     depth_frames: int
-    poses: np.ndarray
-    intrinsics: tuple[float, float, float, float]
-    fusion: object
-    seconds: dict[str, float]
-    files: dict[str, Path]
-    report: dict
-    rerun_url: str | None = None
-    # Where the trajectory's scale broke (--on-break segments): each stretch's own run.
-    segments: list["StreamResult"] = field(default_factory=list)
 
     @property
-    def seconds_per_frame(self) -> dict[str, float]:
-        n = max(1, self.frames_tracked)
-        return {stage: s / n for stage, s in self.seconds.items()}
+    def frame_count(self) -> int:
+        return self.frames_tracked
 
     @property
     def depth(self) -> np.ndarray:
@@ -80,7 +71,6 @@ class StreamResult:
 
         folder = max(self.segments, key=lambda p: p.depth_frames).output if self.segments else self.output
         return load_output(folder).depth
-
 
 
 # --------------------------------------------------------------------------- entry point
@@ -96,19 +86,17 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
                     "recorded (--stream off applies it)")
     with ExitStack() as stack:
         store = stack.enter_context(FrameStore())
-        logger, rec_path = _open_logger(config, out, stack)
+        logger, rec_path = open_recording(config, out, stack)
         say("tracking (streamed)")
         video = track_video(config, source, pose_plan, given, store, logger, clock)
-        stretch = trajectory_stretches(video.pose_info, len(video.indices))
-        if pose_plan.estimated and stretch.max() > 0 and config.on_break != "keep" and config.join_segments:
-            stretch, poses, joins = join_breaks(stretch, video.poses, np.flatnonzero(video.depth_frame),
-                                                lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
-                                                video.intrinsics)
-            video = replace(video, poses=poses, pose_info={**video.pose_info, "joins": joins})
-            say_joins(joins)
-        if pose_plan.estimated and stretch.max() > 0 and config.on_break == "stop":
-            stop_at_breaks(video.pose_info)
-        if pose_plan.estimated and stretch.max() > 0 and config.on_break == "segments":
+        stretch = np.zeros(len(video.indices), np.int64)
+        if pose_plan.estimated:
+            stretch, poses, info = settle_breaks(config, trajectory_stretches(video.pose_info, len(video.indices)),
+                                                 video.poses, np.flatnonzero(video.depth_frame),
+                                                 lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
+                                                 video.intrinsics, video.pose_info)
+            video = replace(video, poses=poses, pose_info=info)
+        if stretch.max() > 0:
             result = _run_segments(config, source, out, pose_plan, video, stretch, store, logger, clock, say)
             result.rerun_url = logger.url if logger is not None else None
             return _with_summary(result, out, rec_path)
@@ -168,9 +156,8 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
                               "(report.json is not written; --on-break keep writes the trajectory as one)")
     largest = max(pieces, key=lambda p: p.depth_frames)
     summary = segments_summary(largest.report, pieces, {"source": video.pose_source, **video.pose_info,
-                                                        "lens_k1": video.lens_k1})
+                                                        "lens_k1": video.lens_k1}, clock.seconds)
     summary["frames"]["tracked"] = len(video.indices)
-    summary["seconds"] = {**clock.seconds, **summary["seconds"]}
     log.warning(segments_warning(summary))
     files = {p.output.name: p.output for p in pieces}
     return StreamResult(output=out.path, frames_tracked=len(video.indices),
@@ -186,24 +173,6 @@ def _turn_rate(config: PipelineConfig, pose_plan: PosePlan, video: TrackedVideo,
         return None
     say(f"depth frames resampled for a {config.rolling_shutter:g} ms rolling shutter")
     return angular_velocity(video.poses, video.timestamps)
-
-
-def _open_logger(config: PipelineConfig, out: OutputFolder, stack: ExitStack):
-    """(RerunLogger or None, final .rrd path or None); a saved recording is written under a
-    temporary name and renamed when the run ends well."""
-    if config.rerun == "off":
-        return None, None
-    from viewer import RerunLogger
-
-    if config.rerun == "save":
-        final = out.path_for(RECORDING) if config.rerun_path is None else Path(config.rerun_path)
-        tmp = stack.enter_context(out.atomic(RECORDING) if config.rerun_path is None
-                                  else atomic_path(config.rerun_path, overwrite=config.overwrite))
-        logger = stack.enter_context(RerunLogger("save", tmp, max_width=config.rerun_max_width))
-        return logger, final
-    logger = RerunLogger(config.rerun, max_width=config.rerun_max_width)
-    stack.callback(logger.close)
-    return logger, None
 
 
 # --------------------------------------------------------------------------- export and report
