@@ -1,6 +1,6 @@
 """The typed configuration of `recon run`: one dataclass the CLI mirrors flag for flag.
 
-Each stage reads only its own part of it (see :mod:`recon.pipeline`); the whole is checked
+Each stage reads only its own part of it (see :mod:`recon.core.stages`); the whole is checked
 once by ``validate`` before any work and recorded in ``report.json`` by ``to_dict``.
 """
 

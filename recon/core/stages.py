@@ -1,11 +1,12 @@
 """The pipeline's stages, each a function of the sequence and its own options.
 
-Every stage takes the :class:`~recon.core.sequence.Sequence` built so far and the few settings
-it needs (never the whole ``PipelineConfig``), and returns what it made; the driver
-(:mod:`recon.pipeline`) wires them in order and times them. The methods live elsewhere
-(readers in :mod:`recon.io`, priors in :mod:`recon.priors`, poses in :mod:`recon.poses`,
-MEDeA in :mod:`recon.core.medea`, refinement in :mod:`recon.core.refine`); a stage here only says
-which method runs, on what, and what goes to the report.
+Every stage takes the :class:`~recon.core.sequence.Sequence` built so far and the few
+settings it needs (never the whole ``PipelineConfig``), and returns what it made; the
+drivers (:mod:`recon.drivers.oneshot`, :mod:`recon.drivers.streamed`) wire them in order
+and time them. The methods live elsewhere (readers in :mod:`recon.io`, priors in
+:mod:`recon.priors`, poses in :mod:`recon.poses`, MEDeA in :mod:`recon.core.medea`,
+refinement in :mod:`recon.core.refine`); a stage here only says which method runs, on what,
+and what goes to the report.
 """
 
 from __future__ import annotations
