@@ -42,9 +42,16 @@ def module_name(path: Path, root: Path = ROOT) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _is_module(root: Path, dotted: str) -> bool:
+    where = root.joinpath(*dotted.split("."))
+    return where.with_suffix(".py").is_file() or (where / "__init__.py").is_file()
+
+
 def imported_modules(package: str, root: Path = ROOT) -> dict[str, set[str]]:
     """{file (relative path): the dotted names it imports} for every .py file of ``package``;
-    ``from a.b import c`` counts as both a.b and a.b.c (c may be a module)."""
+    ``from a.b import c`` counts as a.b.c, and as a.b unless every name it takes is a module
+    of a.b (``from recon.poses import lie`` depends on lie, not on what poses/__init__.py
+    defines)."""
     found = {}
     for path in sorted((root / package).rglob("*.py")):
         names = set()
@@ -56,20 +63,21 @@ def imported_modules(package: str, root: Path = ROOT) -> dict[str, set[str]]:
                 # A relative import is resolved against the file's package (level 1: its own).
                 base = here[: len(here) - node.level] if node.level else []
                 module = ".".join(base + ([node.module] if node.module else []))
-                names.add(module)
-                names.update(f"{module}.{alias.name}" for alias in node.names)
+                taken = [f"{module}.{alias.name}" for alias in node.names]
+                names.update(taken)
+                if not all(_is_module(root, name) for name in taken):
+                    names.add(module)
         found[path.relative_to(root).as_posix()] = names
     return found
 
 
 def file_edges(root: Path = ROOT) -> dict[str, set[str]]:
-    """{file: the files of the checkout it imports}; a package's __init__ re-exports its
-    modules, so an import of the package is not counted as one of each of them."""
+    """{file: the files of the checkout it imports} (an import of a package: its __init__.py;
+    ``from pkg import mod``: pkg/mod.py as well)."""
     files = {f: names for package in PACKAGES if (root / package).is_dir()
              for f, names in imported_modules(package, root).items()}
     file_of = {module_name(root / f, root): f for f in files}
-    return {f: {file_of[n] for n in names if n in file_of and file_of[n] != f
-                and not file_of[n].endswith("__init__.py")} for f, names in files.items()}
+    return {f: {file_of[n] for n in names if n in file_of and file_of[n] != f} for f, names in files.items()}
 
 
 def loops(edges: dict[str, set[str]]) -> list[list[str]]:
