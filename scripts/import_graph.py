@@ -32,7 +32,7 @@ LAYERS = (
     ("export", ("recon.export",)),
     ("drivers", ("recon.drivers",)),
     ("pipeline", ("recon.pipeline",)),
-    ("commands", ("recon.commands",)),
+    ("commands", ("recon.commands", "recon.__main__")),
 )
 
 

@@ -218,10 +218,9 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, make_input, expected):
 
 
 def _run_subprocess(*argv: str) -> subprocess.CompletedProcess:
-    """`python -m recon.commands.cli ARGV` in a fresh process: its stderr is all of file descriptor 2,
+    """`python -m recon ARGV` in a fresh process: its stderr is all of file descriptor 2,
     what C libraries print included (capsys sees only Python's sys.stderr)."""
-    return subprocess.run([sys.executable, "-m", "recon.commands.cli", *argv], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run([sys.executable, "-m", "recon", *argv], capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.parametrize("content", [b"", np.random.default_rng(0).bytes(5000), b"not a video\n" * 50],
@@ -320,7 +319,7 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
 
 def test_output_cut_short_by_the_reader_is_not_an_error():
     """`recon run --pose-option list | head -1`: the pipe closes early; no traceback."""
-    proc = subprocess.Popen([sys.executable, "-m", "recon.commands.cli", "run", "--pose-option", "list"],
+    proc = subprocess.Popen([sys.executable, "-m", "recon", "run", "--pose-option", "list"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
     assert proc.stdout.read(20)  # the header, then stop reading
     proc.stdout.close()
