@@ -70,9 +70,7 @@ def test_yaml_sections_and_flags_over_the_file(tmp_path):
 def test_bad_config_files_are_one_line(tmp_path, capsys, content, expected):
     path = tmp_path / "bad.yaml"
     path.write_text(content)
-    code = main(["run", str(tmp_path / "missing.mp4"), "-o", str(tmp_path / "out"), "--config", str(path)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and err[0].startswith("recon: error:") and expected in err[0], err
+    _fails_in_one_line(tmp_path, capsys, expected, "--config", str(path))
     assert not (tmp_path / "out").exists()
 
 
@@ -96,7 +94,12 @@ def test_set_types_each_setting_like_its_field_and_wins_over_flags_and_file(tmp_
     ("stride", "--set must be KEY=VALUE"),
 ])
 def test_bad_settings_are_one_line(tmp_path, capsys, item, expected):
-    code = main(["run", str(tmp_path / "missing.mp4"), "-o", str(tmp_path / "out"), "--set", item])
+    _fails_in_one_line(tmp_path, capsys, expected, "--set", item)
+
+
+def _fails_in_one_line(tmp_path, capsys, expected: str, *options: str) -> None:
+    """`recon run` with `options` stops with exit 2 and one `recon: error:` line holding `expected`."""
+    code = main(["run", str(tmp_path / "missing.mp4"), "-o", str(tmp_path / "out"), *options])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("recon: error:") and expected in err[0], err
 
