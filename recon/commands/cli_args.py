@@ -313,53 +313,55 @@ def fusion_options_from_args(args: argparse.Namespace):
     )
 
 
-class _PoseOptionAction(argparse.Action):
-    """Collects --pose-option values; `list` prints the settings and exits while parsing,
-    as --help does, so that it needs no input or output folder."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == "list":
-            from ..poses.options import pose_option_table
-
-            print("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
-                  "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
-            print(pose_option_table())
-            parser.exit()
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-
-
-class _SetAction(argparse.Action):
-    """Collects --set NAME=VALUE; `list` prints every setting and exits while parsing."""
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == "list":
-            from ..core.config_file import settings_listing
-
-            print("settings (--set NAME=VALUE, and the names of a --config file's sections): name, type, default")
-            print(settings_listing(_config_from_flags(build_parser().parse_args(["run", "IN", "-o", "OUT"]))))
-            parser.exit()
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
-
-
-class _FieldOptionAction(argparse.Action):
-    """Collects KEY=VALUE values of one config's fields; `list` prints the settings and exits
-    while parsing. Subclasses name the config (``config()``) and how the table is headed."""
+class _ListableAction(argparse.Action):
+    """Collects the values of a repeatable KEY=VALUE option; `list` prints the settings it takes
+    (``heading``, then ``table()``) and exits while parsing, as --help does, so that it needs
+    no input or output folder."""
 
     heading = ""
+
+    def table(self) -> str:
+        raise NotImplementedError
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values == "list":
+            print(self.heading)
+            print(self.table())
+            parser.exit()
+        # Not append: the default list would be shared between parses.
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
+class _PoseOptionAction(_ListableAction):
+    heading = ("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
+               "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
+
+    def table(self) -> str:
+        from ..poses.options import pose_option_table
+
+        return pose_option_table()
+
+
+class _SetAction(_ListableAction):
+    heading = "settings (--set NAME=VALUE, and the names of a --config file's sections): name, type, default"
+
+    def table(self) -> str:
+        from ..core.config_file import settings_listing
+
+        return settings_listing(_bare_config("IN", "OUT"))
+
+
+class _FieldOptionAction(_ListableAction):
+    """The KEY=VALUE options of one config's fields: subclasses name the config (``config()``)."""
 
     @staticmethod
     def config():
         raise NotImplementedError
 
-    def __call__(self, parser, namespace, values, option_string=None):
-        if values == "list":
-            from ..options import option_table
+    def table(self) -> str:
+        from ..options import option_table
 
-            print(self.heading)
-            print(option_table(self.config()))
-            parser.exit()
-        # Not append: the default list would be shared between parses.
-        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+        return option_table(self.config())
 
 
 class _RefineOptionAction(_FieldOptionAction):
@@ -429,8 +431,7 @@ def pipeline_config_from_args(args: argparse.Namespace):
 
     config = _config_from_flags(args)
     if getattr(args, "config", None) is not None:
-        bare = build_parser().parse_args(["run", str(args.input), "-o", str(args.output)])
-        config = merged(read_config_file(args.config), config, _config_from_flags(bare))
+        config = merged(read_config_file(args.config), config, _bare_config(args.input, args.output))
     return with_settings(config, getattr(args, "settings", None) or [])
 
 
@@ -442,12 +443,16 @@ def command_line(config) -> str:
 
     from ..core.config_file import changed_settings
 
-    bare = _config_from_flags(build_parser().parse_args(["run", str(config.input), "-o", str(config.output)]))
     words = ["recon", "run", str(config.input), "-o", str(config.output)] + (["--overwrite"] * config.overwrite)
-    for item in changed_settings(config, bare):
+    for item in changed_settings(config, _bare_config(config.input, config.output)):
         if item.partition("=")[0] != "overwrite":
             words += ["--set", item]
     return shlex.join(words)
+
+
+def _bare_config(input_path, output):
+    """The config of a bare `recon run INPUT -o OUTPUT`: every flag at its default."""
+    return _config_from_flags(build_parser().parse_args(["run", str(input_path), "-o", str(output)]))
 
 
 def _config_from_flags(args: argparse.Namespace):

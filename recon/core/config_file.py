@@ -118,8 +118,8 @@ def preset_path(name: str) -> Path:
     """The shipped config file of preset `name` (``presets/NAME.yaml``)."""
     path = PRESETS / f"{name}.yaml"
     if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in PRESETS.glob("*.yaml")))
-        raise ReconInputError(f"--preset {name}: no such preset (known: {known}; looked in {PRESETS})")
+        raise ReconInputError(f"--preset {name}: no such preset (known: {', '.join(preset_names())}; looked in "
+                              f"{PRESETS})")
     return path
 
 
@@ -130,18 +130,21 @@ def preset_names() -> list[str]:
 # --------------------------------------------------------------------------- --set
 
 
-def setting_types(config, prefix: str = "") -> dict[str, object]:
-    """{dotted name: annotated type} of every setting of dataclass `config`, the nested
-    sections flattened (``medea.stage1.epochs``)."""
+def _leaves(config, prefix: str = ""):
+    """(dotted name, annotated type, value) of every setting of dataclass `config`, the
+    nested sections flattened (``medea.stage1.epochs``), in field order."""
     hints = typing.get_type_hints(type(config))
-    table = {}
     for f in fields(config):
         value = getattr(config, f.name)
         if is_dataclass(value):
-            table.update(setting_types(value, f"{prefix}{f.name}."))
+            yield from _leaves(value, f"{prefix}{f.name}.")
         else:
-            table[f"{prefix}{f.name}"] = hints[f.name]
-    return table
+            yield f"{prefix}{f.name}", hints[f.name], value
+
+
+def setting_types(config) -> dict[str, object]:
+    """{dotted name: annotated type} of every setting of dataclass `config`."""
+    return {name: kind for name, kind, _ in _leaves(config)}
 
 
 def setting_value(raw: str, kind, name: str):
@@ -201,28 +204,16 @@ def format_setting(value) -> str:
     return str(value)
 
 
-def changed_settings(config, defaults, prefix: str = "") -> list[str]:
+def changed_settings(config, defaults) -> list[str]:
     """``NAME=VALUE`` for every setting in which `config` differs from `defaults`: the
     --set arguments that make `defaults` into `config`."""
-    changed = []
-    for f in fields(config):
-        value, default = getattr(config, f.name), getattr(defaults, f.name)
-        if is_dataclass(value):
-            changed += changed_settings(value, default, f"{prefix}{f.name}.")
-        elif value != default:
-            changed.append(f"{prefix}{f.name}={format_setting(value)}")
-    return changed
+    return [f"{name}={format_setting(value)}"
+            for (name, _, value), (_, _, default) in zip(_leaves(config), _leaves(defaults)) if value != default]
 
 
 def settings_listing(config) -> str:
     """Every setting --set takes, with its type and its value in `config` (the defaults)."""
-    table = setting_types(config)
-    rows = []
-    for name, kind in table.items():
-        value = config
-        for part in name.split("."):
-            value = getattr(value, part)
-        rows.append((name, type_name(kind), format_setting(value)))
+    rows = [(name, type_name(kind), format_setting(value)) for name, kind, value in _leaves(config)]
     widths = [max(len(r[i]) for r in rows) for i in range(2)]
     return "\n".join(f"{n:<{widths[0]}}  {k:<{widths[1]}}  {v}" for n, k, v in rows)
 
