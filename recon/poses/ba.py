@@ -12,10 +12,13 @@ This module owns the least-squares problem of the front end and its solvers:
   network's depth errors are multiplicative: a quadratic tie on (d - d0) / d0 would bias
   the scale by ~exp(-1.5 sigma^2), 9 % for 25 % errors). Reprojection alone cannot see the
   global scale; this tie is what makes the result metric.
-* The depth block of the Hessian is diagonal, so it is eliminated exactly with the
-  **Schur complement** (:mod:`recon.poses.schur`); the reduced camera system (6 per free
-  pose) is solved densely (Cholesky) in float64, then the depths are back-substituted
-  pixel by pixel. Levenberg-Marquardt damping with step acceptance.
+* Each step linearises the residuals (:mod:`recon.poses.normal_equations`). The depth
+  block of the Hessian is diagonal, so it is eliminated exactly with the **Schur
+  complement** (:mod:`recon.poses.schur`); the reduced camera system (6 per free pose) is
+  solved densely (Cholesky) in float64, then the depths are back-substituted pixel by
+  pixel. Levenberg-Marquardt damping with step acceptance. Everything per pixel goes a
+  chunk of edges (or a batch of keyframes) at a time, so that a long video's global BA
+  holds little more than its edges.
 * **lens self-calibration** (``BAOptions.calibrate_k1``): flow is measured on the
   recorded images, and both ends of every correspondence are undistorted with the lens'
   radial term k1 (``projective.undistort``) before the residual is taken; k1 can be one
@@ -32,11 +35,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 
 from recon.geometry import lie
 from recon.geometry import projective as pj
 from recon.poses import schur
+from recon.poses.normal_equations import Edges, chunks, huber_cost, normal_equations
 
 # Inverse depth is kept inside [MIN_DISP, MAX_DISP] (1/m): beyond 1 km nothing is
 # measurable from a hand-held video, and nearer than 5 cm nothing is in focus.
@@ -44,64 +49,8 @@ MIN_DISP = 1e-3
 MAX_DISP = 20.0
 # |k1| beyond this is a fisheye, which one radial term cannot describe.
 MAX_K1 = 0.5
-# Residual pixels processed per chunk when building the normal equations; bounds the
-# memory of the per-pixel Jacobians (~ 200 bytes per pixel-edge).
-CHUNK_PIXELS = 400_000
-
-
-@dataclass
-class Edges:
-    """Directed frame-graph edges with their flow targets.
-
-    ii, jj: (E,) int64 keyframe indices (source, target).
-    target: (E, H, W, 2) float64 pixel coordinates in jj of every BA pixel of ii.
-    weight: (E, H, W) float64 confidence in [0, 1] (0 = no measurement).
-    source: (H, W, 2) coordinates of the BA pixels themselves, shared by all keyframes (one
-        camera); None for the pixel grid. Set by :meth:`undistorted`, which moves both
-        ends into the pinhole image of a lens.
-    """
-
-    ii: torch.Tensor
-    jj: torch.Tensor
-    target: torch.Tensor
-    weight: torch.Tensor
-    source: torch.Tensor | None = None
-
-    def __len__(self) -> int:
-        return int(self.ii.numel())
-
-    def source_pixels(self, dtype: torch.dtype) -> torch.Tensor:
-        """(P, 2) coordinates of the BA pixels, in dtype."""
-        if self.source is not None:
-            return self.source.reshape(-1, 2).to(dtype)
-        height, width = self.target.shape[1:3]
-        return pj.pixel_grid(height, width, dtype=dtype, device=self.target.device).reshape(-1, 2)
-
-    def to(self, device: torch.device | str) -> "Edges":
-        source = None if self.source is None else self.source.to(device)
-        return Edges(self.ii.to(device), self.jj.to(device), self.target.to(device), self.weight.to(device), source)
-
-    def select(self, mask: torch.Tensor) -> "Edges":
-        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask], self.source)
-
-    def remap(self, index: torch.Tensor) -> "Edges":
-        """The same edges with keyframe ids replaced by index[id] (e.g. global -> window)."""
-        return Edges(index[self.ii], index[self.jj], self.target, self.weight, self.source)
-
-    def undistorted(self, intr: torch.Tensor, k1: float) -> "Edges":
-        """The same measurements in the pinhole image of a lens with radial term k1 (edges
-        measured on the recorded images, source None)."""
-        if k1 == 0.0:
-            return self
-        if self.source is not None:
-            raise ValueError(
-                "these edges are already in a pinhole image; undistorting them again would bend them twice"
-            )
-        height, width = self.target.shape[1:3]
-        grid = pj.pixel_grid(height, width, dtype=self.target.dtype, device=self.target.device)
-        intr = intr.to(self.target.dtype)
-        return Edges(self.ii, self.jj, pj.undistort(self.target, intr, k1)[0], self.weight,
-                     pj.undistort(grid, intr, k1)[0])
+# Residuals the robust threshold's median is taken of, at most (a subsample beyond).
+MEDIAN_SAMPLES = 16_000_000
 
 
 @dataclass
@@ -161,21 +110,6 @@ class BAReport:
     k1: float = 0.0
 
 
-def huber_weights(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
-    """IRLS weights (...) of the Huber loss for residual norms r_norm (...)."""
-    return torch.where(r_norm <= delta, torch.ones_like(r_norm), delta / r_norm.clamp(min=1e-12))
-
-
-def huber_cost(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
-    """Huber loss (...) of residual norms (...), 0.5 r^2 inside delta, linear outside."""
-    return torch.where(r_norm <= delta, 0.5 * r_norm * r_norm, delta * (r_norm - 0.5 * delta))
-
-
-def _chunks(num_edges: int, pixels: int) -> list[slice]:
-    step = max(1, CHUNK_PIXELS // max(pixels, 1))
-    return [slice(s, min(s + step, num_edges)) for s in range(0, num_edges, step)]
-
-
 def edge_residuals(
     T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, dtype: torch.dtype | None = None,
     k1: float = 0.0,
@@ -204,36 +138,62 @@ class _Residuals:
         if not len(edges):
             empty = torch.zeros(0, disps[0].numel(), dtype=dtype, device=disps.device)
             return cls(empty, empty.bool())
-        r, valid = edge_residuals(T_cw, disps, intr, edges, dtype, k1)
-        return cls(torch.hypot(r[..., 0], r[..., 1]), valid)
+        # In chunks of edges: a whole graph's residuals at once would hold several (E, P, 3)
+        # intermediates (gigabytes for a long video's global BA).
+        E, P = len(edges), disps[0].numel()
+        norm = torch.empty(E, P, dtype=dtype, device=disps.device)
+        valid = torch.empty(E, P, dtype=torch.bool, device=disps.device)
+        for sl in chunks(E, P):
+            r, valid[sl] = edge_residuals(T_cw, disps, intr, edges.select(sl), dtype, k1)
+            norm[sl] = torch.hypot(r[..., 0], r[..., 1])
+        return cls(norm, valid)
+
+    def _sums(self, edges: Edges, terms) -> list[float]:
+        """Sums over every pixel-edge of terms(weight (n, P), valid (n, P), norm (n, P)
+        float64) -> [tensor], a chunk of edges at a time (a whole graph's float64 planes
+        would be gigabytes)."""
+        totals = None
+        P = self.norm.shape[1]
+        for sl in chunks(len(edges), P):
+            w = edges.weight[sl].reshape(-1, P).double()
+            sums = [float(t.sum()) for t in terms(w, self.valid[sl], self.norm[sl].double())]
+            totals = sums if totals is None else [a + b for a, b in zip(totals, sums)]
+        return totals
 
     def cost(self, edges: Edges, huber: float) -> float:
         if not len(edges):
             return 0.0
-        w = edges.weight.reshape(len(edges), -1) * self.valid
-        return float((w * huber_cost(self.norm.double(), huber)).sum())
+        return self._sums(edges, lambda w, valid, rn: [w * valid * huber_cost(rn, huber)])[0]
 
     def adaptive_huber(self, edges: Edges, opts: "BAOptions") -> float:
         """huber_auto x the median over confident pixels, clipped to [huber_min, huber] (the
         residual norm of 2-D Gaussian noise has median 1.18 sigma)."""
-        conf = (edges.weight.reshape(len(edges), -1) > 0.5) & self.valid
-        if not conf.any():
+        P = self.norm.shape[1]
+        pieces = chunks(len(edges), P)
+        confident = [(edges.weight[sl].reshape(-1, P) > 0.5) & self.valid[sl] for sl in pieces]
+        total = sum(int(c.sum()) for c in confident)
+        if not total:
             return opts.huber
-        med = float(self.norm[conf].median())
+        # Beyond MEDIAN_SAMPLES residuals (a long video's global BA: tens of millions) the
+        # median is taken of every step-th one, which it cannot tell from the whole.
+        step = -(-total // MEDIAN_SAMPLES)
+        samples, seen = [], 0
+        for sl, conf in zip(pieces, confident):
+            values = self.norm[sl][conf]
+            samples.append(values[(-seen) % step :: step])
+            seen += values.numel()
+        med = float(torch.cat(samples).median())
         return float(min(max(opts.huber_auto * med, opts.huber_min), opts.huber))
 
     def stats(self, edges: Edges, inlier: float) -> tuple[float, float]:
         """Confidence-weighted RMS residual (BA pixels) and the weight fraction within `inlier` px."""
         if not len(edges):
             return float("nan"), float("nan")
-        w = edges.weight.reshape(len(edges), -1)
-        total = float(w.sum())
+        total, weight, squares, inside = self._sums(edges, lambda w, valid, rn: [
+            w, w * valid, w * valid * rn.clamp(max=10 * inlier) ** 2, w * valid * (rn < inlier)])
         if total <= 0:
             return float("nan"), 0.0
-        wv = w * self.valid
-        rn = self.norm.double()
-        rmse = float(((wv * rn.clamp(max=10 * inlier) ** 2).sum() / max(float(wv.sum()), 1e-9)).sqrt())
-        return rmse, float((wv * (rn < inlier)).sum()) / total
+        return float(np.sqrt(squares / max(weight, 1e-9))), inside / total
 
 
 @dataclass
@@ -286,98 +246,6 @@ def total_cost(
     return res.cost(edges, opts.huber) + prior_cost(disps, prior, prior_w)
 
 
-def pixel_sums(J: torch.Tensor, wgt: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """J^T W J (E, 6, 6) and J^T W r (E, 6) summed over pixels, of Jacobian planes J
-    (E, 2, 6, P), weights (E, P) and residuals r (E, 2, P): one matrix product per residual
-    row (u, v)."""
-    wJ = J * wgt[:, None, None]
-    JtJ = wJ[:, 0] @ J[:, 0].transpose(1, 2) + wJ[:, 1] @ J[:, 1].transpose(1, 2)
-    Jtr = (wJ[:, 0] @ r[:, 0, :, None] + wJ[:, 1] @ r[:, 1, :, None])[..., 0]
-    return JtJ, Jtr
-
-
-def _normal_equations(
-    T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, opts: BAOptions,
-    k1: float | None = None,
-) -> dict:
-    """Per-edge pose blocks, per-pixel depth terms and pose-depth couplings of the robust GN system.
-
-    k1 None: the edges are already in the pinhole image. k1 a number: the edges are raw
-    measurements, undistorted here with k1, which is one more unknown.
-    Returns (K keyframes, E edges, P pixels):
-        Hii, Hij, Hjj: (E, 6, 6) blocks of J^T W J for (ii, ii), (ii, jj), (jj, jj);
-        vi, vj: (E, 6) J^T W r for the two poses;
-        C, w: (K, P) depth diagonal and depth gradient (reprojection part only);
-        Ej: (E, 6, P) pose-depth couplings J_pose^T W J_depth for pose jj (pose ii's are
-            -Ad(T_ij)^T Ej, formed per keyframe in ``schur.couplings``);
-        Tij: (E, 4, 4) the relative poses the system was linearised at;
-    and with k1: Hkk, vk () for k1 itself, Hki, Hkj (E, 6) its couplings to the poses and
-    Ek (K, P) to the depths. Per-pixel terms are planes (pixels last, ``projective``).
-    """
-    num_kf = disps.shape[0]
-    height, width = disps.shape[-2:]
-    P = height * width
-    E = len(edges)
-    dt = T_cw.dtype
-    px = opts.pixel_dtype
-    calibrate = k1 is not None
-    Tij = lie.relative(T_cw, edges.ii, edges.jj)
-    Tij_px, intr_px = Tij.to(px), intr.to(px)
-    if calibrate:
-        uv, duv = pj.undistort(edges.source_pixels(px), intr_px, k1)
-        duv = duv.T
-    else:
-        uv = edges.source_pixels(px)
-    uv = uv[None]
-    on = {"device": T_cw.device}
-    out = {
-        "Hjj": torch.empty(E, 6, 6, dtype=dt, **on),
-        "vj": torch.empty(E, 6, dtype=dt, **on),
-        "Ej": torch.empty(E, 6, P, dtype=px, **on),
-        "C": torch.zeros(num_kf, P, dtype=dt, **on),
-        "w": torch.zeros(num_kf, P, dtype=dt, **on),
-    }
-    if calibrate:
-        out.update(Hkk=torch.zeros((), dtype=dt, **on), vk=torch.zeros((), dtype=dt, **on),
-                   Hkj=torch.empty(E, 6, dtype=dt, **on), Ek=torch.zeros(num_kf, P, dtype=dt, **on))
-    flat_disp = disps.reshape(num_kf, P).to(px)
-    for sl in _chunks(E, P):
-        ii = edges.ii[sl]
-        n = ii.numel()
-        Xj = Tij_px[sl] @ pj.backproject(uv, flat_disp[ii], intr_px).transpose(1, 2)
-        proj, valid, Jj, Jz = pj.project_with_jacobians(Tij_px[sl], Xj, intr_px)
-        target = edges.target[sl].reshape(n, P, 2).to(px)
-        if calibrate:
-            target, dtarget = pj.undistort(target, intr_px, k1)
-            dtarget = dtarget.transpose(1, 2)
-        r = target.transpose(1, 2) - proj  # (n, 2, P)
-        wgt = edges.weight[sl].reshape(n, P).to(px) * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), opts.huber)
-        JtJ, Jtr = pixel_sums(Jj, wgt, r)
-        out["Hjj"][sl], out["vj"][sl] = JtJ.to(dt), Jtr.to(dt)
-        wJz = Jz * wgt[:, None]  # (n, 2, P)
-        out["Ej"][sl] = Jj[:, 0] * wJz[:, None, 0] + Jj[:, 1] * wJz[:, None, 1]
-        out["C"].index_add_(0, ii, (wJz * Jz).sum(1).to(dt))
-        out["w"].index_add_(0, ii, (wJz * r).sum(1).to(dt))
-        if calibrate:
-            # k1 moves the source ray and the measured target: d(proj - target) / d k1.
-            Jk = pj.ray_jacobian(Tij_px[sl], Xj, intr_px, duv) - dtarget  # (n, 2, P)
-            wJk = Jk * wgt[:, None]
-            out["Hkk"] += (wJk * Jk).sum().to(dt)
-            out["vk"] += (wJk * r).sum().to(dt)
-            out["Hkj"][sl] = (Jj[:, 0] @ wJk[:, 0, :, None] + Jj[:, 1] @ wJk[:, 1, :, None])[..., 0].to(dt)
-            out["Ek"].index_add_(0, ii, (wJk * Jz).sum(1).to(dt))
-    # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
-    A = lie.adjoint(Tij)
-    At = A.transpose(1, 2)
-    out["Hij"] = -(At @ out["Hjj"])
-    out["Hii"] = At @ out["Hjj"] @ A
-    out["Tij"] = Tij
-    out["vi"] = -(At @ out["vj"][..., None])[..., 0]
-    if calibrate:
-        out["Hki"] = -(out["Hkj"][:, None, :] @ A)[:, 0]
-    return out
-
-
 def ba_step(
     T_cw: torch.Tensor,
     disps: torch.Tensor,
@@ -402,7 +270,7 @@ def ba_step(
     height, width = disps.shape[-2:]
     P = height * width
     if sys is None:
-        sys = _normal_equations(T_cw, disps, intr, edges, opts, k1)
+        sys = normal_equations(T_cw, disps, intr, edges, opts.pixel_dtype, opts.huber, k1)
     C = sys["C"].clone()
     wz = sys["w"].clone()
     if prior is not None:
@@ -416,7 +284,7 @@ def ba_step(
     Q = 1.0 / C
     # A held depth has infinite stiffness: it drops out of the Schur complement.
     free_disp = torch.ones(K, dtype=torch.bool, device=disps.device) if fixed_disp is None else ~fixed_disp
-    S, g, cpl = schur.reduced_system(sys, edges.ii, edges.jj, Q, wz, K, free_disp)
+    S, g = schur.reduced_system(sys, edges.ii, edges.jj, Q, wz, K, free_disp)
     if pose_prior is not None:
         # r(dx) = log(exp(dx) T T0^-1) ~ r + dx for the left update.
         k = torch.arange(K, device=S.device)
@@ -436,7 +304,7 @@ def ba_step(
         diag = Sf.diagonal()
         Sf = Sf + torch.diag(lm * diag + opts.eps)
         dx[free] = schur.solve_spd(Sf, g[free].reshape(-1)).reshape(-1, 6)
-    dz = schur.back_substitute(cpl, dx, Q, wz).reshape(K, height, width)
+    dz = schur.back_substitute(sys, edges.ii, edges.jj, free_disp, dx, Q, wz).reshape(K, height, width)
     T_new = lie.se3_exp(dx[:K]) @ T_cw
     d_new = (disps + dz).clamp(MIN_DISP, MAX_DISP)
     k1_new = None if k1 is None else float(min(max(k1 + float(dx[K, 0]), -MAX_K1), MAX_K1))
@@ -479,7 +347,7 @@ def bundle_adjust(
         prior, prior_w, fixed_disp = (None if t is None else t.to(device) for t in (prior, prior_w, fixed_disp))
         pose_prior = None if pose_prior is None else pose_prior.to(device)
     calibrate = opts.calibrate_k1
-    k1_tie = (k1, opts.k1_prior_weight * float(edges.weight.sum()) if calibrate else 0.0)
+    k1_tie = (k1, opts.k1_prior_weight * float(edges.weight.sum(dtype=torch.float64)) if calibrate else 0.0)
     if not calibrate:
         edges = edges.undistorted(intr, k1)
 

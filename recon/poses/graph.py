@@ -108,18 +108,23 @@ class FrameGraph:
         return {j for (i, j) in self.edges if i == k} | {i for (i, j) in self.edges if j == k}
 
     def edge_list(self, ids=None) -> tuple[list[tuple[int, int]], "ba.Edges"]:
-        """Edges with at least one end in `ids` (all when None), as global-id ba.Edges (float64)."""
+        """Edges with at least one end in `ids` (all when None), as global-id ba.Edges
+        (float32, as measured: a long video's global BA stacks every edge)."""
         keep = None if ids is None else set(int(i) for i in ids)
         pairs = [p for p in self.edges if keep is None or p[0] in keep or p[1] in keep]
         if not pairs:
             h, w = self.ba_shape
             empty = torch.zeros(0, dtype=torch.int64)
-            return [], ba.Edges(empty, empty, torch.zeros(0, h, w, 2, dtype=torch.float64),
-                                torch.zeros(0, h, w, dtype=torch.float64))
+            return [], ba.Edges(empty, empty, torch.zeros(0, h, w, 2), torch.zeros(0, h, w))
         ii = torch.tensor([p[0] for p in pairs])
         jj = torch.tensor([p[1] for p in pairs])
-        target = torch.stack([self.edges[p].target for p in pairs]).double()
-        weight = torch.stack([self.edges[p].weight for p in pairs]).double()
+        target = torch.stack([self.edges[p].target for p in pairs])
+        weight = torch.stack([self.edges[p].weight for p in pairs])
+        if len(pairs) == len(self.edges):
+            # Every edge at once (the global BA): the graph keeps views of the stack
+            # instead of its own copies, so that the edges are held once, not twice.
+            for n, p in enumerate(pairs):
+                self.edges[p].target, self.edges[p].weight = target[n], weight[n]
         return pairs, ba.Edges(ii, jj, target, weight)
 
     def kinds(self) -> dict[str, int]:

@@ -17,7 +17,8 @@ import torch
 
 from recon.geometry import lie
 from recon.geometry import projective as pj
-from recon.poses.ba import Edges, huber_weights, pixel_sums
+from recon.poses.ba import Edges
+from recon.poses.normal_equations import huber_weights, pixel_sums
 
 
 def align_frames(

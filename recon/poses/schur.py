@@ -7,7 +7,7 @@ estimated), as in DROID-SLAM's dense BA and in COLMAP's Schur-complement solvers
 (Triggs et al., "Bundle Adjustment - A Modern Synthesis", 2000, section 6.1); after the
 pose step the depths follow by back-substitution, pixel by pixel.
 
-The input is the normal equations :mod:`recon.poses.ba` builds (a dict of per-edge pose
+The input is the normal equations :mod:`recon.poses.normal_equations` builds (a dict of per-edge pose
 blocks, per-pixel depth terms and pose-depth couplings; its keys are documented there).
 Shapes: K keyframes, E edges (ii, jj (E,)), P pixels per keyframe, N = K (+1 with k1) nodes.
 """
@@ -19,6 +19,10 @@ from dataclasses import dataclass
 import torch
 
 from recon.geometry import lie
+
+# Bytes of pose-depth couplings formed at once: a batch of keyframes at a time (the edges'
+# couplings, their slots per keyframe, and the two products the complement takes of them).
+COUPLING_BYTES = 96 * 2**20
 
 
 @dataclass
@@ -52,10 +56,9 @@ def couplings(sys: dict, edge_ii: torch.Tensor, edge_jj: torch.Tensor, num_kf: i
     on = {"device": rows.device}
     local = torch.full((K,), -1, dtype=torch.int64, **on)
     local[rows] = torch.arange(L, **on)
-    keep = local[edge_ii] >= 0
-    Ej, T_ij = sys["Ej"], sys["Tij"]
-    if not bool(keep.all()):  # the window BA: edges leaving held depths couple to nothing
-        Ej, T_ij = Ej[keep], T_ij[keep]
+    # Edges leaving held depths (the window BA's) couple to nothing.
+    keep = (local[edge_ii] >= 0).nonzero(as_tuple=True)[0]
+    Ej, T_ij = sys["Ej"][keep], sys["Tij"][keep]
     ii, jj = local[edge_ii[keep]], edge_jj[keep]  # ii: the keyframe's row in B
     E, _, P = Ej.shape
     order = torch.argsort(ii, stable=True)
@@ -83,15 +86,16 @@ def couplings(sys: dict, edge_ii: torch.Tensor, edge_jj: torch.Tensor, num_kf: i
 def reduced_system(
     sys: dict, ii: torch.Tensor, jj: torch.Tensor, Q: torch.Tensor, wz: torch.Tensor, num_kf: int,
     free_disp: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, Couplings]:
-    """Schur complement over the depths: blocks S (N, N, 6, 6), gradient g (N, 6) and the
-    couplings (for the back-substitution). N = K poses, plus k1 as node K (its first row)
-    when the system has it. free_disp (K,) bool: keyframes whose depths are eliminated
-    (the others are held and drop out).
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Schur complement over the depths: blocks S (N, N, 6, 6) and gradient g (N, 6). N = K
+    poses, plus k1 as node K (its first row) when the system has it. free_disp (K,) bool:
+    keyframes whose depths are eliminated (the others are held and drop out).
 
     Eliminating keyframe k's depths (diagonal Hessian 1 / Q) subtracts B_k Q_k B_k^T from
     the poses it couples to and B_k Q_k w_k from their gradient: one batched product over
-    keyframes covers pose k, every edge target and every pair of edges leaving k.
+    keyframes covers pose k, every edge target and every pair of edges leaving k. The
+    keyframes go in batches (:func:`keyframe_batches`), so that a whole video's graph never
+    holds every keyframe's couplings at once.
     """
     dt = Q.dtype
     K = num_kf
@@ -113,17 +117,30 @@ def reduced_system(
         S[K * N + K, 0, 0] += sys["Hkk"]
         g[K, 0] += sys["vk"]
 
-    cpl = couplings(sys, ii, jj, K, free_disp.nonzero(as_tuple=True)[0])
-    B, m, L = cpl.B, cpl.slots, cpl.rows.numel()
-    Q, wz = Q[cpl.rows], wz[cpl.rows]
-    blocks = ((B * Q.to(B.dtype)[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (L, 6m, 6m)
-    blocks = blocks.reshape(L, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
-    rows = cpl.pose[:, :, None].expand(L, m, m)
-    cols = cpl.pose[:, None, :].expand(L, m, m)
-    S.index_add_(0, (rows * N + cols).reshape(-1), -blocks)
-    gz = (B @ (Q * wz).to(B.dtype)[..., None])[..., 0].to(dt)  # (L, 6m)
-    g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
-    return S.reshape(N, N, 6, 6), g, cpl
+    for rows in keyframe_batches(sys, ii, free_disp):
+        cpl = couplings(sys, ii, jj, K, rows)
+        B, m, L = cpl.B, cpl.slots, rows.numel()
+        blocks = ((B * Q[rows].to(B.dtype)[:, None, :]) @ B.transpose(1, 2)).to(dt)  # (L, 6m, 6m)
+        blocks = blocks.reshape(L, m, 6, m, 6).permute(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+        r = cpl.pose[:, :, None].expand(L, m, m)
+        c = cpl.pose[:, None, :].expand(L, m, m)
+        S.index_add_(0, (r * N + c).reshape(-1), -blocks)
+        gz = (B @ (Q[rows] * wz[rows]).to(B.dtype)[..., None])[..., 0].to(dt)  # (L, 6m)
+        g.index_add_(0, cpl.pose.reshape(-1), -gz.reshape(-1, 6))
+    return S.reshape(N, N, 6, 6), g
+
+
+def keyframe_batches(sys: dict, ii: torch.Tensor, free_disp: torch.Tensor) -> list[torch.Tensor]:
+    """The keyframes whose depths are free (free_disp (K,) bool), in batches whose
+    couplings (and the two products formed from them) fit in COUPLING_BYTES."""
+    rows = free_disp.nonzero(as_tuple=True)[0]
+    if not rows.numel():
+        return []
+    Ej = sys["Ej"]
+    slots = int(torch.bincount(ii, minlength=free_disp.numel()).max()) + 2
+    per_keyframe = 4 * slots * Ej.shape[1] * Ej.shape[2] * Ej.itemsize
+    size = max(1, COUPLING_BYTES // max(per_keyframe, 1))
+    return list(rows.split(size))
 
 
 def solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -134,9 +151,17 @@ def solve_spd(S: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lstsq(S, g[:, None]).solution[:, 0]
 
 
-def back_substitute(cpl: Couplings, dx: torch.Tensor, Q: torch.Tensor, wz: torch.Tensor) -> torch.Tensor:
+def back_substitute(
+    sys: dict, ii: torch.Tensor, jj: torch.Tensor, free_disp: torch.Tensor, dx: torch.Tensor, Q: torch.Tensor,
+    wz: torch.Tensor,
+) -> torch.Tensor:
     """The depth step dz (K, P) = Q (w - B^T dx) of the pose step dx (N, 6), over the poses
-    each keyframe's depths couple to; held keyframes (not in cpl.rows) get 0."""
-    dx_slots = dx[cpl.pose].reshape(cpl.rows.numel(), -1, 1).to(cpl.B.dtype)
-    rhs = wz[cpl.rows] - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
-    return torch.zeros_like(Q).index_copy_(0, cpl.rows, Q[cpl.rows] * rhs)
+    each keyframe's depths couple to, batch by batch as in :func:`reduced_system` (the
+    couplings formed again rather than kept); held keyframes get 0."""
+    dz = torch.zeros_like(Q)
+    for rows in keyframe_batches(sys, ii, free_disp):
+        cpl = couplings(sys, ii, jj, Q.shape[0], rows)
+        dx_slots = dx[cpl.pose].reshape(rows.numel(), -1, 1).to(cpl.B.dtype)
+        rhs = wz[rows] - (cpl.B.transpose(1, 2) @ dx_slots)[..., 0].to(wz.dtype)
+        dz[rows] = Q[rows] * rhs
+    return dz
