@@ -51,8 +51,9 @@ def test_a_camera_turned_on_the_spot_is_rotation_only_and_a_walk_is_not():
 
 
 def test_check_motion_names_what_makes_a_trajectory_untrusted():
-    """A lens fit on its bound and a rotation-only run are each said, frames 10 % of the width
-    apart are marked; a slow walk with a free lens says nothing."""
+    """A lens fit on its bound, a rotation-only run and (the camera unknown) a run whose
+    frames lie over 10 % of the width apart are each said; with the camera known, the last
+    two are only marked; a slow walk with a free lens says nothing."""
     n = 40
     slow = _poses(0.2 * np.ones(n), 0.01 * np.ones(n))
     depth = np.full((n, 2, 2), 2.0)
@@ -60,8 +61,11 @@ def test_check_motion_names_what_makes_a_trajectory_untrusted():
     assert ok.untrusted() == [] and not ok.moves_too_fast and ok.frame_verdicts(n) == ["ok"] * n
     fast = _poses(10.0 * np.ones(n), 0.3 * np.ones(n))
     verdict = check_motion(fast[::1], depth, np.arange(n), fast, F, WIDTH, lens_k1=0.5, k1_bound=0.5)
-    # Frames far apart are marked, not judged (TUM fr1/rpy at stride 8 tracks); the lens is judged.
-    assert verdict.moves_too_fast and verdict.lens_at_bound and len(verdict.untrusted()) == 1
+    # Frames far apart are judged only with the camera unknown (TUM fr1/rpy at stride 8, its
+    # intrinsics given, tracks; the phone's images, focal estimated, did not); the lens always.
+    assert verdict.moves_too_fast and verdict.lens_at_bound and len(verdict.untrusted()) == 2
+    assert "width apart" in verdict.untrusted()[1] and "between 1 and 39" in verdict.untrusted()[1]
+    assert len(verdict.untrusted(focal_estimated=False)) == 1
     assert verdict.median_step_share > 0.1 and set(verdict.frame_verdicts(n)[1:]) == {"large motion"}
     spin = _poses(2.0 * np.ones(n), 0.0005 * np.ones(n))
     turned = check_motion(spin, depth, np.arange(n), spin, F, WIDTH)

@@ -244,11 +244,18 @@ class StreamingFrontend:
             # SfM triangulates from parallax as the front end does: a camera turning on the spot
             # gives it none either (TUM fr1/rpy: 10 % of its path, exit 0, when it was tried).
             turning = motion.turns_on_the_spot and focal_estimated
+            # Frames far apart are SfM's usual input, but on the one recording that moves so
+            # (the phone's images) SfM came back 20 % off its path within the reference's
+            # pieces: the user may choose it, the run does not fall back to it.
+            jumping = motion.moves_too_fast and focal_estimated
             raise TrackingLostError(
                 f"the trajectory of frames 0-{n - 1} cannot be trusted: {'; '.join(why)}"
                 + ("; give the camera's intrinsics (--intrinsics or --fov) to track a turning camera, or "
-                   "--on-break keep to take the trajectory anyway" if turning else ""),
-                frame=motion.rotation_only[0][0] if motion.rotation_only else 0, sfm_may_help=not turning)
+                   "--on-break keep to take the trajectory anyway" if turning else "")
+                + ("; give the camera's intrinsics (--intrinsics or --fov), try --pose-method sfm, or "
+                   "--on-break keep to take the trajectory anyway" if jumping and not turning else ""),
+                frame=motion.rotation_only[0][0] if motion.rotation_only else 0,
+                sfm_may_help=not (turning or jumping))
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),

@@ -9,9 +9,13 @@
   is the share of the keyframes' flow that their translation makes, over a stretch.
 * **Large motion.** Dense flow follows a few tens of pixels between neighbouring frames;
   frames farther apart than ``large_motion_share`` of the image width (images taken one
-  every few steps) are marked. Only marked: the front end starts such frames from ORB
-  matches, and TUM fr1/rpy at strides 4 and 8 (a median 15 % and 29 % of the width
-  between frames) tracked as well as at stride 1, where the phone's images (26 %) did not.
+  every few steps) are marked. With the camera's intrinsics given that is all: the front
+  end starts such frames from ORB matches, and TUM fr1/rpy at strides 4 and 8 (a median
+  15 % and 29 % of the width between frames) tracked as well as at stride 1. With the
+  focal length estimated, a run that moves that far for most of its frames is not
+  trusted: the phone's images (26 %) came back 5.7 % off their path within the
+  reference's pieces (docs/validation.md), and with their intrinsics given the same
+  frames lose tracking outright.
 * **The lens at its bound.** With the focal length unknown the bundle adjustment also fits
   the lens' radial term k1; a fit that ends on its bound (``ba.MAX_K1``) wanted more,
   which no lens in the candidates' range does: the camera model does not explain the flow
@@ -60,7 +64,7 @@ class MotionChecks:
     rotation_only: [first, last] frame ranges of rotation-only stretches; translation_share:
     the run's share of keyframe flow made by translation; large_motion: frames whose step from
     the frame before exceeds the large-motion share, and the run's median step (share of the
-    width); moves_too_fast (reported, not acted on) and turns_on_the_spot: the verdicts on the
+    width); moves_too_fast and turns_on_the_spot: the verdicts on the
     whole run; lens_k1 and lens_at_bound."""
 
     rotation_only: list[list[int]] = field(default_factory=list)
@@ -108,6 +112,12 @@ class MotionChecks:
             why.append(f"the camera turns on the spot (frames {spans}): its translation makes "
                        f"{100 * self.translation_share:.0f} % of the keyframes' flow, too little parallax to measure "
                        "its path or the map's scale")
+        if self.moves_too_fast and focal_estimated:
+            frames = self.large_motion
+            why.append(f"neighbouring frames lie a median {100 * self.median_step_share:.0f} % of the image's width "
+                       f"apart ({len(frames)} frames between {frames[0]} and {frames[-1]} moved more than "
+                       "a tenth of it from the frame before), farther than the front end follows a camera it "
+                       "does not know")
         return why
 
 
