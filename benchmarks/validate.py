@@ -248,7 +248,7 @@ def by_reference_piece(estimated: np.ndarray, given: np.ndarray, indices: np.nda
     worst piece's, as a share of that piece's path, and the breaks (frame indices after them)."""
     from scipy.spatial.transform import Rotation
 
-    from recon.eval.trajectory import align, path_length
+    from recon.eval.trajectory import ate_rmse, path_length
 
     turn = Rotation.from_matrix(np.transpose(given[:-1, :3, :3], (0, 2, 1)) @ given[1:, :3, :3]).magnitude()
     cuts = [int(k) + 1 for k in np.nonzero(np.degrees(turn) > REFERENCE_BREAK_DEG)[0]]
@@ -258,9 +258,7 @@ def by_reference_piece(estimated: np.ndarray, given: np.ndarray, indices: np.nda
     for a, b in zip([0, *cuts], [*cuts, len(given)]):
         if b - a < 3:
             continue
-        R, t, s = align(estimated[a:b], given[a:b])
-        placed = s * estimated[a:b, :3, 3] @ R.T + t
-        rmse = float(np.sqrt(np.mean(np.sum((placed - given[a:b, :3, 3]) ** 2, axis=1))))
+        rmse = ate_rmse(estimated[a:b], given[a:b], "sim3")["rmse"]
         worst = max(worst, 100.0 * rmse / path_length(given[a:b]))
     return {"reference_breaks": [int(indices[c]) for c in cuts], "ate_sim3_pct_pieces": worst}
 

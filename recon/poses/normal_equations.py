@@ -138,7 +138,8 @@ class Linearisation:
     huber: float
 
     @classmethod
-    def at(cls, T_cw, disps, intr, edges: Edges, px: torch.dtype, huber: float, k1: float | None) -> "Linearisation":
+    def at(cls, Tij, disps, intr, edges: Edges, px: torch.dtype, huber: float, k1: float | None) -> "Linearisation":
+        """At relative poses Tij (E, 4, 4) and inverse depths disps (K, H, W)."""
         intr_px = intr.to(px)
         duv = None
         if k1 is not None:
@@ -146,8 +147,7 @@ class Linearisation:
             duv = duv.T
         else:
             uv = edges.source_pixels(px)
-        Tij = lie.relative(T_cw, edges.ii, edges.jj).to(px)
-        return cls(Tij, disps.reshape(disps.shape[0], -1).to(px), intr_px, edges, uv[None], duv, k1, huber)
+        return cls(Tij.to(px), disps.reshape(disps.shape[0], -1).to(px), intr_px, edges, uv[None], duv, k1, huber)
 
     def chunk(self, index: slice | torch.Tensor) -> dict:
         """Residuals r (n, 2, P), robust weights wgt (n, P), the Jacobians Jj (n, 2, 6, P) by
@@ -223,7 +223,8 @@ def normal_equations(
     E = len(edges)
     dt = T_cw.dtype
     calibrate = k1 is not None
-    lin = Linearisation.at(T_cw, disps, intr, edges, px, huber, k1)
+    Tij = lie.relative(T_cw, edges.ii, edges.jj)
+    lin = Linearisation.at(Tij, disps, intr, edges, px, huber, k1)
     itemsize = torch.empty((), dtype=px).element_size()
     hold = E * 6 * P * itemsize <= COUPLING_HOLD_BYTES
     on = {"device": T_cw.device}
@@ -256,7 +257,6 @@ def normal_equations(
             out["Ek"].index_add_(0, ii, (wJk * Jz).sum(1).to(dt))
     out["Ej"] = EdgeCouplings(lin, held, (E, 6, P), itemsize)
     # Pose i enters only through T_ij, so its Jacobian is -Jj Ad(T_ij): map the sums per edge.
-    Tij = lie.relative(T_cw, edges.ii, edges.jj)
     A = lie.adjoint(Tij)
     At = A.transpose(1, 2)
     out["Hij"] = -(At @ out["Hjj"])
