@@ -15,7 +15,10 @@ reported with its frame and the stretches holding it, and the frames before it a
 again (unless ``--no-prefix``) to show whether the scale had already broken. ``--first``
 tracks the walk from a later frame (e.g. 210, room B: the fast turn on its own). Also
 reports the front end's own frame states and, where it has one, its scale watch
-(``diagnostics["scale_watch"]``).
+(``diagnostics["scale_watch"]``). Last, the walk tracked as ``recon run`` does it
+(``--on-break segments``: starting again after each loss, ``restart_after_loss``): the
+breaks, how far each lies from the nearest cut, and the fit of each stretch between them
+(``--no-pieces`` skips it).
 
 Writes benchmarks/results/walkthrough_breaks.json and prints tables.
 """
@@ -105,6 +108,46 @@ def track(walk, prior: np.ndarray, first: int, stop: int, window: int) -> dict:
     }
 
 
+def in_pieces(walk, prior: np.ndarray) -> dict:
+    """The front end as ``recon run`` asks for it (``--on-break segments``: tracking starts
+    again where the camera was lost, ``restart_after_loss``): the breaks its scale watch
+    calls (steps, creeps, restarts) with their distance to the nearest cut the scene was
+    built with, and the Sim(3) fit of each stretch between them (the segments a run writes
+    before it tries to join them)."""
+    t0 = time.perf_counter()
+    try:
+        res = estimate_poses(walk.rgb, prior, walk.intrinsics, method="frontend", progress=False,
+                             restart_after_loss=True)
+    except TrackingLostError as err:
+        return {"pose_s": time.perf_counter() - t0, "lost": {"frame": err.frame, "message": str(err)}}
+    watch = res.diagnostics.get("scale_watch") or {"breaks": []}
+    breaks = [{**b, "to_cut": int(min(abs(b["after"] - c) for c in walk.cuts))} for b in watch["breaks"]]
+    bounds = [0, *[b["after"] for b in breaks], walk.num_frames]
+    stretches = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        posed = np.arange(a, b)[np.isfinite(res.poses[a:b]).all(axis=(1, 2))]
+        if len(posed) >= 3:
+            names = overlapping(walk.stretches, a, b)
+            stretches.append({"first": a, "stop": b, "posed": len(posed), "stretches": names,
+                              **fit(res.poses[posed], walk.poses[posed])})
+    return {"pose_s": time.perf_counter() - t0, "lost": None, "pieces": res.diagnostics.get("pieces"),
+            "breaks": breaks, "segments": stretches}
+
+
+def report_pieces(run: dict) -> None:
+    if run["lost"]:
+        print(f"\nIn pieces: tracking lost at frame {run['lost']['frame']}: {run['lost']['message']}")
+        return
+    print("\nIn pieces (recon run's default, --on-break segments), breaks of the scale watch and the "
+          "stretches between them:\n")
+    print(table(["after frame", "kind", "factor", "frames to the nearest cut"],
+                [[b["after"], b["kind"], f"{b['factor']:.2f}", b["to_cut"]] for b in run["breaks"]]))
+    print()
+    print(table(["frames", "posed", "path m", "Sim(3) ATE %", "scale", "stretches"],
+                [[f"{s['first']}-{s['stop'] - 1}", s["posed"], f"{s['path_m']:.2f}", f"{s['ate_pct']:.1f}",
+                  f"{s['scale']:.3f}", s["stretches"]] for s in run["segments"]]))
+
+
 def run(args) -> dict:
     t0 = time.perf_counter()
     walk = render_walkthrough(args.width, args.height, seed=args.seed, corridor_length=args.corridor_length,
@@ -121,6 +164,8 @@ def run(args) -> dict:
     # What the front end had before it lost the camera: had the scale already broken?
     if args.prefix and lost and lost["frame"] is not None and lost["frame"] - args.first >= 2 * args.window:
         out["before_loss"] = track(walk, prior, args.first, int(lost["frame"]), args.window)
+    if args.pieces:
+        out["pieces"] = in_pieces(walk, prior)
     return out
 
 
@@ -156,6 +201,8 @@ def report(out: dict, window: int) -> None:
     report_run(out["whole"], "The walk", window)
     if "before_loss" in out:
         report_run(out["before_loss"], "The frames before the loss, tracked again", window)
+    if "pieces" in out:
+        report_pieces(out["pieces"])
 
 
 def plain(obj):
@@ -184,12 +231,14 @@ def main() -> None:
     parser.add_argument("--turn-blur", type=int, default=8)
     parser.add_argument("--no-prefix", dest="prefix", action="store_false",
                         help="when tracking is lost, do not track the frames before the loss again")
+    parser.add_argument("--no-pieces", dest="pieces", action="store_false",
+                        help="do not also track the walk in pieces, starting again after each loss (recon run's way)")
     parser.add_argument("--name", default="walkthrough_breaks", help="results file name")
     args = parser.parse_args()
     out = run(args)
     report(out, args.window)
     path = write_json(args.name, plain(out))
-    pose_s = out["whole"]["pose_s"] + out.get("before_loss", {}).get("pose_s", 0.0)
+    pose_s = sum(out.get(k, {}).get("pose_s", 0.0) for k in ("whole", "before_loss", "pieces"))
     say(f"render {out['render_s']:.0f} s, poses {pose_s:.0f} s; wrote {path}")
 
 

@@ -77,6 +77,40 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, ca
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False)
 
 
+def test_the_sfm_fallback_is_refused_where_the_vanishing_points_contradict_its_focal_length(pose_room, monkeypatch):
+    """TUM fr1/rpy 50-99 with nothing given: the flow search failed, the vanishing points said
+    492 px (not agreed on by enough frames), SfM's bundle adjustment 322 px for a 517 px
+    camera, and its trajectory came back 4.7 % of its path off with exit 0. SfM's value is
+    now refused when the vanishing points' lies over x1.25 from it (Record3D 0-79: 634 and
+    681 px, taken); ``--on-break keep`` (stop_untrusted off) takes it anyway."""
+    seq, prior = pose_room
+    import recon.poses.frontend as fe
+    import recon.poses.sfm as sfm
+    from recon.poses.focal_choice import FocalChoice
+
+    f_sfm = float(seq.intrinsics[0])
+    sentinel = fe.PoseResult(np.tile(np.eye(4), (36, 1, 1)), seq.intrinsics, np.arange(36), 0.0, {"method": "sfm"})
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", lambda *a, **k: sentinel)
+
+    def unsure_with(vp: float):
+        def unsure(*args, **kwargs):
+            err = TrackingLostError("the focal length was not found", frame=0)
+            err.focal_choice = FocalChoice(300.0, "flow", 269.0, 929.0, {"flow": 300.0, "vanishing points": vp},
+                                           bracketed=False)
+            raise err
+        return unsure
+
+    monkeypatch.setattr(fe, "estimate_poses_frontend", unsure_with(1.53 * f_sfm))
+    refused = (r"SfM fallback's trajectory cannot be trusted: its focal length \(SfM bundle adjustment, \d+ px\) "
+               r"and the vanishing points' .* x1\.53")
+    with pytest.raises(TrackingLostError, match=refused):
+        estimate_poses(seq.rgb, prior, None, method="auto", progress=False)
+    kept = estimate_poses(seq.rgb, prior, None, method="auto", progress=False, stop_untrusted=False)
+    assert kept.diagnostics["focal"]["focal"] == f_sfm
+    monkeypatch.setattr(fe, "estimate_poses_frontend", unsure_with(1.07 * f_sfm))
+    assert estimate_poses(seq.rgb, prior, None, method="auto", progress=False).diagnostics["focal"]["focal"] == f_sfm
+
+
 def test_bad_inputs_raise_one_line_errors(pose_room):
     seq, prior = pose_room
     with pytest.raises(ReconInputError, match="pose method"):

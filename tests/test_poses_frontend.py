@@ -167,6 +167,40 @@ def test_tracking_loss_names_the_frame(pose_room):
     assert info.value.frame == 12
 
 
+def test_tracking_starts_again_after_a_loss_as_a_new_piece(pose_room, caplog):
+    """restart_after_loss (what --on-break segments asks for): 30 frames of the room, a cut to
+    12 frames of noise, then the room walked backwards. The front end tracks the first piece,
+    gives the noise no pose (each noise frame loses the camera at once) and tracks the room
+    again as a second piece; the scale watch breaks at the restart (kind "lost"), both pieces
+    are within 2 % of their (half-metre) paths, and the quality gate leaves the noise out."""
+    from recon.poses.quality import gate_trajectory
+
+    seq, prior = pose_room
+    noise = np.random.default_rng(0).integers(0, 256, size=(12, 240, 320, 3), dtype=np.uint8)
+    back = np.arange(35, 5, -1)
+    frames = np.concatenate([seq.rgb[:30], noise, seq.rgb[back]])
+    depth = np.concatenate([prior[:30], prior[:12], prior[back]])
+    truth = np.concatenate([seq.poses[:30], np.tile(np.eye(4), (12, 1, 1)), seq.poses[back]])
+    with pytest.raises(TrackingLostError, match="tracking lost at frame 30"):
+        estimate_poses(frames, depth, seq.intrinsics, method="frontend", progress=False)
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res = estimate_poses(frames, depth, seq.intrinsics, method="frontend", progress=False,
+                             restart_after_loss=True)
+    pieces = [p for p in res.diagnostics["pieces"] if p["tracked"]]
+    assert [p["frames"] for p in pieces] == [[0, 29], [42, 71]]
+    assert [(b["before"], b["after"]) for b in res.diagnostics["scale_watch"]["breaks"]
+            if b["kind"] == "lost"] == [(29, 42)]
+    assert not np.isfinite(res.poses[30:42]).any() and np.isfinite(res.poses[:30]).all()
+    for a, b in ((0, 30), (42, 72)):
+        ate = ate_rmse(res.poses[a:b], truth[a:b], "sim3")["rmse"]
+        assert ate <= 0.02 * path_length(truth[a:b]), (a, ate)
+    assert res.keyframes.min() == 0 and res.keyframes.max() >= 42 and len(res.keyframe_depth) == len(res.keyframes)
+    assert [r.getMessage() for r in caplog.records if "no pose" in r.getMessage()] == [
+        "frames 30-41 get no pose: tracking, started again after the camera was lost, lost it again within 22 frames"]
+    gate = gate_trajectory(res)
+    assert gate.keep[:30].all() and not gate.keep[30:42].any() and gate.keep[42:].all()
+
+
 def _stream(seq, prior, intrinsics, config=None):
     """StreamingFrontend fed the room frame by frame: (the front end, what add returned per
     frame, the result of finish with the frames read back from seq.rgb)."""

@@ -5,7 +5,7 @@ short run is not called a break."""
 import numpy as np
 import pytest
 
-from recon.poses.scale_watch import ScaleWatchConfig, keyframe_log_ratios, log_noise, watch_scale
+from recon.poses.scale_watch import ScaleWatchConfig, keyframe_log_ratios, log_noise, smooth_log_ratio, watch_scale
 
 
 def _keyframes(log_scale: np.ndarray, seed: int = 0, noise: float = 0.08, shape=(12, 16)):
@@ -68,6 +68,34 @@ def test_a_small_step_is_no_break_however_clean():
     assert watch.breaks == []
 
 
+def test_a_creep_is_found_as_drift_breaks_where_it_has_crept():
+    """The synthetic walk-through's corridor: no step, but the map shrinks to 0.4 of its
+    scale over 60 keyframes after 20 steady ones. Drift breaks follow the creep, each where the
+    smoothed ratio has moved x1.3 since the last, none in the steady start, so that no stretch
+    between them spans much more than x1.3 of the map's true scale (the whole run: x2.5)."""
+    log_scale = np.r_[np.zeros(20), np.linspace(0, np.log(0.4), 60)]
+    watch = watch_scale(*_keyframes(log_scale, seed=2), np.arange(80))
+    assert len(watch.breaks) >= 2 and all(b.kind == "drift" for b in watch.breaks)
+    assert min(b.after for b in watch.breaks) > 20
+    assert all(0.7 < b.factor < 0.8 for b in watch.breaks)  # 1 / 1.3, give or take a keyframe's creep
+    bounds = [0, *[b.after for b in watch.breaks], 80]
+    spans = [np.exp(np.ptp(log_scale[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
+    assert max(spans) < 1.45
+    assert "creeps x0.7" in watch.describe()
+    # Switched off, the same creep gives no break: the step test alone does not see it.
+    assert watch_scale(*_keyframes(log_scale, seed=2), np.arange(80), ScaleWatchConfig(drift_share=0)).breaks == []
+
+
+def test_the_smoothed_ratio_follows_a_trend_and_averages_the_noise():
+    rng = np.random.default_rng(4)
+    trend = np.linspace(0.0, 0.8, 200)
+    noisy = trend + rng.normal(0, 0.2, 200)
+    noisy[50] += 3.0  # one keyframe whose prior is far off: the Huber weights keep it from pulling
+    smooth = smooth_log_ratio(noisy, 0.2, 0.1)
+    assert np.abs(smooth - trend).max() < 0.12 and np.abs(noisy - trend).std() > 0.2
+    assert smooth_log_ratio(noisy[:1], 0.2, 0.1).tolist() == [noisy[0]]
+
+
 def test_too_few_keyframes_are_not_judged():
     watch = watch_scale(*_keyframes(np.r_[np.zeros(7), np.full(7, np.log(0.3))]), np.arange(14))
     assert not watch.judged and watch.breaks == []
@@ -100,7 +128,7 @@ def test_the_pipeline_says_a_break_in_the_videos_frame_numbers(caplog):
     with caplog.at_level(logging.WARNING, logger="recon"):
         kept, info, _ = gate_estimate(result, video_frames)
     said = [r.getMessage() for r in caplog.records if "scale" in r.getMessage()]
-    assert kept.all() and len(said) == 1 and "between frames 158 and 160" in said[0]
+    assert kept.all() and len(said) == 1 and "by frames 158-160" in said[0]
     assert "scale_watch" not in info["diagnostics"]
     assert info["scale_watch"]["breaks"][0]["after"] == 160 and info["scale_watch"]["frames"][0] == 100
     assert info["scale_watch"]["frame_verdicts"][29:31] == ["ok", "after break 1"]

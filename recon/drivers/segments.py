@@ -18,10 +18,13 @@ log = logging.getLogger(__name__)
 
 def estimator_options(config) -> dict:
     """The pose estimator's options of a run (``config`` its PipelineConfig): the user's
-    ``pose_options`` over what ``on_break`` implies for the front end: "keep" returns a trajectory
+    ``pose_options`` over what ``on_break`` implies for the front end: "segments" tracks again
+    from where the camera was lost, a new piece of the trajectory (``restart_after_loss``,
+    recon.poses.pieces), where the others fall back to SfM; "keep" returns a trajectory
     whatever the front end's motion checks or SfM's scale spread say (``stop_untrusted`` off,
     ``max_scale_spread`` 0)."""
-    implied = {"segments": {}, "stop": {}, "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}
+    implied = {"segments": {"restart_after_loss": True}, "stop": {},
+               "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}
     return {**implied[config.on_break], **config.pose_options}
 
 

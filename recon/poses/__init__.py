@@ -68,6 +68,11 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     try:
         return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg)
     except TrackingLostError as err:
+        if fe_cfg.restart_after_loss and err.lost and (err.frame or 0) >= _min_piece(fe_cfg):
+            try:
+                return _in_pieces(frames, prior_depth, intrinsics, progress, fe_cfg, err)
+            except TrackingLostError:
+                pass  # no piece tracked on its own: as any other loss
         if method == "frontend" or not err.sfm_may_help:
             raise
         # Said once: with progress bars before SfM's (which take a while), else after SfM
@@ -79,12 +84,39 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         except TrackingLostError as sfm_err:
             raise TrackingLostError(f"no camera poses: the front end failed ({err}), and so did the SfM fallback "
                                     f"({sfm_err})", frame=err.frame) from None
-        if not progress:
-            log.warning("front end failed (%s); the poses are from the SfM fallback (pycolmap)", err)
-        result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
+        choice = None
         if err.focal_choice is not None and intrinsics is None:
             # SfM's focal length is one estimate more: said with the range all of them leave open.
             choice = err.focal_choice.with_estimate("SfM bundle adjustment", result.intrinsics[0])
+            why = choice.contradicted()
+            if why and fe_cfg.stop_untrusted:
+                raise TrackingLostError(f"no camera poses: the front end failed ({err}), and the SfM fallback's "
+                                        f"trajectory cannot be trusted: {why}", frame=err.frame)
+        if not progress:
+            log.warning("front end failed (%s); the poses are from the SfM fallback (pycolmap)", err)
+        result.diagnostics["fallback"] = {"from": "frontend", "reason": str(err), "frame": err.frame}
+        if choice is not None:
             result.diagnostics["focal"] = choice.to_dict()
             log.warning(choice.warning(np.asarray(frames[0]).shape[1]))
         return result
+
+
+def _in_pieces(frames, prior_depth, intrinsics, progress: bool, cfg, loss: TrackingLostError) -> PoseResult:
+    """The front end again, a piece at a time from each loss (``recon.poses.pieces``):
+    frames, prior_depth, intrinsics as :func:`estimate_poses` takes them; loss: the first
+    attempt's."""
+    from recon.poses.frontend import estimate_poses_frontend
+    from recon.poses.pieces import track_in_pieces
+
+    def track(first: int, stop: int, intr, k1) -> PoseResult:
+        prior = (prior_depth[first:stop] if not callable(prior_depth)
+                 else (lambda i, frame: prior_depth(first + i, frame)))
+        config = cfg if k1 is None else replace(cfg, lens_k1=float(k1))
+        return estimate_poses_frontend(frames[first:stop], prior, intr, progress=progress, config=config)
+
+    return track_in_pieces(track, len(frames), loss, intrinsics, min_frames=_min_piece(cfg))
+
+
+def _min_piece(cfg) -> int:
+    """The fewest frames a piece of a video tracked in pieces keeps: twice a loss's length."""
+    return 2 * (cfg.max_lost + 1)

@@ -114,14 +114,19 @@ def edge_residuals(
     T_cw: torch.Tensor, disps: torch.Tensor, intr: torch.Tensor, edges: Edges, dtype: torch.dtype | None = None,
     k1: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residual vectors (E, P, 2) = target - projection and validity (E, P), computed in
-    dtype (default: the poses' dtype), the edges undistorted with k1 first."""
+    """Residual vectors (E, P, 2) = target - projection (whitened by ``edges.whiten``) and
+    validity (E, P), computed in dtype (default: the poses' dtype), the edges undistorted
+    with k1 first."""
     dtype = dtype or T_cw.dtype
-    edges = Edges(edges.ii, edges.jj, edges.target.to(dtype), edges.weight, edges.source).undistorted(intr, k1)
+    edges = Edges(edges.ii, edges.jj, edges.target.to(dtype), edges.weight, edges.source,
+                  edges.whiten).undistorted(intr, k1)
     uv, valid = pj.reproject(T_cw.to(dtype), disps.to(dtype), intr.to(dtype), edges.ii, edges.jj,
                              edges.source_pixels(dtype))
     num = len(edges)
     r = (edges.target.to(dtype) - uv).reshape(num, -1, 2)
+    L = edges.whitening(slice(None), dtype)
+    if L is not None:
+        r = (L @ r[..., None])[..., 0]
     return r, valid.reshape(num, -1)
 
 

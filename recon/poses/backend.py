@@ -9,6 +9,7 @@ its poses and its lens term.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -80,7 +81,7 @@ def run_ba(state: TrackState, free_ids: list[int], iters: int, calibrate: bool =
     ids = sorted(set(edges.ii.tolist()) | set(edges.jj.tolist()) | set(free_ids))
     index = torch.full((len(g),), -1, dtype=torch.int64)
     index[ids] = torch.arange(len(ids))
-    local = edges.remap(index)
+    local = replace(edges.remap(index), whiten=g.whitening(ids))
     free = set(free_ids)
     fixed = torch.tensor([i not in free for i in ids])
     if not bool(fixed.any()):

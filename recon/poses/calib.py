@@ -125,7 +125,9 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
         edge_data.append((b, a, *fl.pool_edge(bwd, cb, factor, cfg.flow)))
     ii = torch.tensor([e[0] for e in edge_data])
     jj = torch.tensor([e[1] for e in edge_data])
-    edges = ba.Edges(ii, jj, torch.stack([e[2] for e in edge_data]), torch.stack([e[3] for e in edge_data]))
+    whiten = [fl.flow_whitening(grays[k], factor, cfg.flow) for k in kfs]
+    edges = ba.Edges(ii, jj, torch.stack([e[2] for e in edge_data]), torch.stack([e[3] for e in edge_data]),
+                     whiten=None if whiten[0] is None else torch.stack(whiten))
     priors = [disp_from_depth(pool_depth(prior.get(k, frames[k]), ba_geo.ba_shape), cfg.prior_weight) for k in kfs]
     disp0 = torch.stack([p[0] for p in priors])
     pw = torch.stack([p[1] for p in priors])
@@ -140,7 +142,8 @@ def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendCo
             sel = (edges.ii == k - 1) & (edges.jj == k)
             e = edges.select(sel)
             Tk, _, _ = motion_only.align_frames(T[k - 1 : k], T[k - 1 : k], disp0[k - 1 : k], intr,
-                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight, k1=k1)
+                                       torch.zeros(1, dtype=torch.int64), e.target, e.weight, k1=k1,
+                                       whiten=None if e.whiten is None else e.whiten[k - 1 : k])
             T[k] = Tk[0]
         T, D, _ = ba.bundle_adjust(T, disp0.clone(), intr, edges, disp0, pw, None, opts, k1=k1)
         return ba.total_cost(T, D, intr, edges, disp0, pw, score_opts, k1=k1)

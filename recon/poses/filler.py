@@ -86,6 +86,14 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     init_of = init_of or (lambda i, p, n: interpolated_pose(i, p, n, kf_frames, T_kf))
     results = {}
     K = len(kf_frames)
+    # The keyframes' residual factors (flow.flow_whitening), made once each as needed.
+    factors: dict[int, torch.Tensor | None] = {}
+
+    def whitening(k: int) -> torch.Tensor | None:
+        if k not in factors:
+            factors[k] = fl.flow_whitening(kf_gray[k], 2, cfg.flow)
+        return factors[k]
+
     for start in tqdm(range(0, len(jobs), cfg.align_chunk), desc="aligning frames", unit="batch",
                       disable=not progress, leave=False):
         chunk = jobs[start : start + cfg.align_chunk]
@@ -121,8 +129,10 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             continue
         kt, ft = torch.tensor(kfs), torch.tensor(frame_idx)
         wt = torch.stack(weights).double()
+        whiten = [whitening(k) for k in kfs]
         T, _, inl = motion_only.align_frames(torch.stack(T_init), T_kf[kt], disp_kf[kt], intr, ft,
-                                    torch.stack(targets).double(), wt, huber=1.0, k1=k1)
+                                    torch.stack(targets).double(), wt, huber=1.0, k1=k1,
+                                    whiten=None if whiten[0] is None else torch.stack(whiten))
         ratio = np.full(len(chunk), np.nan)
         if prior_of is not None:
             disp_w = [prior_of(i) for i in chunk]

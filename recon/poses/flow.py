@@ -8,7 +8,9 @@ This module owns everything between images and BA targets:
   predicted flow, which is what makes long-baseline proximity edges work);
 * ``fb_confidence``: how well the backward flow returns to the start pixel;
 * ``photo_confidence``: whether the pixels the flow joins look alike;
-* ``pool_edge``: flow-resolution flow + confidence -> BA-resolution targets + weights.
+* ``pool_edge``: flow-resolution flow + confidence -> BA-resolution targets + weights;
+* ``flow_whitening``: which directions of the flow an image's texture measures (the
+  aperture problem), as the factor the BA whitens its residuals with.
 
 Coordinates: flows are (H, W, 2) = (du, dv) in pixels of the grid they were computed on;
 BA targets are absolute (u, v) pixel coordinates on the BA grid of the target image.
@@ -44,6 +46,16 @@ class FlowConfig:
         agreement alone trusts a flow that is zero both ways, which is what DIS returns
         between unrelated images (a cut, a blurred or corrupt frame); the images then
         disagree. Wide enough for exposure changes and blur between neighbouring frames.
+    anisotropic: weigh each flow vector by the direction its image's texture measures it
+        in (``flow_whitening``) instead of the same in every direction. Along a straight
+        edge or over plain shading only the flow across the edge is measured; what DIS
+        returns along it is the aperture problem's guess, and it is biased short: on the
+        synthetic walk-through's plain corridor, seeded with the true flow, DIS returned
+        0.46-0.57 of it (confidence-weighted), 0.91-0.99 once each vector is weighed by
+        its image's structure tensor, with forward-backward and photometric agreement as
+        high either way. The bias shrank the corridor's trajectory to half its length.
+    texture_floor: grey levels per pixel (squared, the structure tensor's units): texture
+        weaker than this counts as plain (its flow is weighted down in every direction).
     """
 
     finest_scale: int = 0
@@ -55,6 +67,8 @@ class FlowConfig:
     fb_rel: float = 0.05
     spread_sigma: float = 1.0
     photo_sigma: float = 24.0
+    anisotropic: bool = False
+    texture_floor: float = 1.0
 
 
 _DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
@@ -214,6 +228,41 @@ def pool_edge(flow: np.ndarray, conf: np.ndarray, factor: int, cfg: FlowConfig) 
     v, u = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     target = torch.stack([u, v], -1) + mean[0].permute(1, 2, 0) / k
     return target, weight
+
+
+def structure_tensor(gray: np.ndarray, window: int) -> np.ndarray:
+    """The image's structure tensor (h, w, 3) float32: the mean over a window x window
+    patch of g g^T, g the grey-level gradient (grey levels per pixel) of gray (h, w); the
+    components (xx, xy, yy)."""
+    g = gray.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    return np.stack([cv2.blur(v, (window, window)) for v in (gx * gx, gx * gy, gy * gy)], axis=-1)
+
+
+def flow_whitening(gray: np.ndarray, factor: int, cfg: FlowConfig) -> torch.Tensor | None:
+    """Per BA pixel, the 2 x 2 factor L (h, w, 2, 2) float32 the BA multiplies a flow
+    residual (and its Jacobian) from this image by, so that its squared norm weighs each
+    direction by how well the texture measures the flow in it (Lucas and Kanade's normal
+    matrix: the flow's information is the structure tensor S). With S averaged over DIS's
+    patch and over the k x k flow pixels of a BA pixel (k = factor; gray is the
+    flow-resolution image (h*k, w*k)), L^T L = S / (trace(S) / 2 + ``texture_floor``):
+    about the identity on texture, weight 2 across and 0 along a straight edge, about 0 on
+    a plain surface. None when ``cfg.anisotropic`` is off."""
+    if not cfg.anisotropic:
+        return None
+    tensor = torch.from_numpy(structure_tensor(gray, cfg.patch_size)).permute(2, 0, 1)[None].double()
+    k = int(factor)
+    h, w = tensor.shape[-2] // k, tensor.shape[-1] // k
+    xx, xy, yy = F.avg_pool2d(tensor[..., : h * k, : w * k], k)[0]
+    scale = 0.5 * (xx + yy) + cfg.texture_floor
+    xx, xy, yy = xx / scale, xy / scale, yy / scale
+    # The symmetric square root of a 2 x 2 positive semi-definite matrix in closed form:
+    # sqrt(N) = (N + sqrt(det N) I) / sqrt(trace N + 2 sqrt(det N)).
+    root_det = (xx * yy - xy * xy).clamp(min=0).sqrt()
+    t = (xx + yy + 2 * root_det).clamp(min=1e-12).sqrt()
+    rows = torch.stack([torch.stack([xx + root_det, xy], -1), torch.stack([xy, yy + root_det], -1)], -2)
+    return (rows / t[..., None, None]).float()
 
 
 def mean_magnitude(flow: np.ndarray, conf: np.ndarray | None = None) -> float:

@@ -214,7 +214,7 @@ class StreamingFrontend:
         if s.lost_run and len(s.lost_run) > self.cfg.max_lost // 2 and s.lost_run[-1] == last:
             first = s.lost_run[0]
             raise TrackingLostError(f"tracking lost at frame {first} and not recovered before the end of the video",
-                                    frame=first)
+                                    frame=first, lost=True)
 
     def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool) -> PoseResult:
         s, n = self.state, self.count

@@ -92,6 +92,11 @@ class FrontendConfig:
         minimum was not bracketed (``focal_choice.FocalChoice.found``), say the trajectory
         cannot be trusted; off: return it, the verdicts in ``diagnostics["motion_checks"]``
         (``--on-break keep``).
+    restart_after_loss: where the camera is lost in the middle of the video (after at least
+        2 (max_lost + 1) tracked frames), track again from the first lost frame as a new
+        piece, with the first piece's camera (``recon.poses.pieces``), instead of falling
+        back to SfM; the pieces come back as one estimate whose scale watch has a "lost"
+        break at each restart. The pipeline turns it on with ``--on-break segments``.
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -145,6 +150,7 @@ class FrontendConfig:
     vanishing_min_share: float = 0.5
     join_scale_breaks: bool = False
     stop_untrusted: bool = True
+    restart_after_loss: bool = False
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25

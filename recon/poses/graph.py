@@ -50,6 +50,7 @@ class FrameGraph:
         self._disp: list[torch.Tensor] = []
         self._prior: list[torch.Tensor] = []
         self._prior_w: list[torch.Tensor] = []
+        self._whiten: list[torch.Tensor | None] = []
         self.edges: dict[tuple[int, int], EdgeData] = {}
 
     # ------------------------------------------------------------------ keyframes
@@ -58,9 +59,11 @@ class FrameGraph:
         return len(self.frames)
 
     def add_keyframe(self, frame: int, gray: np.ndarray, T_cw: torch.Tensor, disp: torch.Tensor,
-                     prior: torch.Tensor, prior_w: torch.Tensor) -> int:
-        """Append a keyframe; returns its id."""
+                     prior: torch.Tensor, prior_w: torch.Tensor, whiten: torch.Tensor | None = None) -> int:
+        """Append a keyframe; returns its id. whiten: (h, w, 2, 2) the factor of residuals
+        of edges from it (``flow.flow_whitening``), or None."""
         self.frames.append(int(frame))
+        self._whiten.append(whiten)
         self.gray.append(gray)
         self._T.append(T_cw.clone())
         self._disp.append(disp.clone())
@@ -80,6 +83,13 @@ class FrameGraph:
     def priors(self, ids=None) -> tuple[torch.Tensor, torch.Tensor]:
         ids = range(len(self)) if ids is None else ids
         return torch.stack([self._prior[i] for i in ids]), torch.stack([self._prior_w[i] for i in ids])
+
+    def whitening(self, ids=None) -> torch.Tensor | None:
+        """(K, h, w, 2, 2) the keyframes' residual factors (``ba.Edges.whiten``), None
+        when they have none."""
+        ids = range(len(self)) if ids is None else ids
+        factors = [self._whiten[i] for i in ids]
+        return None if any(f is None for f in factors) else torch.stack(factors)
 
     def set_state(self, ids, T_cw: torch.Tensor, disps: torch.Tensor) -> None:
         for n, i in enumerate(ids):

@@ -18,7 +18,7 @@ import torch
 from recon.geometry import lie
 from recon.geometry import projective as pj
 from recon.poses.ba import Edges
-from recon.poses.normal_equations import huber_weights, pixel_sums
+from recon.poses.normal_equations import huber_weights, pixel_sums, whitened
 
 
 def align_frames(
@@ -32,13 +32,15 @@ def align_frames(
     iters: int = 8,
     huber: float = 1.0,
     k1: float = 0.0,
+    whiten: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Motion-only Gauss-Newton: world-to-camera poses of M frames against fixed keyframes.
 
     T_init: (M, 4, 4) initial poses of the frames; for each of L measurements:
     T_kf (L, 4, 4) the keyframe's pose, disp_kf (L, H, W) its inverse depth, frame (L,)
     which of the M frames it observes, target (L, H, W, 2) where the keyframe's pixels
-    land in that frame (recorded pixels), weight (L, H, W); k1 the lens' radial term.
+    land in that frame (recorded pixels), weight (L, H, W); k1 the lens' radial term;
+    whiten (L, H, W, 2, 2) the keyframe's residual factors (``ba.Edges.whiten``) or None.
     Returns poses (M, 4, 4), the weighted RMS
     residual (M,) in BA pixels and the fraction (M,) of confidence weight within `huber`.
     """
@@ -47,6 +49,7 @@ def align_frames(
     height, width = disp_kf.shape[-2:]
     P = height * width
     pinhole = Edges(frame, frame, target, weight).undistorted(intr, k1)
+    Lw = None if whiten is None else whiten.reshape(L, P, 2, 2).to(T_init.dtype)
     uv = pinhole.source_pixels(T_init.dtype).reshape(1, P, 2)
     Xk = pj.backproject(uv, disp_kf.reshape(L, P), intr)
     Xk_planes = Xk.transpose(1, 2)
@@ -59,7 +62,7 @@ def align_frames(
     for _ in range(iters):
         Tkf_to_f = T[frame] @ lie.inv(T_kf)
         proj, valid, Jf, _ = pj.reproject_with_jacobians(Tkf_to_f, Xk_planes, intr)
-        r = tgt_planes - proj
+        r, Jf = whitened(Lw, tgt_planes - proj, Jf)
         wgt = w0 * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), huber)
         JtJ, Jtr = pixel_sums(Jf, wgt, r)
         H = torch.zeros(M, 6, 6, **on).index_add_(0, frame, JtJ)
@@ -70,7 +73,12 @@ def align_frames(
         if float(dx.abs().max()) < 1e-7:
             break
     proj, valid = pj.project(pj.transform(T[frame] @ lie.inv(T_kf), Xk), intr)
-    rn = (tgt - proj).norm(dim=-1)
+    res = tgt - proj
+    rn = (res if Lw is None else (Lw @ res[..., None])[..., 0]).norm(dim=-1)
+    if Lw is not None:
+        # A plain pixel's whitened residual is about 0 whatever its flow: the statistics
+        # count each pixel by how much its texture measures (trace(L^T L) / 2, 1 on texture).
+        w0 = w0 * 0.5 * Lw.square().sum(dim=(-2, -1))
     wv = w0 * valid
     num = torch.zeros(M, **on).index_add_(0, frame, (wv * rn.clamp(max=10 * huber) ** 2).sum(1))
     den = torch.zeros(M, **on).index_add_(0, frame, wv.sum(1))

@@ -44,6 +44,9 @@ class Edges:
     source: (H, W, 2) coordinates of the BA pixels themselves, shared by all keyframes (one
         camera); None for the pixel grid. Set by :meth:`undistorted`, which moves both
         ends into the pinhole image of a lens.
+    whiten: (K, H, W, 2, 2) per keyframe and BA pixel, the factor L every residual from
+        that keyframe (and its Jacobian) is multiplied by (``flow.flow_whitening``: its
+        texture's information about the flow, L^T L), indexed by ii; None: the identity.
     """
 
     ii: torch.Tensor
@@ -51,6 +54,7 @@ class Edges:
     target: torch.Tensor
     weight: torch.Tensor
     source: torch.Tensor | None = None
+    whiten: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.ii.numel())
@@ -64,14 +68,29 @@ class Edges:
 
     def to(self, device: torch.device | str) -> "Edges":
         source = None if self.source is None else self.source.to(device)
-        return Edges(self.ii.to(device), self.jj.to(device), self.target.to(device), self.weight.to(device), source)
+        whiten = None if self.whiten is None else self.whiten.to(device)
+        return Edges(self.ii.to(device), self.jj.to(device), self.target.to(device), self.weight.to(device), source,
+                     whiten)
 
     def select(self, mask: torch.Tensor | slice) -> "Edges":
-        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask], self.source)
+        return Edges(self.ii[mask], self.jj[mask], self.target[mask], self.weight[mask], self.source, self.whiten)
 
     def remap(self, index: torch.Tensor) -> "Edges":
-        """The same edges with keyframe ids replaced by index[id] (e.g. global -> window)."""
-        return Edges(index[self.ii], index[self.jj], self.target, self.weight, self.source)
+        """The same edges with keyframe ids replaced by index[id] (e.g. global -> window);
+        the whitening goes with its keyframes."""
+        whiten = self.whiten
+        if whiten is not None:
+            kept = torch.nonzero(index >= 0).squeeze(1)
+            whiten = whiten.new_zeros(int(index.max()) + 1, *whiten.shape[1:])
+            whiten[index[kept]] = self.whiten[kept]
+        return Edges(index[self.ii], index[self.jj], self.target, self.weight, self.source, whiten)
+
+    def whitening(self, index: slice | torch.Tensor, dtype: torch.dtype) -> torch.Tensor | None:
+        """The factors (n, P, 2, 2) of the edges `index` in dtype (None: no whitening)."""
+        if self.whiten is None:
+            return None
+        ii = self.ii[index]
+        return self.whiten[ii].reshape(ii.numel(), -1, 2, 2).to(dtype)
 
     def undistorted(self, intr: torch.Tensor, k1: float) -> "Edges":
         """The same measurements in the pinhole image of a lens with radial term k1 (edges
@@ -90,7 +109,19 @@ class Edges:
         target = torch.empty_like(self.target)
         for sl in chunks(len(self), height * width):
             target[sl] = pj.undistort(self.target[sl].double(), intr, k1)[0]
-        return Edges(self.ii, self.jj, target, self.weight, pj.undistort(grid, intr, k1)[0])
+        return Edges(self.ii, self.jj, target, self.weight, pj.undistort(grid, intr, k1)[0], self.whiten)
+
+
+def whitened(L: torch.Tensor | None, *planes: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Residual or Jacobian planes (n, 2, ..., P) multiplied pixel by pixel by the 2 x 2
+    factors L (n, P, 2, 2) (``Edges.whiten``); unchanged when L is None."""
+    if L is None:
+        return planes
+    out = []
+    for x in planes:
+        flat = x.reshape(x.shape[0], 2, -1, x.shape[-1])
+        out.append(torch.einsum("npab,nbcp->nacp", L, flat).reshape(x.shape))
+    return tuple(out)
 
 
 def huber_weights(r_norm: torch.Tensor, delta: float) -> torch.Tensor:
@@ -164,6 +195,10 @@ class Linearisation:
             # k1 moves the source ray and the measured target: d(proj - target) / d k1.
             out["Jk"] = pj.ray_jacobian(Tij, Xj, self.intr, self.duv) - dtarget.transpose(1, 2)
         r = target.transpose(1, 2) - proj
+        L = self.edges.whitening(index, Tij.dtype)
+        r, Jj, Jz = whitened(L, r, Jj, Jz)
+        if "Jk" in out:
+            (out["Jk"],) = whitened(L, out["Jk"])
         weight = self.edges.weight[index].reshape(n, -1).to(Tij.dtype)
         out.update(r=r, Jj=Jj, Jz=Jz, wgt=weight * valid * huber_weights(torch.hypot(r[:, 0], r[:, 1]), self.huber))
         return out

@@ -24,9 +24,12 @@ class TrackingLostError(ReconInputError):
     it specifically and fall back to SfM (``recon.poses.sfm.estimate_poses_sfm``).
     """
 
-    def __init__(self, message: str, frame: int | None = None, sfm_may_help: bool = True):
+    def __init__(self, message: str, frame: int | None = None, sfm_may_help: bool = True, lost: bool = False):
         super().__init__(message)
         self.frame = frame
+        # True where the camera was lost at `frame` (frames before it tracked), rather than a
+        # trajectory refused as a whole: tracking may start again there (recon.poses.pieces).
+        self.lost = lost
         # False where SfM has nothing more to go on (a camera that turns on the spot: no
         # parallax for either method), so that no fallback is tried.
         self.sfm_may_help = sfm_may_help

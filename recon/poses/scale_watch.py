@@ -40,24 +40,35 @@ class ScaleWatchConfig:
     z: how many standard errors the step must exceed (the prior's noise measured on the run
         itself, from keyframe to keyframe);
     min_keyframes: fewer keyframes than this are not judged (too little to tell noise from a
-        step)."""
+        step);
+    drift_share, min_drift: a creep of the map's scale, with no step to find: the ratio is
+        smoothed as a random walk whose step per keyframe is ``drift_share`` of the prior's
+        noise (``smooth_log_ratio``) and a break is called where the smoothed ratio has
+        moved by ``min_drift`` (a factor) since the start of its stretch; 0 turns it off.
+        On the prior's noise alone (simulated, 0.22 a keyframe) the smoothed ratio of 200
+        keyframes spans x1.24 in 99 runs of 100 (x1.14 at 0.05, x1.36 at 0.2)."""
 
     window: int = 8
     min_step: float = 1.25
     z: float = 5.0
     min_keyframes: int = 16
+    drift_share: float = 0.1
+    min_drift: float = 1.3
 
 
 @dataclass(frozen=True)
 class ScaleBreak:
     """A step in the map-to-prior depth ratio: between keyframes ``before`` and ``after``
     (frame indices), the map's depth changes by ``factor`` relative to the prior's (< 1: the
-    map shrinks after it); ``z``: the step in standard errors of the prior's noise."""
+    map shrinks after it); ``z``: the step in standard errors of the prior's noise; ``kind``:
+    "step", "drift" where the ratio crept by ``factor`` since the last break (``find_drifts``), or
+    "lost" where tracking lost the camera and started again (``recon.poses.pieces``; factor 1)."""
 
     before: int
     after: int
     factor: float
     z: float
+    kind: str = "step"
 
 
 @dataclass
@@ -106,14 +117,20 @@ class ScaleWatch:
         """One sentence naming the breaks' frames and factors (empty without breaks)."""
         if not self.breaks:
             return ""
-        steps = ", ".join(f"x{b.factor:.2f} between frames {b.before} and {b.after}" for b in self.breaks[:4])
+        steps = ", ".join(_said(b) for b in self.breaks[:4])
         more = f" and {len(self.breaks) - 4} more" if len(self.breaks) > 4 else ""
-        text = (f"the map's scale against the depth prior's steps {steps}{more}, beyond the prior's own noise "
+        text = (f"the map's scale against the depth prior's {steps}{more}, beyond the prior's own noise "
                 f"({100 * self.noise:.0f} % a keyframe)")
         if self.applied:
             return text + ("; each stretch after a step was brought to the scale of the one before it (by the depth "
                            "prior), so the trajectory is one piece, but its joints are as good as the prior's scale")
         return text + ": the trajectory's stretches on either side are at different scales"
+
+
+def _said(b: ScaleBreak) -> str:
+    if b.kind == "lost":
+        return f"is lost with the camera by frames {b.before}-{b.after} (tracked again from {b.after})"
+    return f"{'creeps' if b.kind == 'drift' else 'steps'} x{b.factor:.2f} by frames {b.before}-{b.after}"
 
 
 def keyframe_log_ratios(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -196,6 +213,68 @@ def stretch_factors(log_ratio: np.ndarray, frames: np.ndarray, breaks: list[Scal
     return [float(np.exp(after - before)) for before, after in zip(medians[:-1], medians[1:])]
 
 
+def smooth_log_ratio(log_ratio: np.ndarray, noise: float, drift: float, huber: float = 2.0,
+                     iters: int = 5) -> np.ndarray:
+    """The map's slow scale drift under the prior's noise: the most likely path x (K,) of a
+    local level model (random walk plus noise; Durbin and Koopman's simplest state-space
+    model), log_ratio_k = x_k + e_k with e ~ N(0, noise^2) and x_k = x_{k-1} + w_k with
+    w ~ N(0, (drift * noise)^2). The smoothed path solves the tridiagonal system
+    (W / noise^2 + D'D / (drift noise)^2) x = W log_ratio / noise^2 (D the first
+    difference), reweighted ``iters`` times with Huber weights W beyond ``huber`` standard
+    deviations, so that a keyframe whose prior is off by much more than the prior's usual
+    noise does not pull its neighbours. drift: the random walk's step per keyframe as a
+    share of the noise (small: a long window; large: follow the ratio closely).
+    log_ratio: (K,) without NaN."""
+    from scipy.linalg import solve_banded
+
+    y = np.asarray(log_ratio, np.float64)
+    K = y.size
+    if K < 2 or not (np.isfinite(noise) and noise > 0 and drift > 0):
+        return np.full(K, np.median(y)) if K else y
+    smooth = 1.0 / drift**2  # D'D / q^2 in units of 1 / noise^2
+    couple = np.full(K, 2 * smooth)
+    couple[[0, -1]] = smooth
+    x = np.full(K, np.median(y))
+    for _ in range(iters):
+        r = np.abs(y - x) / noise
+        w = np.where(r > huber, huber / np.maximum(r, 1e-12), 1.0)
+        bands = np.zeros((3, K))
+        bands[0, 1:] = -smooth
+        bands[1] = w + couple
+        bands[2, :-1] = -smooth
+        x = solve_banded((1, 1), bands, w * y)
+    return x
+
+
+def find_drifts(log_ratio: np.ndarray, frames: np.ndarray, cfg: ScaleWatchConfig, noise: float,
+                steps: list[ScaleBreak]) -> list[ScaleBreak]:
+    """Where the map's scale has crept away from the prior's without a step: within each
+    stretch between the ``steps`` (smoothed on its own, so that a step is not smeared into
+    a creep around it), the ratio smoothed by ``smooth_log_ratio`` is followed from the
+    stretch's start, and a break is called between the keyframe before and the keyframe
+    at which it has moved by ``cfg.min_drift``; it is followed on from there. log_ratio,
+    frames: (K,) as in :func:`watch_scale`, without NaN. The breaks' ``z`` is the creep
+    in the prior's noise per keyframe."""
+    if cfg.drift_share <= 0 or cfg.min_drift <= 1:
+        return []
+    bounds = [0, *[int(np.searchsorted(frames, b.after)) for b in steps], len(frames)]
+    limit = np.log(cfg.min_drift)
+    found = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < 2:
+            continue
+        path = smooth_log_ratio(log_ratio[a:b], noise, cfg.drift_share)
+        anchor = path[0]
+        for k in range(1, b - a):
+            moved = path[k] - anchor
+            if abs(moved) >= limit:
+                found.append(ScaleBreak(before=int(frames[a + k - 1]), after=int(frames[a + k]),
+                                        factor=float(np.exp(-moved)), z=float(abs(moved) / max(noise, 1e-6)),
+                                        kind="drift"))
+                anchor = path[k]
+    return found
+
+
 def watch_scale(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray, frames,
                 cfg: ScaleWatchConfig | None = None) -> ScaleWatch:
     """The scale check of a front-end map (module docstring).
@@ -216,10 +295,11 @@ def watch_scale(map_disp: np.ndarray, prior_disp: np.ndarray, valid: np.ndarray,
     centred = np.exp(-(log_ratio - np.median(log_ratio)))
     watch = ScaleWatch(frames.tolist(), centred.tolist(), noise, judged=log_ratio.size >= cfg.min_keyframes)
     if watch.judged:
-        watch.breaks = find_breaks(log_ratio, frames, cfg, noise)
+        steps = find_breaks(log_ratio, frames, cfg, noise)
+        watch.breaks = sorted(steps + find_drifts(log_ratio, frames, cfg, noise, steps), key=lambda b: b.after)
         watch.corrections = stretch_factors(log_ratio, frames, watch.breaks)
     return watch
 
 
-__all__ = ["ScaleBreak", "ScaleWatch", "ScaleWatchConfig", "find_breaks", "keyframe_log_ratios", "log_noise",
-           "split_point", "step_statistics", "stretch_factors", "watch_scale"]
+__all__ = ["ScaleBreak", "ScaleWatch", "ScaleWatchConfig", "find_breaks", "find_drifts", "keyframe_log_ratios",
+           "log_noise", "smooth_log_ratio", "split_point", "step_statistics", "stretch_factors", "watch_scale"]

@@ -96,3 +96,8 @@ class TrackState:
     def edge_targets(self, flow: np.ndarray, conf: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """A flow-resolution flow and confidence pooled to a BA target and weight."""
         return fl.pool_edge(flow, conf, self.geo.flow_factor, self.cfg.flow)
+
+    def whitening(self, gray: np.ndarray) -> torch.Tensor | None:
+        """The residual factors (h, w, 2, 2) of edges from a keyframe with flow-resolution
+        grey image gray (``flow.flow_whitening``; None when the flow is weighed isotropically)."""
+        return fl.flow_whitening(gray, self.geo.flow_factor, self.cfg.flow)

@@ -37,7 +37,7 @@ class Tracker:
         s = self.state
         disp, pw = s.prior_disp(index, frame)
         gray = fl.prepare_gray(frame, s.geo.flow_shape)
-        s.graph.add_keyframe(index, gray, torch.eye(4, dtype=torch.float64), disp, disp.clone(), pw)
+        s.graph.add_keyframe(index, gray, torch.eye(4, dtype=torch.float64), disp, disp.clone(), pw, s.whitening(gray))
         if s.cfg.feature_init:
             s.kf_detail[0] = self._detail(frame)
         s.frame_T[index] = torch.eye(4, dtype=torch.float64)
@@ -186,7 +186,7 @@ class Tracker:
         s = self.state
         T, _, inl = motion_only.align_frames(
             T_init[None], s.graph.poses([kf]), s.graph.disps([kf]), s.intr, torch.zeros(1, dtype=torch.int64),
-            target[None].double(), weight[None].double(), huber=1.0, k1=s.k1,
+            target[None].double(), weight[None].double(), huber=1.0, k1=s.k1, whiten=s.graph.whitening([kf]),
         )
         return T[0], float(inl[0])
 
@@ -255,14 +255,14 @@ class Tracker:
                 f"tracking lost at frame {first}: {len(s.lost_run)} consecutive frames could not be aligned to any "
                 f"of the last keyframes ({s.last_failure}); the video may cut, "
                 "blur or move too fast",
-                frame=first,
+                frame=first, lost=True,
             )
 
     def _add_keyframe(self, index, frame, gray, T, ref, flows) -> None:
         s = self.state
         g = s.graph
         disp, pw = s.prior_disp(index, frame)
-        k = g.add_keyframe(index, gray, T, disp, disp.clone(), pw)
+        k = g.add_keyframe(index, gray, T, disp, disp.clone(), pw, s.whitening(gray))
         if s.cfg.feature_init:
             s.kf_detail[k] = self._detail(frame)
         s.refs.pop(index, None)
