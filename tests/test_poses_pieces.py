@@ -86,3 +86,28 @@ def test_only_on_break_segments_tracks_in_pieces():
     assert options("segments") == {"restart_after_loss": True}
     assert "restart_after_loss" not in options("stop") and "restart_after_loss" not in options("keep")
     assert options("segments", restart_after_loss=False)["restart_after_loss"] is False
+
+
+def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, monkeypatch):
+    """The phone's images 35-70: the camera lost at frame 29, the 29 frames before it tracked
+    again on their own and refused (their motion), then SfM: its error says all three."""
+    import recon.poses.frontend as fe
+    import recon.poses.sfm as sfm
+    from recon.poses import estimate_poses
+
+    seq, prior = pose_room
+
+    def frontend(frames, *args, **kwargs):
+        if len(frames) == len(seq.rgb):
+            raise TrackingLostError("tracking lost at frame 29", frame=29, lost=True)
+        raise TrackingLostError("the camera turns on the spot", frame=0, sfm_may_help=False)
+
+    def sfm_fails(*args, **kwargs):
+        raise TrackingLostError("SfM registered only 3 of 36 frames")
+
+    monkeypatch.setattr(fe, "estimate_poses_frontend", frontend)
+    monkeypatch.setattr(sfm, "estimate_poses_sfm", sfm_fails)
+    with pytest.raises(TrackingLostError, match=r"front end failed \(tracking lost at frame 29; the frames before it, "
+                                                r"tracked on their own: the camera turns on the spot\), and so did the "
+                                                r"SfM fallback \(SfM registered only 3"):
+        estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False, restart_after_loss=True)

@@ -71,8 +71,11 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         if fe_cfg.restart_after_loss and err.lost and (err.frame or 0) >= _min_piece(fe_cfg):
             try:
                 return _in_pieces(frames, prior_depth, intrinsics, progress, fe_cfg, err)
-            except TrackingLostError:
-                pass  # no piece tracked on its own: as any other loss
+            except TrackingLostError as refused:
+                # No piece tracked on its own: as any other loss, said with why where the
+                # frames before it, tracked again, were refused rather than lost.
+                if refused is not err:
+                    err.args = (f"{err}; the frames before it, tracked on their own: {refused}",)
         if method == "frontend" or not err.sfm_may_help:
             raise
         # Said once: with progress bars before SfM's (which take a while), else after SfM
