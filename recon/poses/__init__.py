@@ -68,7 +68,7 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     try:
         return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg)
     except TrackingLostError as err:
-        if fe_cfg.restart_after_loss and err.lost and (err.frame or 0) >= _min_piece(fe_cfg):
+        if fe_cfg.restart_after_loss and err.lost:
             try:
                 return _in_pieces(frames, prior_depth, intrinsics, progress, fe_cfg, err)
             except TrackingLostError as refused:
@@ -117,9 +117,6 @@ def _in_pieces(frames, prior_depth, intrinsics, progress: bool, cfg, loss: Track
         config = cfg if k1 is None else replace(cfg, lens_k1=float(k1))
         return estimate_poses_frontend(frames[first:stop], prior, intr, progress=progress, config=config)
 
-    return track_in_pieces(track, len(frames), loss, intrinsics, min_frames=_min_piece(cfg))
-
-
-def _min_piece(cfg) -> int:
-    """The fewest frames a piece of a video tracked in pieces keeps: twice a loss's length."""
-    return 2 * (cfg.max_lost + 1)
+    # A piece keeps at least twice a loss's length of frames (track_in_pieces hands the loss
+    # back when even the first would be shorter).
+    return track_in_pieces(track, len(frames), loss, intrinsics, min_frames=2 * (cfg.max_lost + 1))

@@ -65,7 +65,7 @@ def track_in_pieces(track: Callable[[int, int, tuple | None, float | None], Pose
         try:
             result = track(start, stop, intrinsics, lens)
         except TrackingLostError as err:
-            if not getattr(err, "lost", False) or not err.frame:
+            if not err.lost or not err.frame:
                 if not any(p.result is not None for p in pieces):
                     raise
                 log.warning("frames %d-%d: no trajectory (%s)", start, count - 1, err)
