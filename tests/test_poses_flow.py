@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -34,3 +35,15 @@ def test_flow_whitening_weighs_the_directions_the_texture_measures():
     assert np.median(eig.sum(-1)) == pytest.approx(2.0, abs=0.02) and np.median(eig[..., 0] / eig[..., 1]) > 0.5
     assert float(fl.flow_whitening(np.full((40, 48), 90, np.uint8), 2, cfg).abs().max()) < 1e-6
     assert fl.flow_whitening(texture, 2, fl.FlowConfig()) is None
+
+
+def test_dis_flow_leaves_its_seed_as_it_was():
+    """OpenCV's DIS writes its result into the initial flow it is given; the caller's seed
+    (contiguous float32, as graph.predicted_flow makes them) must not change under it."""
+    rng = np.random.default_rng(0)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, (60, 80)).astype(np.float32), (0, 0), 1.5).astype(np.uint8)
+    b = np.roll(a, 2, axis=1)
+    seed = np.full((60, 80, 2), 0.5, np.float32)
+    out = fl.dis_flow(a, b, fl.FlowConfig(), seed)
+    assert np.all(seed == 0.5)
+    assert np.median(out[..., 0]) == pytest.approx(2.0, abs=0.3)

@@ -106,13 +106,15 @@ def dis_flow(a: np.ndarray, b: np.ndarray, cfg: FlowConfig, init: np.ndarray | N
     """DIS optical flow (h, w, 2) float32 from grey image a (h, w) to b (h, w).
 
     init: optional initial flow (h, w, 2); DIS refines it coarse to fine, so a good
-    prediction lets it find motions far beyond its search range.
+    prediction lets it find motions far beyond its search range. It is left as it was:
+    OpenCV writes the flow into the array it is given, which would be the caller's own
+    when that is already contiguous float32.
     """
-    flow = None if init is None else np.ascontiguousarray(init, dtype=np.float32)
+    flow = None if init is None else np.array(init, dtype=np.float32, order="C", copy=True)
     return _dis(cfg, a.shape[:2], flow is not None).calc(a, b, flow)
 
 
-def _sample_along(image: np.ndarray, flow: np.ndarray, **border) -> np.ndarray:
+def sample_along(image: np.ndarray, flow: np.ndarray, **border) -> np.ndarray:
     """image (h, w[, c]) float32 sampled bilinearly at ``p + flow(p)`` (flow (h, w, 2))."""
     h, w = flow.shape[:2]
     coords = np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0).astype(np.float32) + flow
@@ -121,7 +123,7 @@ def _sample_along(image: np.ndarray, flow: np.ndarray, **border) -> np.ndarray:
 
 def warp_flow(flow: np.ndarray, by: np.ndarray) -> np.ndarray:
     """flow (h, w, 2) sampled bilinearly at ``p + by(p)`` (by (h, w, 2)); outside -> NaN."""
-    return _sample_along(flow, by, borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan))
+    return sample_along(flow, by, borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan))
 
 
 def fb_confidence(fwd: np.ndarray, bwd: np.ndarray, cfg: FlowConfig) -> np.ndarray:
@@ -148,7 +150,7 @@ def photo_confidence(a: np.ndarray, b: np.ndarray, flow: np.ndarray, cfg: FlowCo
 
 def _matched(b: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """Grey image b (h, w) sampled where flow (h, w, 2) sends each pixel, float32."""
-    return _sample_along(b.astype(np.float32), flow, borderMode=cv2.BORDER_REPLICATE)
+    return sample_along(b.astype(np.float32), flow, borderMode=cv2.BORDER_REPLICATE)
 
 
 def match_correlation(a: np.ndarray, b: np.ndarray, flow: np.ndarray, conf: np.ndarray) -> float:
