@@ -17,8 +17,8 @@ tracks the walk from a later frame (e.g. 210, room B: the fast turn on its own).
 reports the front end's own frame states and, where it has one, its scale watch
 (``diagnostics["scale_watch"]``). Last, the walk tracked as ``recon run`` does it
 (``--on-break segments``: starting again after each loss, ``restart_after_loss``): the
-breaks, how far each lies from the nearest cut, and the fit of each stretch between them
-(``--no-pieces`` skips it).
+breaks, how far each lies from the nearest cut, the fit of each stretch between them and how
+many of its frames the short-flow check marked (``--no-pieces`` skips it).
 
 Writes benchmarks/results/walkthrough_breaks.json and prints tables.
 """
@@ -123,15 +123,17 @@ def in_pieces(walk, prior: np.ndarray) -> dict:
     watch = res.diagnostics.get("scale_watch") or {"breaks": []}
     breaks = [{**b, "to_cut": int(min(abs(b["after"] - c) for c in walk.cuts))} for b in watch["breaks"]]
     bounds = [0, *[b["after"] for b in breaks], walk.num_frames]
+    short = (res.diagnostics.get("motion_checks") or {}).get("short_flow", [])
     stretches = []
     for a, b in zip(bounds[:-1], bounds[1:]):
         posed = np.arange(a, b)[np.isfinite(res.poses[a:b]).all(axis=(1, 2))]
         if len(posed) >= 3:
             names = overlapping(walk.stretches, a, b)
+            marked = sum(max(0, min(b, last + 1) - max(a, first)) for first, last in short)
             stretches.append({"first": a, "stop": b, "posed": len(posed), "stretches": names,
-                              **fit(res.poses[posed], walk.poses[posed])})
+                              "marked_short": int(marked), **fit(res.poses[posed], walk.poses[posed])})
     return {"pose_s": time.perf_counter() - t0, "lost": None, "pieces": res.diagnostics.get("pieces"),
-            "breaks": breaks, "segments": stretches}
+            "breaks": breaks, "short_flow": short, "segments": stretches}
 
 
 def report_pieces(run: dict) -> None:
@@ -143,9 +145,10 @@ def report_pieces(run: dict) -> None:
     print(table(["after frame", "kind", "factor", "frames to the nearest cut"],
                 [[b["after"], b["kind"], f"{b['factor']:.2f}", b["to_cut"]] for b in run["breaks"]]))
     print()
-    print(table(["frames", "posed", "path m", "Sim(3) ATE %", "scale", "stretches"],
-                [[f"{s['first']}-{s['stop'] - 1}", s["posed"], f"{s['path_m']:.2f}", f"{s['ate_pct']:.1f}",
-                  f"{s['scale']:.3f}", s["stretches"]] for s in run["segments"]]))
+    print(table(["frames", "posed", "marked short", "path m", "Sim(3) ATE %", "scale", "stretches"],
+                [[f"{s['first']}-{s['stop'] - 1}", s["posed"], s["marked_short"], f"{s['path_m']:.2f}",
+                  f"{s['ate_pct']:.1f}", f"{s['scale']:.3f}", s["stretches"]] for s in run["segments"]]))
+    print(f"\nFrames the short-flow check marked (recon.poses.normal_flow): {run['short_flow'] or 'none'}")
 
 
 def run(args) -> dict:

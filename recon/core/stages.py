@@ -349,6 +349,8 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         checks = MotionChecks.from_dict(result.diagnostics["motion_checks"])
         info["motion_checks"] = {**checks.renumbered(names).to_dict(),
                                  "frame_verdicts": checks.frame_verdicts(len(names))}
+        if checks.short_flow:
+            log.warning("%s (report.json: poses.motion_checks)", checks.renumbered(names).short_said())
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])

@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler, motion_checks, plumb_line, scale_watch, vanishing
+from recon.poses import ba, backend, filler, motion_checks, normal_flow, plumb_line, scale_watch, vanishing
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
@@ -236,6 +236,8 @@ class StreamingFrontend:
         motion = motion_checks.check_motion(
             g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
+        if self.cfg.check_short_flow:
+            motion = self._short_flow(motion)
         focal_estimated = self._focal_choice is not None
         why = motion.untrusted(focal_estimated=focal_estimated)
         if focal_estimated and not self._focal_choice.found:
@@ -265,6 +267,16 @@ class StreamingFrontend:
                          "motion_checks": motion.to_dict()},
             keyframe_depth=keyframe_depth,
         )
+
+    def _short_flow(self, motion: motion_checks.MotionChecks) -> motion_checks.MotionChecks:
+        """The motion checks with the stretches whose steps the dense flow made short
+        (``normal_flow``). A verdict, not a break: split off at its ends, the walk-through's
+        corridor left a segment beside it 21 % off its path where the whole had been 8.6 %."""
+        g, s, cfg = self.state.graph, self.state, self.cfg.normal_flow
+        num, den, judged = normal_flow.keyframe_slopes(g.poses(), g.disps(), g.gray, s.intr, s.k1, cfg)
+        stretches, largest = normal_flow.short_stretches(num, den, judged, cfg)
+        return replace(motion, short_flow=[[g.frames[a], g.frames[b + 1]] for a, b in stretches],
+                       short_flow_slope=largest)
 
     def _diagnostics(self, scale: float) -> dict:
         s, n = self.state, self.count

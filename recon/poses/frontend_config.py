@@ -19,6 +19,7 @@ from recon.geometry import projective as pj
 from recon.poses import ba
 from recon.poses import features as ft
 from recon.poses import flow as fl
+from recon.poses import normal_flow as nf
 
 
 @dataclass
@@ -122,7 +123,12 @@ class FrontendConfig:
     feature_init: when flow fails from the prediction, start the frame from the pose that
         ORB matches to the keyframe give by PnP against its depth (``features``), and
         likewise when relocalising against older keyframes.
-    flow, features, ba: the nested settings of DIS flow, ORB features and the BA.
+    check_short_flow: after the global BA, check each pair of consecutive keyframes' steps
+        against the images' gradients (``normal_flow``, its settings ``normal_flow``): a
+        stretch where the dense flow made them short (plain surfaces: the flow's aperture
+        problem) is marked in ``diagnostics["motion_checks"]`` and said by the run.
+    flow, features, ba, normal_flow: the nested settings of DIS flow, ORB features, the BA
+        and the short-flow check.
     """
 
     ba_stride: int = 8
@@ -165,9 +171,11 @@ class FrontendConfig:
     torch_threads: int | None = None
     seed_min_flow: float = 2.0
     feature_init: bool = True
+    check_short_flow: bool = True
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
     features: ft.FeatureConfig = field(default_factory=ft.FeatureConfig)
     ba: ba.BAOptions = field(default_factory=ba.BAOptions)
+    normal_flow: nf.NormalFlowConfig = field(default_factory=nf.NormalFlowConfig)
 
     def on_device(self, device: str) -> "FrontendConfig":
         """The same settings with the bundle adjustment on ``device`` (the rest runs on the CPU)."""

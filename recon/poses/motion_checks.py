@@ -75,6 +75,8 @@ class MotionChecks:
     turns_on_the_spot: bool = False
     lens_k1: float | None = None
     lens_at_bound: bool = False
+    short_flow: list[list[int]] = field(default_factory=list)
+    short_flow_slope: float = float("nan")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -87,16 +89,29 @@ class MotionChecks:
         """The same with frame positions replaced by names[i] (the video's frame numbers)."""
         return MotionChecks([[int(names[a]), int(names[b])] for a, b in self.rotation_only], self.translation_share,
                             [int(names[i]) for i in self.large_motion], self.median_step_share, self.moves_too_fast,
-                            self.turns_on_the_spot, self.lens_k1, self.lens_at_bound)
+                            self.turns_on_the_spot, self.lens_k1, self.lens_at_bound,
+                            [[int(names[a]), int(names[b])] for a, b in self.short_flow], self.short_flow_slope)
 
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or what is wrong with its motion."""
         verdict = ["ok"] * count
         for i in self.large_motion:
             verdict[i] = "large motion"
+        for a, b in self.short_flow:
+            verdict[a:b + 1] = ["flow short"] * (b + 1 - a)
         for a, b in self.rotation_only:
             verdict[a:b + 1] = ["rotation only"] * (b + 1 - a)
         return verdict
+
+    def short_said(self) -> str:
+        """One sentence on the stretches whose steps the dense flow made short (empty: none)."""
+        if not self.short_flow:
+            return ""
+        spans = ", ".join(f"{a}-{b}" for a, b in self.short_flow[:4])
+        return (f"frames {spans}: the dense flow made the camera's steps short; the images' edges say they are up "
+                f"to x{self.short_flow_slope:.2f} longer (plain surfaces, where the flow sees only across edges), "
+                "so the trajectory there is shorter than the camera's path and the mesh fused from it is squeezed "
+                "along it")
 
     def untrusted(self, focal_estimated: bool = True) -> list[str]:
         """Why the trajectory as a whole is not to be trusted, one clause each (empty: nothing).

@@ -128,6 +128,9 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
                            watch.corrections + [1.0] + piece_watch.corrections, watch.applied and piece_watch.applied)
         checks = replace(checks, rotation_only=checks.rotation_only + piece_checks.rotation_only,
                          large_motion=checks.large_motion + piece_checks.large_motion,
+                         short_flow=checks.short_flow + piece_checks.short_flow,
+                         short_flow_slope=max(checks.short_flow_slope, piece_checks.short_flow_slope,
+                                              key=lambda v: -np.inf if np.isnan(v) else v),
                          moves_too_fast=checks.moves_too_fast or piece_checks.moves_too_fast,
                          turns_on_the_spot=checks.turns_on_the_spot or piece_checks.turns_on_the_spot)
     untracked = [i for p in pieces if p.result is None for i in range(p.first, p.stop)]
