@@ -57,7 +57,7 @@ from .core.stages import budget_capacity, given_intrinsics, plan_poses, select_f
 from .drivers.oneshot import PipelineResult, run_oneshot
 from .drivers.result import RunResult
 from .drivers.streamed import StreamResult, run_streamed
-from .io.output_folder import UNFINISHED, OutputFolder, mark_finished, mark_unfinished
+from .io.output_folder import UNFINISHED, OutputFolder, mark_finished, mark_unfinished, stale_results
 from .memory import release_memory
 from .poses import TrackingLostError
 
@@ -155,7 +155,7 @@ def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
     if why is not None:
         say(why)
         try:
-            return run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say)
+            return _said_stale(out, run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say))
         except TrackingLostError as err:
             if not (_streamed_as_video(config, source, pose_plan) and config.pose_method == "auto"
                     and err.sfm_may_help):
@@ -167,7 +167,16 @@ def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
         # reference cycles through the exception's frames: freed before the one-shot run
         # holds every frame (Record3D 0-79: 3.06 GB without this).
         release_memory(force=True)
-    return run_oneshot(config, source, out, pose_plan, (intrinsics, intrinsics_from), say, timer)
+    return _said_stale(out, run_oneshot(config, source, out, pose_plan, (intrinsics, intrinsics_from), say, timer))
+
+
+def _said_stale(out: OutputFolder, result: RunResult) -> RunResult:
+    """The result, after a warning naming what an earlier run left in the folder (``--overwrite``)."""
+    stale = stale_results(out.path, [p.output.name for p in result.segments])
+    if stale:
+        log.warning("%s: %s left by an earlier run, not part of this one (report.json lists what this run "
+                    "wrote); remove them, or write to an empty folder", out.path, ", ".join(stale))
+    return result
 
 
 def format_summary(result: RunResult) -> str:

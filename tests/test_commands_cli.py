@@ -691,6 +691,26 @@ def test_a_run_that_dies_leaves_a_folder_that_says_so(demo, tmp_path, capsys, mo
     assert not (folder / "UNFINISHED.txt").exists()
 
 
+def test_overwrite_names_what_an_earlier_run_left_and_keeps_it(demo, tmp_path, capsys):
+    """A run with --overwrite into a folder that holds an earlier run's segment folder: the
+    run writes its single reconstruction, says the segment folder is not part of it, and
+    leaves it where it was (other files are never deleted)."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    folder = tmp_path / "run"
+    (folder / "segment_03").mkdir(parents=True)
+    (folder / "segment_03" / "report.json").write_text("{}")
+    args = ["run", str(out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
+            str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
+            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
+            "--refine", "none", "--quiet", "--rerun", "off", "--overwrite"]
+    capsys.readouterr()
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "segment_03 left by an earlier run, not part of this one" in err
+    assert (folder / "segment_03" / "report.json").is_file() and (folder / "mesh.ply").is_file()
+
+
 @pytest.mark.parametrize("output", ["/proc/recon_out", "/proc/self/status/out"])
 def test_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys, output):
     """/proc cannot hold a folder (mkdir fails) and a file cannot hold one either: the one-line

@@ -79,3 +79,16 @@ def test_atomic_writes(tmp_path):
     assert no_temp_files(out.path)
     with pytest.raises(ValueError):
         out.path_for("../escape.txt")
+
+
+def test_stale_results_name_what_this_run_did_not_write(tmp_path):
+    from recon.io.output_folder import stale_results
+
+    for name in ("segment_00", "segment_01", "segment_02", "segment_notes"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "mesh.ply").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("the user's")
+    # A single reconstruction: every segment folder is an earlier run's, its own mesh is not.
+    assert stale_results(tmp_path, []) == ["segment_00", "segment_01", "segment_02"]
+    # Two segments: the third, and the top-level mesh of an earlier single run.
+    assert stale_results(tmp_path, ["segment_00", "segment_01"]) == ["mesh.ply", "segment_02"]

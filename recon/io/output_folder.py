@@ -10,7 +10,10 @@ written is lost:
 * :class:`OutputFolder` refuses an existing non-empty folder unless ``overwrite=True``;
   with it, files of the same name are replaced and other files are left alone;
 * :func:`atomic_path` and :func:`atomic_write_bytes` refuse to replace an existing file
-  unless ``overwrite=True``.
+  unless ``overwrite=True``;
+* what an earlier run left that this one did not write is named (:func:`stale_results`),
+  not deleted: a run written as segments beside an earlier single one, or fewer segments
+  than before, would otherwise look like one result.
 
 Layout (written by :func:`recon.export.export_reconstruction` and the pipeline)::
 
@@ -238,6 +241,20 @@ class OutputFolder:
 
     def __repr__(self) -> str:
         return f"OutputFolder({str(self.path)!r}, overwrite={self.overwrite})"
+
+
+def stale_results(folder, segments: list[str]) -> list[str]:
+    """Results in a run's output folder that this run did not write (sorted names): segment
+    folders (``segment_NN``) other than `segments`, this run's (empty for a single
+    reconstruction), and, for a run written as segments, a single reconstruction's
+    top-level mesh, trajectory and depth."""
+    folder = Path(folder)
+    mine = set(segments)
+    stale = [p.name for p in folder.glob("segment_*") if p.is_dir() and p.name[8:].isdigit() and p.name not in mine]
+    if segments:
+        stale += [name for name in (MESH_PLY, MESH_GLB, TRAJECTORY, INTRINSICS_JSON, DEPTH_DIR)
+                  if (folder / name).exists()]
+    return sorted(stale)
 
 
 # --------------------------------------------------------------------------- file formats
