@@ -347,10 +347,10 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
             log.warning("%s (report.json: poses.scale_watch)", named.describe())
     if "motion_checks" in result.diagnostics:
         checks = MotionChecks.from_dict(result.diagnostics["motion_checks"])
-        info["motion_checks"] = {**checks.renumbered(names).to_dict(),
-                                 "frame_verdicts": checks.frame_verdicts(len(names))}
+        named_checks = checks.renumbered(names)
+        info["motion_checks"] = {**named_checks.to_dict(), "frame_verdicts": checks.frame_verdicts(len(names))}
         if checks.short_flow:
-            log.warning("%s (report.json: poses.motion_checks)", checks.renumbered(names).short_said())
+            log.warning("%s (report.json: poses.motion_checks)", named_checks.short_said())
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])

@@ -41,7 +41,7 @@ from ..errors import ReconInputError
 from ..export import export_reconstruction
 from ..fusion import FusionOptions
 from ..geometry.lens import worth_undistorting
-from ..io.output_folder import REPORT_JSON, OutputFolder
+from ..io.output_folder import REPORT_JSON, OutputFolder, segment_name
 from ..io.source import FrameSource
 from ..memory import release_memory
 from .recording import open_recording
@@ -220,7 +220,7 @@ def _run_segments(out: OutputFolder, seq: Sequence, stretch: np.ndarray, pose_st
             log.warning("%d frame(s) of stretch %d of the trajectory are left out: too few to reconstruct",
                         len(mine), k)
             continue
-        name = f"segment_{len(pieces):02d}"
+        name = segment_name(len(pieces))
         piece = seq.take(mine)
         say(f"{name}: frames {int(piece.indices[0])}-{int(piece.indices[-1])}")
         pieces.append(reconstruct(piece, OutputFolder(out.path / name, overwrite=True)))

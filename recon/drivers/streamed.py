@@ -38,7 +38,7 @@ from ..core.stages import PosePlan, shutter_summary, window_frames
 from ..errors import ReconInputError
 from ..geometry.rolling_shutter import angular_velocity
 from ..io.frame_store import FrameStore
-from ..io.output_folder import DEPTH_DIR, REPORT_JSON, OutputFolder
+from ..io.output_folder import DEPTH_DIR, REPORT_JSON, OutputFolder, segment_name
 from ..io.source import FrameSource
 from .recording import open_recording
 from .result import RunResult
@@ -141,7 +141,7 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
             log.warning("frames %d-%d (stretch %d of the trajectory) have fewer than two depth frames and are left "
                         "out", frames[0], frames[-1], k)
             continue
-        name = f"segment_{len(pieces):02d}"
+        name = segment_name(len(pieces))
         say(f"{name}: frames {frames[0]}-{frames[-1]}")
         part = replace(video, poses=np.where(mine[:, None, None], video.poses, np.nan),
                        depth_frame=video.depth_frame & mine)

@@ -33,6 +33,8 @@ Layout (written by :func:`recon.export.export_reconstruction` and the pipeline):
                       ``frames.indices`` are the source frame numbers of the depth maps and
                       poses, ``frames.names`` the depth file stems (default frame_000123)
     eval.json         written by `recon eval`: the scores against a dataset's ground truth
+    segment_NN/       a run whose trajectory's scale broke: one folder of the above per
+                      segment (:func:`segment_name`), report.json listing them
 
 Readers (:func:`load_output` for `recon eval`, the ``read_*`` functions for `recon view`)
 take the same names, so a folder written here reads back without either side spelling one.
@@ -69,6 +71,7 @@ DEPTH_NPY = ".npy"  # float32 metres
 RECORDING = "recording.rrd"
 REPORT_JSON = "report.json"
 EVAL_JSON = "eval.json"
+SEGMENT_PREFIX = "segment_"
 
 DEPTH_PNG_SCALE = 1000.0  # PNG units per metre (millimetres)
 DEPTH_PNG_MAX = 65535
@@ -243,14 +246,20 @@ class OutputFolder:
         return f"OutputFolder({str(self.path)!r}, overwrite={self.overwrite})"
 
 
+def segment_name(k: int) -> str:
+    """The folder of the k-th segment of a run written as segments (``segment_00``, ...)."""
+    return f"{SEGMENT_PREFIX}{k:02d}"
+
+
 def stale_results(folder, segments: list[str]) -> list[str]:
     """Results in a run's output folder that this run did not write (sorted names): segment
-    folders (``segment_NN``) other than `segments`, this run's (empty for a single
+    folders (:func:`segment_name`) other than `segments`, this run's (empty for a single
     reconstruction), and, for a run written as segments, a single reconstruction's
     top-level mesh, trajectory and depth."""
     folder = Path(folder)
     mine = set(segments)
-    stale = [p.name for p in folder.glob("segment_*") if p.is_dir() and p.name[8:].isdigit() and p.name not in mine]
+    stale = [p.name for p in folder.glob(f"{SEGMENT_PREFIX}*")
+             if p.is_dir() and p.name.removeprefix(SEGMENT_PREFIX).isdigit() and p.name not in mine]
     if segments:
         stale += [name for name in (MESH_PLY, MESH_GLB, TRAJECTORY, INTRINSICS_JSON, DEPTH_DIR)
                   if (folder / name).exists()]

@@ -232,13 +232,18 @@ def pool_edge(flow: np.ndarray, conf: np.ndarray, factor: int, cfg: FlowConfig) 
     return target, weight
 
 
+def gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grey-level gradient (gx, gy), each (h, w) float32 in grey levels per pixel, of
+    gray (h, w): Sobel's 3 x 3 kernels normalised."""
+    g = gray.astype(np.float32)
+    return cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0, cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+
+
 def structure_tensor(gray: np.ndarray, window: int) -> np.ndarray:
     """The image's structure tensor (h, w, 3) float32: the mean over a window x window
-    patch of g g^T, g the grey-level gradient (grey levels per pixel) of gray (h, w); the
+    patch of g g^T, g the grey-level gradient (:func:`gradients`) of gray (h, w); the
     components (xx, xy, yy)."""
-    g = gray.astype(np.float32)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    gx, gy = gradients(gray)
     return np.stack([cv2.blur(v, (window, window)) for v in (gx * gx, gx * gy, gy * gy)], axis=-1)
 
 

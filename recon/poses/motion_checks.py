@@ -29,7 +29,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -87,10 +87,20 @@ class MotionChecks:
 
     def renumbered(self, names) -> "MotionChecks":
         """The same with frame positions replaced by names[i] (the video's frame numbers)."""
-        return MotionChecks([[int(names[a]), int(names[b])] for a, b in self.rotation_only], self.translation_share,
-                            [int(names[i]) for i in self.large_motion], self.median_step_share, self.moves_too_fast,
-                            self.turns_on_the_spot, self.lens_k1, self.lens_at_bound,
-                            [[int(names[a]), int(names[b])] for a, b in self.short_flow], self.short_flow_slope)
+        return replace(self, rotation_only=[[int(names[a]), int(names[b])] for a, b in self.rotation_only],
+                       large_motion=[int(names[i]) for i in self.large_motion],
+                       short_flow=[[int(names[a]), int(names[b])] for a, b in self.short_flow])
+
+    def joined(self, later: "MotionChecks") -> "MotionChecks":
+        """The checks of a run followed by those of a later piece of it (``recon.poses.pieces``;
+        frames numbered in the whole video): the frames and stretches of both, a verdict on
+        the whole when either has it, the largest short-flow slope; the run's shares and lens."""
+        return replace(self, rotation_only=self.rotation_only + later.rotation_only,
+                       large_motion=self.large_motion + later.large_motion,
+                       moves_too_fast=self.moves_too_fast or later.moves_too_fast,
+                       turns_on_the_spot=self.turns_on_the_spot or later.turns_on_the_spot,
+                       short_flow=self.short_flow + later.short_flow,
+                       short_flow_slope=float(np.fmax(self.short_flow_slope, later.short_flow_slope)))
 
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or what is wrong with its motion."""

@@ -82,19 +82,19 @@ def _prepared(gray: np.ndarray, cfg: NormalFlowConfig) -> np.ndarray:
     return image
 
 
-def _gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return (cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3) / 8.0, cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
-
-
 def gradient_flow(a: np.ndarray, b: np.ndarray, flow: np.ndarray, cfg: NormalFlowConfig) -> np.ndarray:
     """Flow (h, w, 2) float32 from grey image a (h, w) to b after ``cfg.iters`` Lucas-Kanade
     steps from `flow` (h, w, 2): each pixel moved where the image gradients in its window say
     it went (the symmetric, ESM-like gradient of both images), damped by the texture floor
     and limited to ``cfg.max_step`` in all. Along an edge the gradients say nothing and the
     pixel keeps `flow`'s component."""
-    A, B = _prepared(a, cfg), _prepared(b, cfg)
-    gax, gay = _gradients(A)
-    gbx, gby = _gradients(B)
+    return _steps(_prepared(a, cfg), _prepared(b, cfg), flow, cfg)
+
+
+def _steps(A: np.ndarray, B: np.ndarray, flow: np.ndarray, cfg: NormalFlowConfig) -> np.ndarray:
+    """:func:`gradient_flow` between images already ``_prepared``."""
+    gax, gay = fl.gradients(A)
+    gbx, gby = fl.gradients(B)
     start = np.ascontiguousarray(flow, dtype=np.float32)
     current = start.copy()
     size = (cfg.window, cfg.window)
@@ -126,9 +126,14 @@ def translation_slope(a: np.ndarray, b: np.ndarray, rotation_flow: np.ndarray, t
     one (:func:`gradient_flow` from the induced flow, less its rotation part rotation_flow)
     and S a's structure tensor (``flow.structure_tensor`` over the window); valid (h, w):
     the pixels that land in b in front of it. Returned apart so that pairs can be pooled."""
-    induced = rotation_flow + translation_flow
-    measured = gradient_flow(a, b, induced, cfg) - rotation_flow
-    xx, xy, yy = np.moveaxis(fl.structure_tensor(_prepared(a, cfg), cfg.window), -1, 0)
+    return _slope(_prepared(a, cfg), _prepared(b, cfg), rotation_flow, translation_flow, valid, cfg)
+
+
+def _slope(A: np.ndarray, B: np.ndarray, rotation_flow: np.ndarray, translation_flow: np.ndarray,
+           valid: np.ndarray, cfg: NormalFlowConfig) -> tuple[float, float]:
+    """:func:`translation_slope` between images already ``_prepared``."""
+    measured = _steps(A, B, rotation_flow + translation_flow, cfg) - rotation_flow
+    xx, xy, yy = np.moveaxis(fl.structure_tensor(A, cfg.window), -1, 0)
     tx, ty = translation_flow[..., 0], translation_flow[..., 1]
     stx, sty = xx * tx + xy * ty, xy * tx + yy * ty  # S t
     w = valid.astype(np.float64)
@@ -188,7 +193,10 @@ def keyframe_slopes(T_cw: torch.Tensor, disps: torch.Tensor, grays: list[np.ndar
     h, w = shape
     at_infinity = torch.zeros_like(disps)
     grid = np.mgrid[0:h, 0:w][::-1].transpose(1, 2, 0)
+    after = _prepared(grays[0], cfg)
     for p in range(K - 1):
+        # Each keyframe prepared once: the second image of one pair is the first of the next.
+        before, after = after, _prepared(grays[p + 1], cfg)
         induced = gr.predicted_flow(T_cw, disps, intr, p, p + 1, shape, k1)
         rotation = gr.predicted_flow(T_cw, at_infinity, intr, p, p + 1, shape, k1)
         translation = induced - rotation
@@ -198,7 +206,7 @@ def keyframe_slopes(T_cw: torch.Tensor, disps: torch.Tensor, grays: list[np.ndar
         if not valid.any():
             continue
         length = float(np.linalg.norm(translation, axis=-1)[valid].mean()) * 640.0 / w
-        num[p], den[p] = translation_slope(grays[p], grays[p + 1], rotation, translation, valid, cfg)
+        num[p], den[p] = _slope(before, after, rotation, translation, valid, cfg)
         judged[p] = length >= cfg.min_flow and den[p] > 0
     return num, den, judged
 

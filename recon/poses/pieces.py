@@ -21,7 +21,7 @@ lost the camera.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -122,17 +122,7 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
             watch, checks = piece_watch, piece_checks
             continue
         restart = ScaleBreak(before=int(tracked[n - 1].stop - 1), after=int(p.first), factor=1.0, z=0.0, kind="lost")
-        watch = ScaleWatch(watch.frames + piece_watch.frames, watch.ratio + piece_watch.ratio,
-                           float(np.nanmax([watch.noise, piece_watch.noise])),
-                           watch.breaks + [restart] + piece_watch.breaks, watch.judged or piece_watch.judged,
-                           watch.corrections + [1.0] + piece_watch.corrections, watch.applied and piece_watch.applied)
-        checks = replace(checks, rotation_only=checks.rotation_only + piece_checks.rotation_only,
-                         large_motion=checks.large_motion + piece_checks.large_motion,
-                         short_flow=checks.short_flow + piece_checks.short_flow,
-                         short_flow_slope=max(checks.short_flow_slope, piece_checks.short_flow_slope,
-                                              key=lambda v: -np.inf if np.isnan(v) else v),
-                         moves_too_fast=checks.moves_too_fast or piece_checks.moves_too_fast,
-                         turns_on_the_spot=checks.turns_on_the_spot or piece_checks.turns_on_the_spot)
+        watch, checks = watch.joined(piece_watch, restart), checks.joined(piece_checks)
     untracked = [i for p in pieces if p.result is None for i in range(p.first, p.stop)]
     diagnostics = {
         **first.diagnostics,

@@ -105,6 +105,14 @@ class ScaleWatch:
                           [replace(b, before=int(names[b.before]), after=int(names[b.after])) for b in self.breaks],
                           self.judged, self.corrections, self.applied)
 
+    def joined(self, later: "ScaleWatch", restart: ScaleBreak) -> "ScaleWatch":
+        """The watch of a run followed by that of a later piece of it, `restart` the break
+        between them (``recon.poses.pieces``; frames numbered in the whole video)."""
+        return ScaleWatch(self.frames + later.frames, self.ratio + later.ratio,
+                          float(np.nanmax([self.noise, later.noise])), self.breaks + [restart] + later.breaks,
+                          self.judged or later.judged, self.corrections + [1.0] + later.corrections,
+                          self.applied and later.applied)
+
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or "after break N" from the first frame
         after break N on (N = 1, 2, ...), so that a viewer or a report can colour the stretches."""
