@@ -301,3 +301,34 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
     frames = np.asarray(written.indices)
     for part in (frames < 18, frames >= 22):  # each side still right in shape
         assert ate_rmse(written.poses[part], seq.poses[frames[part]], "sim3")["rmse"] < 0.03
+
+
+def test_a_streamed_run_starts_again_where_it_loses_the_camera(room_video, tmp_path):
+    """A video streamed (--stream on) that cuts to 12 frames of noise and then walks the room
+    backwards: the streamed front end closes the first piece at the cut and tracks the room
+    again as a second piece (--on-break segments, the default), the noise gets no pose, and
+    the run writes its reconstruction instead of stopping with "tracking lost". Neither piece
+    is tracked twice."""
+    from recon.io.output_folder import frame_name, npy_bytes
+    from recon.io.video import write_video
+
+    seq, _ = room_video
+    height, width = seq.rgb.shape[1:3]
+    noise = np.random.default_rng(0).integers(0, 256, size=(12, height, width, 3), dtype=np.uint8)
+    back = np.arange(35, 5, -1)
+    frames = np.concatenate([seq.rgb[:30], noise, seq.rgb[back]])
+    prior = simulate_prior(seq.depth, seed=1, global_sigma=0.03)
+    prior = np.concatenate([prior[:30], prior[:12], prior[back]])
+    inputs = OutputFolder(tmp_path / "input")
+    with inputs.atomic("cut.mp4") as tmp:
+        write_video(frames, tmp, 10.0)
+    for i, depth in enumerate(prior):
+        inputs.write_bytes(f"prior/{frame_name(i)}.npy", npy_bytes(depth.astype(np.float32)))
+    config = replace(_config(room_video, tmp_path / "out", "on", rerun="off"), input=inputs.path / "cut.mp4",
+                     prior_path=inputs.path / "prior", poses="estimate", depth_frames="3", refine="none", glb=False)
+    result = run_pipeline(config)
+    poses = result.report["poses"]
+    pieces = poses["diagnostics"]["pieces"]
+    assert result.report.get("streamed") and [(p["frames"], p["tracked"]) for p in pieces] == [
+        ([0, 29], True), ([30, 41], False), ([42, 71], True)], pieces
+    assert poses["quality"]["dropped_ranges"] == [[30, 41]], poses["quality"]

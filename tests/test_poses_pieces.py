@@ -1,48 +1,97 @@
-"""Tracking in pieces after a loss (recon.poses.pieces), on a scripted tracker: where each
-piece starts and ends, what a piece that loses the camera again at once or fails otherwise
-becomes, and when the loss is handed back (for the SfM fallback)."""
+"""Tracking in pieces after a loss (recon.poses.pieces.StreamingPieces), on scripted front
+ends: where each piece starts and ends, that the frames before a loss are not tracked again,
+what a piece that loses the camera again at once or fails otherwise becomes, and when the loss
+is handed back (for the SfM fallback)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from recon.poses.pieces import track_in_pieces
+from recon.poses.pieces import StreamingPieces
 from recon.poses.result import PoseResult, TrackingLostError
 from recon.poses.scale_watch import ScaleWatch
 
+LOSS = 11  # frames in a row a front end fails on before it says it lost the camera (max_lost + 1)
+CAMERA = (500.0, 500.0, 320.0, 240.0)
 
-def _scripted(losses: dict[int, int], refusals: tuple[int, ...] = ()):
-    """A tracker that loses the camera at the video frames `losses` maps a piece's first frame
-    to (absolute; absent: it tracks to its end), and refuses (not lost) pieces starting at
-    `refusals`. Records the calls (first, stop, intrinsics, lens)."""
-    calls = []
 
-    def track(first, stop, intrinsics, lens):
-        calls.append((first, stop, intrinsics, lens))
-        if first in refusals:
-            raise TrackingLostError("the camera turns on the spot", frame=0)
-        lost = losses.get(first)
-        if lost is not None and lost < stop:
-            raise TrackingLostError(f"tracking lost at frame {lost - first}", frame=lost - first, lost=True)
-        n = stop - first
+class _Scripted:
+    """A front end for the piece that starts at video frame `first` (its frames numbered from
+    0, as StreamingPieces feeds them): it cannot align frames from the video frame `lose_at`
+    on, says so LOSS frames later (as the real one does after max_lost), and refuses its
+    trajectory at finish when `refuse`."""
+
+    def __init__(self, first, intrinsics, lens, lose_at, refuse):
+        self.first, self.lose_at, self.refuse = first, lose_at, refuse
+        self.intrinsics, self.lens_k1, self.focal_choice = intrinsics or CAMERA, -0.02, None
+        self.fed: list[int] = []
+
+    def _lost(self, i):
+        return self.lose_at is not None and self.first + i >= self.lose_at
+
+    def add(self, i, frame):
+        assert i == len(self.fed)  # in order, numbered from the piece's start
+        assert not isinstance(frame, int) or frame == self.first + i  # the video's frame of that number
+        self.fed.append(i)
+        if self._lost(i) and self.first + i == self.lose_at + LOSS - 1:
+            raise TrackingLostError(f"tracking lost at frame {self.lose_at - self.first}",
+                                    frame=self.lose_at - self.first, lost=True)
+        return self.current(i)
+
+    def current(self, i):
+        return ("lost", None) if self._lost(i) else ("tracked", np.eye(4))
+
+    def finish_image(self, frame):
+        return frame
+
+    def lost_tail(self):
+        run = [i for i in self.fed if self._lost(i)]
+        return run[0] if len(run) > LOSS // 2 else None
+
+    def finish(self, lookup, progress=False, stop=None):
+        n = len(self.fed) if stop is None else stop
+        frames = [lookup(i) for i in range(n)]
+        assert not isinstance(frames[0], int) or frames == list(range(self.first, self.first + n))  # by video frame
+        if self.refuse:
+            raise TrackingLostError("the camera turns on the spot", frame=0, sfm_may_help=False)
+        if any(self._lost(i) for i in range(n)):
+            raise TrackingLostError("lost at the end", frame=self.lose_at - self.first, lost=True)
         poses = np.tile(np.eye(4), (n, 1, 1))
         poses[:, 0, 3] = np.arange(n)
-        watch = ScaleWatch(list(range(0, n, 3)), [1.0] * len(range(0, n, 3)), 0.05)
-        return PoseResult(poses, intrinsics or (500.0, 500.0, 320.0, 240.0), np.arange(0, n, 3), 1.0,
-                          {"frame_status": ["tracked"] * n, "frame_inlier": [0.9] * n, "lens_k1": -0.02,
-                           "scale_watch": watch.to_dict()}, np.ones((len(range(0, n, 3)), 4, 5), np.float32))
+        kf = np.arange(0, n, 3)
+        watch = ScaleWatch(kf.tolist(), [1.0] * len(kf), 0.05)
+        return PoseResult(poses, self.intrinsics, kf, 1.0,
+                          {"frame_status": ["tracked"] * n, "frame_inlier": [0.9] * n, "lens_k1": self.lens_k1,
+                           "scale_watch": watch.to_dict()}, np.ones((len(kf), 4, 5), np.float32))
 
-    return track, calls
+
+def _run(count, losses, refusals=(), min_frames=22, intrinsics=None):
+    """StreamingPieces over frames 0..count-1 (each frame is its own number) with scripted
+    pieces: losses maps a piece's first frame to the video frame it loses the camera at.
+    Returns (the result, the pieces made as (first, intrinsics, lens, frames fed))."""
+    made = []
+
+    def make(first, intr, lens):
+        piece = _Scripted(first, intr, lens, losses.get(first), first in refusals)
+        made.append((first, intr, lens, piece))
+        return piece
+
+    stream = StreamingPieces(make, intrinsics, min_frames=min_frames, keep=LOSS + 1)
+    for i in range(count):
+        stream.add(i, i)
+    result = stream.finish(lambda i: i)
+    return result, [(first, intr, lens, piece.fed) for first, intr, lens, piece in made]
 
 
 def test_pieces_start_where_the_camera_was_lost_with_the_first_pieces_camera():
-    track, calls = _scripted({0: 40, 40: 45, 45: 80})
-    res = track_in_pieces(track, 120, TrackingLostError("lost", frame=40, lost=True), None, min_frames=22)
+    res, made = _run(120, {0: 40, 40: 45, 45: 80})
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [
         ([0, 39], True), ([40, 44], False), ([45, 79], True), ([80, 119], True)]
-    # Later pieces track with the first piece's camera and lens.
-    assert calls[0][2:] == (None, None) and all(c[2:] == ((500.0, 500.0, 320.0, 240.0), -0.02) for c in calls[2:])
+    # Later pieces track with the first piece's camera and lens; each starts where the last
+    # lost the camera, and no frame before a loss is tracked again.
+    assert [m[:3] for m in made] == [(0, None, None), (40, CAMERA, -0.02), (45, CAMERA, -0.02), (80, CAMERA, -0.02)]
+    assert made[0][3] == list(range(40 + LOSS))
     assert not np.isfinite(res.poses[40:45]).any() and np.isfinite(res.poses[45:]).all()
     assert res.diagnostics["frame_status"][40:45] == ["lost"] * 5
     lost = [(b["before"], b["after"]) for b in res.diagnostics["scale_watch"]["breaks"] if b["kind"] == "lost"]
@@ -53,24 +102,38 @@ def test_pieces_start_where_the_camera_was_lost_with_the_first_pieces_camera():
     assert len(res.keyframe_depth) == len(res.keyframes)
 
 
+def test_one_piece_is_the_front_ends_own_result():
+    res, made = _run(60, {})
+    assert len(made) == 1 and "pieces" not in res.diagnostics and np.isfinite(res.poses).all()
+
+
 def test_a_later_piece_that_fails_otherwise_leaves_the_rest_without_poses():
-    track, _ = _scripted({0: 50}, refusals=(50,))
-    res = track_in_pieces(track, 90, TrackingLostError("lost", frame=50, lost=True), None, min_frames=22)
+    res, _ = _run(90, {0: 50}, refusals=(50,))
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 49], True), ([50, 89], False)]
     assert np.isfinite(res.poses[:50]).all() and not np.isfinite(res.poses[50:]).any()
 
 
-def test_the_loss_is_handed_back_when_no_piece_tracks_or_the_first_is_short():
-    loss = TrackingLostError("lost at 10", frame=10, lost=True)
+def test_a_loss_at_the_end_leaves_the_last_frames_without_poses():
+    res, _ = _run(58, {0: 50})  # 8 lost frames at the end: not said while tracking, refused by finish
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 49], True), ([50, 57], False)]
+
+
+def test_the_loss_is_handed_back_when_the_first_piece_is_short():
     with pytest.raises(TrackingLostError) as info:
-        track_in_pieces(_scripted({})[0], 60, loss, None, min_frames=22)
-    assert info.value is loss
-    # The first piece, tracked again on its own, loses the camera at once, and so does every
-    # piece after it: nothing tracked, the first attempt's loss comes back.
-    everywhere = {f: f + 1 for f in range(60)}
-    with pytest.raises(TrackingLostError) as info:
-        track_in_pieces(_scripted(everywhere)[0], 60, TrackingLostError("lost", frame=30, lost=True), None, 22)
-    assert info.value.frame == 30
+        _run(60, {0: 10})
+    assert info.value.frame == 10 and info.value.lost
+    # Every piece after the first loses the camera at once: the first piece's frames keep
+    # their poses (they are not tracked again), the rest get none.
+    res, _ = _run(60, {f: f + 1 for f in range(30, 60)} | {0: 30})
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]][0] == ([0, 29], True)
+    assert np.isfinite(res.poses[:30]).all() and not np.isfinite(res.poses[30:]).any()
+
+
+def test_a_refused_first_piece_is_said_with_the_loss():
+    with pytest.raises(TrackingLostError, match=r"^tracking lost at frame 29; the frames before it: the camera "
+                                                r"turns on the spot") as info:
+        _run(60, {0: 29}, refusals=(0,))
+    assert info.value.frame == 29 and info.value.sfm_may_help
 
 
 def test_only_on_break_segments_tracks_in_pieces():
@@ -89,25 +152,25 @@ def test_only_on_break_segments_tracks_in_pieces():
 
 
 def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, monkeypatch):
-    """The phone's images 35-70: the camera lost at frame 29, the 29 frames before it tracked
-    again on their own and refused (their motion), then SfM: its error says all three."""
+    """The phone's images 35-70: the camera lost at frame 29, the 29 frames before it refused
+    (their motion), then SfM: its error says all three."""
     import recon.poses.frontend as fe
     import recon.poses.sfm as sfm
     from recon.poses import estimate_poses
 
     seq, prior = pose_room
 
-    def frontend(frames, *args, **kwargs):
-        if len(frames) == len(seq.rgb):
-            raise TrackingLostError("tracking lost at frame 29", frame=29, lost=True)
-        raise TrackingLostError("the camera turns on the spot", frame=0, sfm_may_help=False)
+    def scripted(intrinsics, prior, config):
+        return StreamingPieces(lambda first, intr, lens: _Scripted(first, intr, lens, 29 if first == 0 else None,
+                                                                   first == 0),
+                               intrinsics, min_frames=22, keep=LOSS + 1)
 
     def sfm_fails(*args, **kwargs):
         raise TrackingLostError("SfM registered only 3 of 36 frames")
 
-    monkeypatch.setattr(fe, "estimate_poses_frontend", frontend)
+    monkeypatch.setattr(fe, "streaming_frontend", scripted)
     monkeypatch.setattr(sfm, "estimate_poses_sfm", sfm_fails)
-    with pytest.raises(TrackingLostError, match=r"front end failed \(tracking lost at frame 29; the frames before it, "
-                                                r"tracked on their own: the camera turns on the spot\), and so did the "
-                                                r"SfM fallback \(SfM registered only 3"):
+    said = (r"front end failed \(tracking lost at frame 29 and not recovered before the end of the video; the frames "
+            r"before it: the camera turns on the spot\), and so did the SfM fallback ")
+    with pytest.raises(TrackingLostError, match=said + r"\(SfM registered only 3"):
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False, restart_after_loss=True)

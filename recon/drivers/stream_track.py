@@ -272,12 +272,14 @@ class _Poser:
         self.frontend = None
         self.recent_prior: dict[int, np.ndarray] = {}
         if self.estimating:
-            from ..poses.frontend import StreamingFrontend
+            from ..poses.frontend import streaming_frontend
 
             if config.pose_method == "sfm":
                 raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
-            self.frontend = StreamingFrontend(intrinsics, self._prior,
-                                              _frontend_config(estimator_options(config), config.device))
+            # With --on-break segments (restart_after_loss) it starts again where it loses the
+            # camera, as the one-shot run does, instead of stopping the streamed run.
+            self.frontend = streaming_frontend(intrinsics, self._prior,
+                                               _frontend_config(estimator_options(config), config.device))
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,

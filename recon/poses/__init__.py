@@ -68,14 +68,6 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     try:
         return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg)
     except TrackingLostError as err:
-        if fe_cfg.restart_after_loss and err.lost:
-            try:
-                return _in_pieces(frames, prior_depth, intrinsics, progress, fe_cfg, err)
-            except TrackingLostError as refused:
-                # No piece tracked on its own: as any other loss, said with why where the
-                # frames before it, tracked again, were refused rather than lost.
-                if refused is not err:
-                    err.args = (f"{err}; the frames before it, tracked on their own: {refused}",)
         if method == "frontend" or not err.sfm_may_help:
             raise
         # Said once: with progress bars before SfM's (which take a while), else after SfM
@@ -103,20 +95,3 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
             log.warning(choice.warning(np.asarray(frames[0]).shape[1]))
         return result
 
-
-def _in_pieces(frames, prior_depth, intrinsics, progress: bool, cfg, loss: TrackingLostError) -> PoseResult:
-    """The front end again, a piece at a time from each loss (``recon.poses.pieces``):
-    frames, prior_depth, intrinsics as :func:`estimate_poses` takes them; loss: the first
-    attempt's."""
-    from recon.poses.frontend import estimate_poses_frontend
-    from recon.poses.pieces import track_in_pieces
-
-    def track(first: int, stop: int, intr, k1) -> PoseResult:
-        prior = (prior_depth[first:stop] if not callable(prior_depth)
-                 else (lambda i, frame: prior_depth(first + i, frame)))
-        config = cfg if k1 is None else replace(cfg, lens_k1=float(k1))
-        return estimate_poses_frontend(frames[first:stop], prior, intr, progress=progress, config=config)
-
-    # A piece keeps at least twice a loss's length of frames (track_in_pieces hands the loss
-    # back when even the first would be shorter).
-    return track_in_pieces(track, len(frames), loss, intrinsics, min_frames=2 * (cfg.max_lost + 1))

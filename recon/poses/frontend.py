@@ -37,6 +37,7 @@ from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
 from recon.poses.frontend_config import FrontendConfig, calibrates_lens, make_geometry
+from recon.poses.pieces import StreamingPieces
 from recon.poses.result import (
     PoseResult,
     PriorSource,
@@ -133,14 +134,40 @@ class StreamingFrontend:
         on disk until ``finish`` can keep this instead of the frame."""
         return fl.prepare_gray(frame, make_geometry(frame.shape[:2], self.cfg.ba_stride).flow_shape)
 
-    def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False) -> PoseResult:
+    @property
+    def focal_choice(self):
+        """How the focal length was chosen (``focal_choice.FocalChoice``), None when given."""
+        return self._focal_choice
+
+    @property
+    def lens_k1(self) -> float:
+        """The lens' radial term as tracking has it now (the BA refines it when it calibrates)."""
+        return self.state.k1 if self.state is not None else self.cfg.lens_k1
+
+    def lost_tail(self) -> int | None:
+        """The first frame of a loss that runs into the last frame added and is long enough
+        for ``finish`` to refuse it (more than half of ``max_lost``), else None."""
+        s, last = self.state, self.count - 1
+        if s is not None and s.lost_run and len(s.lost_run) > self.cfg.max_lost // 2 and s.lost_run[-1] == last:
+            return s.lost_run[0]
+        return None
+
+    def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False,
+               stop: int | None = None) -> PoseResult:
         """Poses of every frame added, metric: the lost-at-the-end check, global BA, the
         non-keyframes aligned to their final keyframes (frames read back through
         ``frame_lookup(i)`` -> the frame given to ``add(i, ...)`` or its ``finish_image``), the
         metric rescale. seconds: the time spent in ``add`` and ``finish``. The diagnostics are
-        those of :func:`estimate_poses_frontend`. Raises TrackingLostError."""
+        those of :func:`estimate_poses_frontend`. stop: poses of frames [0, stop) only, the
+        later ones forgotten (where tracking lost the camera and a new piece took over,
+        ``recon.poses.pieces``). Raises TrackingLostError."""
         if self._finished:
             raise RuntimeError("StreamingFrontend.finish called twice")
+        if stop is not None and stop < self.count:
+            if self.state is None:
+                raise RuntimeError("StreamingFrontend.finish(stop=...) before tracking started")
+            self.state.forget_from(stop)
+            self.count = stop
         if self.count == 0:
             raise TrackingLostError("no frames to track", frame=0)
         self._finished = True
@@ -210,9 +237,8 @@ class StreamingFrontend:
 
     def _check_end(self) -> None:
         """A loss that runs into the end of the video (more than half of ``max_lost``) is a failure."""
-        s, last = self.state, self.count - 1
-        if s.lost_run and len(s.lost_run) > self.cfg.max_lost // 2 and s.lost_run[-1] == last:
-            first = s.lost_run[0]
+        first = self.lost_tail()
+        if first is not None:
             raise TrackingLostError(f"tracking lost at frame {first} and not recovered before the end of the video",
                                     frame=first, lost=True)
 
@@ -299,6 +325,22 @@ class StreamingFrontend:
         )
 
 
+def streaming_frontend(intrinsics, prior, config: FrontendConfig) -> StreamingFrontend | StreamingPieces:
+    """The streaming front end for a video: with ``config.restart_after_loss`` one that starts
+    again where it loses the camera (``recon.poses.pieces.StreamingPieces``: pieces of at
+    least twice a loss's length, each with the first piece's camera and lens), else one
+    that stops there. prior: as :class:`StreamingFrontend` takes it, by video frame."""
+    if not config.restart_after_loss:
+        return StreamingFrontend(intrinsics, prior, config)
+    source = prior if isinstance(prior, PriorSource) else PriorSource(prior)
+
+    def piece(first: int, intr, k1) -> StreamingFrontend:
+        piece_config = config if k1 is None else replace(config, lens_k1=float(k1))
+        return StreamingFrontend(intr, lambda i, frame: source.get(first + i, frame), piece_config)
+
+    return StreamingPieces(piece, intrinsics, min_frames=2 * (config.max_lost + 1), keep=config.max_lost + 2)
+
+
 # --------------------------------------------------------------------------- whole videos
 
 
@@ -324,14 +366,14 @@ def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool
     prior = PriorSource(prior_depth)
     if not prior.is_callable and len(prior) != len(frames_list):
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
-    stream = StreamingFrontend(intrinsics, prior, config)
+    stream = streaming_frontend(intrinsics, prior, config or FrontendConfig())
     try:
         for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress,
                                        leave=False)):
             stream.add(i, frame)
         result = stream.finish(frames_list.__getitem__, progress)
     except TrackingLostError as err:
-        err.focal_choice = stream._focal_choice
+        err.focal_choice = stream.focal_choice
         raise
     result.seconds = time.perf_counter() - t0
     return result

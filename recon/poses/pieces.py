@@ -11,11 +11,14 @@ scale watch (``recon.poses.scale_watch``) marks each restart as a break of kind 
 the pipeline then tries to join the pieces like any stretches between breaks
 (``recon.drivers.segments``) and writes those it cannot join as separate reconstructions.
 
-:func:`track_in_pieces` runs the pieces; :func:`merge_pieces` puts their estimates
-together, frames numbered in the whole video. A piece that loses the camera within
-``min_frames`` of its start, or a rest of the video shorter than that, is not kept: its
-frames get no pose (the quality gate leaves them out) and the next piece starts where it
-lost the camera.
+:class:`StreamingPieces` is the streaming front end that does so as the frames come: at a
+loss it closes the piece where the camera was lost (its frames are not tracked again) and
+feeds the frames since then, which it keeps, to a new front end. :func:`merge_pieces` puts
+the pieces' estimates together, frames numbered in the whole video. A piece that loses the
+camera within ``min_frames`` of its start, or a rest of the video shorter than that, is not
+kept: its frames get no pose (the quality gate leaves them out) and the next piece starts
+where it lost the camera. A first piece that loses it so soon hands the loss back, as a
+front end without restarts would (the caller may then try SfM).
 """
 
 from __future__ import annotations
@@ -43,54 +46,160 @@ class Piece:
     result: PoseResult | None
 
 
-def track_in_pieces(track: Callable[[int, int, tuple | None, float | None], PoseResult], count: int,
-                    loss: TrackingLostError, intrinsics, min_frames: int) -> PoseResult:
-    """The video's frames [0, count) tracked piece by piece, starting again at each loss.
+@dataclass
+class _Open:
+    """A piece while the video comes: its first frame, its front end (None: it lost the
+    camera within min_frames and gets no pose) and where it ended (None: still going)."""
 
-    track(first, stop, intrinsics, lens_k1) tracks frames [first, stop) (intrinsics None:
-    searched; lens_k1 None: the front end's own setting) and raises TrackingLostError, whose
-    ``frame`` counts from `first` and whose ``lost`` says it lost the camera (rather than
-    refusing the trajectory). loss: the loss of a first attempt on the whole video (its
-    frame is where the first piece ends). Raises `loss` again when no piece of min_frames
-    or more tracks, or the first piece's own error when it fails otherwise."""
-    if loss.frame is None or loss.frame < min_frames:
-        raise loss
-    pieces: list[Piece] = []
-    start, stop, lens = 0, int(loss.frame), None
-    while start < count:
-        if stop - start < min_frames:  # too short a rest to be a reconstruction of its own
-            pieces.append(Piece(start, stop, None))
-            start, stop = stop, count
-            continue
+    first: int
+    frontend: object | None
+    stop: int | None = None
+
+
+class StreamingPieces:
+    """A :class:`~recon.poses.frontend.StreamingFrontend` (``add``, ``current``,
+    ``finish_image``, ``finish``, ``intrinsics``; frames numbered in the whole video) that
+    starts again where it loses the camera (module docstring).
+
+    make(first, intrinsics, lens_k1): a new front end for the piece that starts at video
+    frame `first`, its frames numbered from 0 (intrinsics None: searched; lens_k1 None: the
+    front end's own setting). min_frames: the shortest piece kept. keep: recent frames kept
+    for a restart, at least a whole loss (``max_lost + 1``); while the first piece buffers
+    frames for its focal search, all of them are kept.
+    """
+
+    def __init__(self, make: Callable[[int, tuple | None, float | None], object], intrinsics, min_frames: int,
+                 keep: int):
+        self._make = make
+        self._min_frames = min_frames
+        self._keep = max(int(keep), 1)
+        self._recent: list[tuple[int, np.ndarray]] = []
+        self._pieces = [_Open(0, make(0, intrinsics, None))]
+        self._camera: tuple | None = None  # (intrinsics, lens_k1) the later pieces start with
+        self._loss: TrackingLostError | None = None  # the first loss started again from
+        self.count = 0
+
+    @property
+    def intrinsics(self) -> tuple | None:
+        """The camera as known now (None while the first piece's focal search waits)."""
+        if self._camera is not None:
+            return self._camera[0]
+        return self._pieces[0].frontend.intrinsics
+
+    @property
+    def focal_choice(self):
+        """The first piece's focal-length choice (``StreamingFrontend.focal_choice``)."""
+        first = self._pieces[0].frontend
+        return None if first is None else first.focal_choice
+
+    def add(self, index: int, frame: np.ndarray) -> tuple[str, np.ndarray | None]:
+        """Track frame `index` (in order); its status and camera-to-world pose as tracked now
+        (``StreamingFrontend.add``; frames of a piece that got no pose: "lost", None)."""
+        self.count += 1
+        self._recent.append((index, frame))
+        self._feed(index, frame)
+        status = self.current(index)
+        if status[0] != "buffered":
+            del self._recent[:-self._keep]
+        return status
+
+    def current(self, index: int) -> tuple[str, np.ndarray | None]:
+        piece = next(p for p in reversed(self._pieces) if p.first <= index)
+        if piece.frontend is None:
+            return "lost", None
+        return piece.frontend.current(index - piece.first)
+
+    def finish_image(self, frame: np.ndarray) -> np.ndarray:
+        """``StreamingFrontend.finish_image`` (every piece works at the same size)."""
+        return next(p.frontend for p in self._pieces if p.frontend is not None).finish_image(frame)
+
+    def _feed(self, index: int, frame: np.ndarray) -> None:
+        piece = self._pieces[-1]
+        if piece.frontend is None:
+            return
         try:
-            result = track(start, stop, intrinsics, lens)
+            piece.frontend.add(index - piece.first, frame)
         except TrackingLostError as err:
-            if not err.lost or not err.frame:
-                if not any(p.result is not None for p in pieces):
-                    raise
-                log.warning("frames %d-%d: no trajectory (%s)", start, count - 1, err)
-                pieces.append(Piece(start, count, None))
-                break
-            if err.frame < min_frames:
-                pieces.append(Piece(start, start + err.frame, None))
-                start, stop = start + err.frame, count
+            if not err.lost or err.frame is None:
+                raise
+            self._restart(piece, piece.first + int(err.frame), err)
+
+    def _restart(self, piece: _Open, at: int, loss: TrackingLostError) -> None:
+        """Close `piece` where it lost the camera and track the frames since in a new one."""
+        kept = at - piece.first >= self._min_frames
+        if not kept and not any(p.frontend is not None for p in self._pieces[:-1]):
+            raise loss  # the first piece: a run without restarts would have lost it here too
+        if self._camera is None and kept:
+            self._camera = (piece.frontend.intrinsics, piece.frontend.lens_k1)
+        self._loss = self._loss or loss
+        piece.stop = at
+        if kept:
+            log.warning("tracking lost at frame %d; tracking again from there as a new piece", at)
+        else:
+            piece.frontend = None  # said with the frames that get no pose (finish)
+        again = [(i, f) for i, f in self._recent if i >= at]
+        start = again[0][0] if again else self.count
+        if start > at:  # frames older than what is kept (a loss inside the focal search's buffer)
+            self._pieces.append(_Open(at, None, start))
+        camera = self._camera or (None, None)
+        self._pieces.append(_Open(start, self._make(start, *camera)))
+        for i, f in again:
+            self._feed(i, f)
+
+    def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False) -> PoseResult:
+        """The pieces closed (``StreamingFrontend.finish``; frames read back by video frame
+        number) and merged (:func:`merge_pieces`); one piece: its own result. Raises
+        TrackingLostError when no piece tracks, or when the first fails otherwise."""
+        pieces: list[Piece] = []
+        for p in self._pieces:
+            stop = self.count if p.stop is None else p.stop
+            if p.frontend is None:
+                pieces.append(Piece(p.first, stop, None))
                 continue
-            stop = start + err.frame
-            continue
-        if not any(p.result is not None for p in pieces):
-            # The same camera throughout: the first piece's, whether given or estimated.
-            intrinsics = result.intrinsics
-            lens = result.diagnostics.get("lens_k1")
-        pieces.append(Piece(start, stop, result))
-        if stop < count:
-            log.warning("tracking lost at frame %d; tracking again from there as a new piece", stop)
-        start, stop = stop, count
-    if not any(p.result is not None for p in pieces):
-        raise loss
-    for a, b in runs([i for p in pieces if p.result is None for i in range(p.first, p.stop)]):
-        log.warning("frames %d-%d get no pose: tracking, started again after the camera was lost, lost it again "
-                    "within %d frames", a, b, min_frames)
-    return merge_pieces(pieces, count)
+            tail = p.frontend.lost_tail() if p.stop is None else None
+            if tail is not None and tail < self._min_frames and not any(q.result is not None for q in pieces):
+                tail = None  # the first piece: its own error says where it lost the camera
+            end = stop if tail is None else p.first + tail
+            if tail is not None:
+                self._loss = self._loss or TrackingLostError(
+                    f"tracking lost at frame {end} and not recovered before the end of the video", frame=end, lost=True)
+            if p is not self._pieces[0] and end - p.first < self._min_frames:
+                pieces.append(Piece(p.first, stop, None))  # too short a rest to be a reconstruction of its own
+                continue
+            try:
+                result = p.frontend.finish(lambda i, first=p.first: frame_lookup(first + i), progress,
+                                           stop=end - p.first)
+            except TrackingLostError as err:
+                if not any(q.result is not None for q in pieces):
+                    if self._loss is not None and not err.lost:
+                        # The frames before the first loss, refused (their motion): said with the loss.
+                        raise TrackingLostError(f"{self._loss}; the frames before it: {err}", frame=self._loss.frame,
+                                                lost=True, sfm_may_help=self._loss.sfm_may_help) from None
+                    raise
+                log.warning("frames %d-%d: no trajectory (%s)", p.first, stop - 1, err)
+                pieces.append(Piece(p.first, stop, None))
+                continue
+            pieces.append(Piece(p.first, end, result))
+            if end < stop:
+                pieces.append(Piece(end, stop, None))
+        if len(pieces) == 1:
+            return pieces[0].result
+        pieces = _joined_untracked(pieces)
+        for a, b in runs([i for p in pieces if p.result is None for i in range(p.first, p.stop)]):
+            log.warning("frames %d-%d get no pose: tracking, started again after the camera was lost, lost it "
+                        "again within %d frames", a, b, self._min_frames)
+        return merge_pieces(pieces, self.count)
+
+
+def _joined_untracked(pieces: list[Piece]) -> list[Piece]:
+    """Consecutive pieces without a pose as one (a run of frames each of which lost the camera at once)."""
+    out: list[Piece] = []
+    for p in pieces:
+        if out and p.result is None and out[-1].result is None and out[-1].stop == p.first:
+            out[-1] = Piece(out[-1].first, p.stop, None)
+        else:
+            out.append(p)
+    return out
 
 
 def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
@@ -138,4 +247,4 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
                       diagnostics, np.concatenate(depth) if len(depth) == len(tracked) else None)
 
 
-__all__ = ["Piece", "merge_pieces", "track_in_pieces"]
+__all__ = ["Piece", "StreamingPieces", "merge_pieces"]

@@ -85,6 +85,19 @@ class TrackState:
         self.kf_keypoints: dict = {}
         self.feature_starts = 0
 
+    def forget_from(self, stop: int) -> None:
+        """Forget frames stop and later (a loss that tracking starts again from, as a new
+        piece): their records go; none of them may be a keyframe."""
+        if any(frame >= stop for frame in self.graph.frames):
+            raise RuntimeError(f"frames from {stop} on cannot be forgotten: one of them is a keyframe")
+        for records in (self.status, self.frame_T, self.refs, self.rel, self.frame_ratios, self.inlier):
+            for frame in [f for f in records if f >= stop]:
+                del records[frame]
+        self.lost_run = [f for f in self.lost_run if f < stop]
+        self.reloc_events = [e for e in self.reloc_events if e["frame"] < stop]
+        if self.previous is not None and self.previous[0] >= stop:
+            self.previous = None
+
     def ba_options(self, iters: int) -> ba.BAOptions:
         return replace(self.cfg.ba, iters=iters, prior_weight=self.cfg.prior_weight)
 
