@@ -239,8 +239,7 @@ class StreamingFrontend:
         """A loss that runs into the end of the video (more than half of ``max_lost``) is a failure."""
         first = self.lost_tail()
         if first is not None:
-            raise TrackingLostError(f"tracking lost at frame {first} and not recovered before the end of the video",
-                                    frame=first, lost=True)
+            raise TrackingLostError.at_the_end(first)
 
     def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool) -> PoseResult:
         s, n = self.state, self.count

@@ -161,8 +161,7 @@ class StreamingPieces:
                 tail = None  # the first piece: its own error says where it lost the camera
             end = stop if tail is None else p.first + tail
             if tail is not None:
-                self._loss = self._loss or TrackingLostError(
-                    f"tracking lost at frame {end} and not recovered before the end of the video", frame=end, lost=True)
+                self._loss = self._loss or TrackingLostError.at_the_end(end)
             if p is not self._pieces[0] and end - p.first < self._min_frames:
                 pieces.append(Piece(p.first, stop, None))  # too short a rest to be a reconstruction of its own
                 continue

@@ -37,6 +37,12 @@ class TrackingLostError(ReconInputError):
         # searched one before it failed: the range a fallback's own estimate is said within.
         self.focal_choice = None
 
+    @classmethod
+    def at_the_end(cls, frame: int) -> "TrackingLostError":
+        """The camera lost at `frame` and not found again before the video ends."""
+        return cls(f"tracking lost at frame {frame} and not recovered before the end of the video", frame=frame,
+                   lost=True)
+
 
 # Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every
 # estimator so that one quality gate (``recon.poses.quality``) reads them all:
