@@ -222,8 +222,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--pose-method", choices=POSE_METHODS, default=d.pose_method,
                    help="pose estimator (default %(default)s)")
     g.add_argument("--on-break", choices=ON_BREAK_CHOICES, default=d.on_break,
-                   help="where an estimated trajectory's scale breaks (report.json poses.scale_watch): segments "
-                        "(each stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
+                   help="where an estimated trajectory's scale breaks or the camera is lost (report.json "
+                        "poses.scale_watch): segments (tracking starts again where the camera was lost; each "
+                        "stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
                         "frames, exit 2) or keep (one trajectory, warned); keep also returns a trajectory the "
                         "front end's motion checks distrust (poses.motion_checks). Default %(default)s")
     g.add_argument("--no-join", dest="join_segments", action="store_false",
