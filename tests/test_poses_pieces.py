@@ -45,6 +45,9 @@ class _Scripted:
     def finish_image(self, frame):
         return frame
 
+    def flush(self):
+        pass
+
     def lost_tail(self):
         run = [i for i in self.fed if self._lost(i)]
         return run[0] if len(run) > LOSS // 2 else None
@@ -127,6 +130,40 @@ def test_the_loss_is_handed_back_when_the_first_piece_is_short():
     res, _ = _run(60, {f: f + 1 for f in range(30, 60)} | {0: 30})
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]][0] == ([0, 29], True)
     assert np.isfinite(res.poses[:30]).all() and not np.isfinite(res.poses[30:]).any()
+
+
+class _Buffering(_Scripted):
+    """The first piece with its focal length unknown: it keeps every frame until the focal
+    search has enough, which a short video never gives it, and tracks them at flush."""
+
+    def add(self, i, frame):
+        self.fed.append(i)
+        return "buffered", None
+
+    def current(self, i):
+        return "buffered", None
+
+    def flush(self):
+        self.current = super().current
+        if self.lose_at is not None and self.lose_at + LOSS - 1 <= self.first + len(self.fed) - 1:
+            raise TrackingLostError("tracking lost", frame=self.lose_at - self.first, lost=True)
+
+
+def test_a_loss_among_the_frames_the_focal_search_waits_for_starts_a_new_piece():
+    """A video shorter than the focal search's buffer is tracked at the end; a loss in it
+    starts a new piece there, on the frames kept, with the camera the search found."""
+    made = []
+
+    def make(first, intr, lens):
+        piece = (_Buffering if first == 0 else _Scripted)(first, intr, lens, {0: 30}.get(first), False)
+        made.append((first, intr))
+        return piece
+
+    stream = StreamingPieces(make, None, min_frames=22, keep=LOSS + 1)
+    assert all(stream.add(i, i) == ("buffered", None) for i in range(60))
+    res = stream.finish(lambda i: i)
+    assert made == [(0, None), (30, CAMERA)]
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 29], True), ([30, 59], True)]
 
 
 def test_a_refused_first_piece_is_said_with_the_loss():

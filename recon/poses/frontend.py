@@ -152,6 +152,14 @@ class StreamingFrontend:
             return s.lost_run[0]
         return None
 
+    def flush(self) -> None:
+        """Search the focal length on the frames buffered for it and track them now (a video
+        shorter than the search's buffer; ``finish`` does it too). Raises TrackingLostError as
+        ``add`` does."""
+        if self.state is None and self._pending:
+            with self._running():
+                self._calibrate()
+
     def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False,
                stop: int | None = None) -> PoseResult:
         """Poses of every frame added, metric: the lost-at-the-end check, global BA, the

@@ -124,6 +124,19 @@ class StreamingPieces:
                 raise
             self._restart(piece, piece.first + int(err.frame), err)
 
+    def _flush(self) -> None:
+        """A video shorter than the focal search's buffer: the first piece tracks it now, so
+        that a loss in it starts a new piece as it would have while the frames came."""
+        piece = self._pieces[-1]
+        if piece.frontend is None:
+            return
+        try:
+            piece.frontend.flush()
+        except TrackingLostError as err:
+            if not err.lost or err.frame is None:
+                raise
+            self._restart(piece, piece.first + int(err.frame), err)
+
     def _restart(self, piece: _Open, at: int, loss: TrackingLostError) -> None:
         """Close `piece` where it lost the camera and track the frames since in a new one."""
         kept = at - piece.first >= self._min_frames
@@ -150,6 +163,7 @@ class StreamingPieces:
         """The pieces closed (``StreamingFrontend.finish``; frames read back by video frame
         number) and merged (:func:`merge_pieces`); one piece: its own result. Raises
         TrackingLostError when no piece tracks, or when the first fails otherwise."""
+        self._flush()
         pieces: list[Piece] = []
         for p in self._pieces:
             stop = self.count if p.stop is None else p.stop
