@@ -167,6 +167,19 @@ def test_tracking_loss_names_the_frame(pose_room):
     assert info.value.frame == 12
 
 
+def test_restarts_change_nothing_where_the_camera_is_never_lost(pose_room):
+    """A video tracked through without a loss gets the same estimate with restart_after_loss
+    as without (the restarting front end is the plain one until a loss): the same poses and
+    the same metric scale, which an array prior gives from every frame's prior."""
+    seq, prior = pose_room
+    plain = estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
+    restarting = estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False,
+                                restart_after_loss=True)
+    assert "pieces" not in restarting.diagnostics
+    assert restarting.diagnostics["metric_scale_factor"] == plain.diagnostics["metric_scale_factor"]
+    assert np.allclose(restarting.poses, plain.poses, atol=1e-9)
+
+
 def test_tracking_starts_again_after_a_loss_as_a_new_piece(pose_room, caplog):
     """restart_after_loss (what --on-break segments asks for): 30 frames of the room, a cut to
     12 frames of noise, then the room walked backwards. The front end tracks the first piece,

@@ -343,7 +343,11 @@ def streaming_frontend(intrinsics, prior, config: FrontendConfig) -> StreamingFr
 
     def piece(first: int, intr, k1) -> StreamingFrontend:
         piece_config = config if k1 is None else replace(config, lens_k1=float(k1))
-        return StreamingFrontend(intr, lambda i, frame: source.get(first + i, frame), piece_config)
+        # An array stays an array (a view from the piece's first frame): the front end reads
+        # every frame's prior for the metric scale only when it is not asked for one by one.
+        piece_prior = source.prior[first:] if not source.is_callable else \
+            (lambda i, frame: source.get(first + i, frame))
+        return StreamingFrontend(intr, piece_prior, piece_config)
 
     return StreamingPieces(piece, intrinsics, min_frames=2 * (config.max_lost + 1), keep=config.max_lost + 2)
 
