@@ -66,6 +66,9 @@ class StreamingPieces:
     front end's own setting). min_frames: the shortest piece kept. keep: recent frames kept
     for a restart, at least a whole loss (``max_lost + 1``); while the first piece buffers
     frames for its focal search, all of them are kept.
+
+    The first piece is always kept (one that loses the camera sooner hands the loss back):
+    its front end is the camera's (intrinsics, lens, focal choice) for every later piece.
     """
 
     def __init__(self, make: Callable[[int, tuple | None, float | None], object], intrinsics, min_frames: int,
@@ -75,22 +78,22 @@ class StreamingPieces:
         self._keep = max(int(keep), 1)
         self._recent: list[tuple[int, np.ndarray]] = []
         self._pieces = [_Open(0, make(0, intrinsics, None))]
-        self._camera: tuple | None = None  # (intrinsics, lens_k1) the later pieces start with
         self._loss: TrackingLostError | None = None  # the first loss started again from
         self.count = 0
 
     @property
+    def _first(self):
+        return self._pieces[0].frontend
+
+    @property
     def intrinsics(self) -> tuple | None:
         """The camera as known now (None while the first piece's focal search waits)."""
-        if self._camera is not None:
-            return self._camera[0]
-        return self._pieces[0].frontend.intrinsics
+        return self._first.intrinsics
 
     @property
     def focal_choice(self):
         """The first piece's focal-length choice (``StreamingFrontend.focal_choice``)."""
-        first = self._pieces[0].frontend
-        return None if first is None else first.focal_choice
+        return self._first.focal_choice
 
     def add(self, index: int, frame: np.ndarray) -> tuple[str, np.ndarray | None]:
         """Track frame `index` (in order); its status and camera-to-world pose as tracked now
@@ -111,27 +114,19 @@ class StreamingPieces:
 
     def finish_image(self, frame: np.ndarray) -> np.ndarray:
         """``StreamingFrontend.finish_image`` (every piece works at the same size)."""
-        return next(p.frontend for p in self._pieces if p.frontend is not None).finish_image(frame)
+        return self._first.finish_image(frame)
 
     def _feed(self, index: int, frame: np.ndarray) -> None:
-        piece = self._pieces[-1]
-        if piece.frontend is None:
-            return
-        try:
-            piece.frontend.add(index - piece.first, frame)
-        except TrackingLostError as err:
-            if not err.lost or err.frame is None:
-                raise
-            self._restart(piece, piece.first + int(err.frame), err)
+        self._track(lambda piece: piece.frontend.add(index - piece.first, frame))
 
-    def _flush(self) -> None:
-        """A video shorter than the focal search's buffer: the first piece tracks it now, so
-        that a loss in it starts a new piece as it would have while the frames came."""
+    def _track(self, step: Callable[[_Open], object]) -> None:
+        """step(the open piece) (a frame added, or its buffer tracked), starting a new piece
+        where it loses the camera; nothing when the open piece gets no pose."""
         piece = self._pieces[-1]
         if piece.frontend is None:
             return
         try:
-            piece.frontend.flush()
+            step(piece)
         except TrackingLostError as err:
             if not err.lost or err.frame is None:
                 raise
@@ -140,10 +135,8 @@ class StreamingPieces:
     def _restart(self, piece: _Open, at: int, loss: TrackingLostError) -> None:
         """Close `piece` where it lost the camera and track the frames since in a new one."""
         kept = at - piece.first >= self._min_frames
-        if not kept and not any(p.frontend is not None for p in self._pieces[:-1]):
-            raise loss  # the first piece: a run without restarts would have lost it here too
-        if self._camera is None and kept:
-            self._camera = (piece.frontend.intrinsics, piece.frontend.lens_k1)
+        if not kept and piece is self._pieces[0]:
+            raise loss  # a run without restarts would have lost it here too
         self._loss = self._loss or loss
         piece.stop = at
         if kept:
@@ -154,8 +147,7 @@ class StreamingPieces:
         start = again[0][0] if again else self.count
         if start > at:  # frames older than what is kept (a loss inside the focal search's buffer)
             self._pieces.append(_Open(at, None, start))
-        camera = self._camera or (None, None)
-        self._pieces.append(_Open(start, self._make(start, *camera)))
+        self._pieces.append(_Open(start, self._make(start, self._first.intrinsics, self._first.lens_k1)))
         for i, f in again:
             self._feed(i, f)
 
@@ -163,27 +155,30 @@ class StreamingPieces:
         """The pieces closed (``StreamingFrontend.finish``; frames read back by video frame
         number) and merged (:func:`merge_pieces`); one piece: its own result. Raises
         TrackingLostError when no piece tracks, or when the first fails otherwise."""
-        self._flush()
+        # A video shorter than the focal search's buffer: the first piece tracks it now, so that
+        # a loss in it starts a new piece as it would have while the frames came.
+        self._track(lambda piece: piece.frontend.flush())
         pieces: list[Piece] = []
         for p in self._pieces:
             stop = self.count if p.stop is None else p.stop
             if p.frontend is None:
                 pieces.append(Piece(p.first, stop, None))
                 continue
+            first = p is self._pieces[0]
             tail = p.frontend.lost_tail() if p.stop is None else None
-            if tail is not None and tail < self._min_frames and not any(q.result is not None for q in pieces):
-                tail = None  # the first piece: its own error says where it lost the camera
+            if tail is not None and tail < self._min_frames and first:
+                tail = None  # its own error says where it lost the camera
             end = stop if tail is None else p.first + tail
             if tail is not None:
                 self._loss = self._loss or TrackingLostError.at_the_end(end)
-            if p is not self._pieces[0] and end - p.first < self._min_frames:
+            if not first and end - p.first < self._min_frames:
                 pieces.append(Piece(p.first, stop, None))  # too short a rest to be a reconstruction of its own
                 continue
             try:
                 result = p.frontend.finish(lambda i, first=p.first: frame_lookup(first + i), progress,
                                            stop=end - p.first)
             except TrackingLostError as err:
-                if not any(q.result is not None for q in pieces):
+                if first:
                     if self._loss is not None and not err.lost:
                         # The frames before the first loss, refused (their motion): said with the loss.
                         raise TrackingLostError(f"{self._loss}; the frames before it: {err}", frame=self._loss.frame,
