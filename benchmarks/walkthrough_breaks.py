@@ -17,7 +17,9 @@ tracks the walk from a later frame (e.g. 210, room B: the fast turn on its own).
 reports the front end's own frame states and, where it has one, its scale watch
 (``diagnostics["scale_watch"]``). Last, the walk tracked as ``recon run`` does it
 (``--on-break segments``: starting again after each loss, ``restart_after_loss``): the
-breaks, how far each lies from the nearest cut, the fit of each stretch between them and how
+breaks, how far each lies from the nearest cut (the nearer of where the segment before it
+ends and where the next starts: frames between them whose tracking was failing before a loss
+get no pose), the fit of each stretch between them and how
 many of its frames the short-flow check marked (``--no-pieces`` skips it).
 
 Writes benchmarks/results/walkthrough_breaks.json and prints tables.
@@ -121,7 +123,14 @@ def in_pieces(walk, prior: np.ndarray) -> dict:
     except TrackingLostError as err:
         return {"pose_s": time.perf_counter() - t0, "lost": {"frame": err.frame, "message": str(err)}}
     watch = res.diagnostics.get("scale_watch") or {"breaks": []}
-    breaks = [{**b, "to_cut": int(min(abs(b["after"] - c) for c in walk.cuts))} for b in watch["breaks"]]
+    posed = np.isfinite(res.poses).all(axis=(1, 2))
+    breaks = []
+    for b in watch["breaks"]:
+        # The segment before a break ends at its last posed frame (frames between it and the
+        # break's `after` have no pose: tracking was failing there before a loss).
+        ends = int(np.flatnonzero(posed[: b["after"]])[-1]) if posed[: b["after"]].any() else b["after"] - 1
+        breaks.append({**b, "ends": ends, "to_cut": int(min(min(abs(ends + 1 - c), abs(b["after"] - c))
+                                                            for c in walk.cuts))})
     bounds = [0, *[b["after"] for b in breaks], walk.num_frames]
     short = (res.diagnostics.get("motion_checks") or {}).get("short_flow", [])
     stretches = []
@@ -142,8 +151,9 @@ def report_pieces(run: dict) -> None:
         return
     print("\nIn pieces (recon run's default, --on-break segments), breaks of the scale watch and the "
           "stretches between them:\n")
-    print(table(["after frame", "kind", "factor", "frames to the nearest cut"],
-                [[b["after"], b["kind"], f"{b['factor']:.2f}", b["to_cut"]] for b in run["breaks"]]))
+    print(table(["segment ends", "next starts", "kind", "factor", "frames to the nearest cut"],
+                [[b.get("ends", b["after"] - 1), b["after"], b["kind"], f"{b['factor']:.2f}", b["to_cut"]]
+                 for b in run["breaks"]]))
     print()
     print(table(["frames", "posed", "marked short", "path m", "Sim(3) ATE %", "scale", "stretches"],
                 [[f"{s['first']}-{s['stop'] - 1}", s["posed"], s["marked_short"], f"{s['path_m']:.2f}",

@@ -5,6 +5,8 @@ is handed back (for the SfM fallback)."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -22,10 +24,11 @@ class _Scripted:
     on, says so LOSS frames later (as the real one does after max_lost), and refuses its
     trajectory at finish when `refuse`."""
 
-    def __init__(self, first, intrinsics, lens, lose_at, refuse):
-        self.first, self.lose_at, self.refuse = first, lose_at, refuse
+    def __init__(self, first, intrinsics, lens, lose_at, refuse, failing_from=None):
+        self.first, self.lose_at, self.refuse, self.failing_from = first, lose_at, refuse, failing_from
         self.intrinsics, self.lens_k1, self.focal_choice = intrinsics or CAMERA, -0.02, None
         self.fed: list[int] = []
+        self.failing = "not finished"
 
     def _lost(self, i):
         return self.lose_at is not None and self.first + i >= self.lose_at
@@ -52,8 +55,13 @@ class _Scripted:
         run = [i for i in self.fed if self._lost(i)]
         return run[0] if len(run) > LOSS // 2 else None
 
-    def finish(self, lookup, progress=False, stop=None):
+    def finish(self, lookup, progress=False, stop=None, failing=None):
         n = len(self.fed) if stop is None else stop
+        self.failing = failing
+        if failing is not None and self.failing_from is not None:
+            # Tracking was failing from video frame failing_from: those frames are forgotten,
+            # at most lookback of them (StreamingFrontend.finish's failing).
+            n = max(self.failing_from - self.first, n - failing[1])
         frames = [lookup(i) for i in range(n)]
         assert not isinstance(frames[0], int) or frames == list(range(self.first, self.first + n))  # by video frame
         if self.refuse:
@@ -69,21 +77,25 @@ class _Scripted:
                            "scale_watch": watch.to_dict()}, np.ones((len(kf), 4, 5), np.float32))
 
 
-def _run(count, losses, refusals=(), min_frames=22, intrinsics=None):
+def _run(count, losses, refusals=(), min_frames=22, intrinsics=None, failing_from=None, failing=None, pieces=None):
     """StreamingPieces over frames 0..count-1 (each frame is its own number) with scripted
-    pieces: losses maps a piece's first frame to the video frame it loses the camera at.
-    Returns (the result, the pieces made as (first, intrinsics, lens, frames fed))."""
+    pieces: losses maps a piece's first frame to the video frame it loses the camera at,
+    failing_from to the video frame its tracking fails from (when finish is asked to forget
+    such frames: StreamingPieces' failing). Returns (the result, the pieces made as (first,
+    intrinsics, lens, frames fed)); `pieces`, a list, receives the scripted front ends."""
     made = []
 
     def make(first, intr, lens):
-        piece = _Scripted(first, intr, lens, losses.get(first), first in refusals)
+        piece = _Scripted(first, intr, lens, losses.get(first), first in refusals, (failing_from or {}).get(first))
         made.append((first, intr, lens, piece))
         return piece
 
-    stream = StreamingPieces(make, intrinsics, min_frames=min_frames, keep=LOSS + 1)
+    stream = StreamingPieces(make, intrinsics, min_frames=min_frames, keep=LOSS + 1, failing=failing)
     for i in range(count):
         stream.add(i, i)
     result = stream.finish(lambda i: i)
+    if pieces is not None:
+        pieces.extend(piece for *_, piece in made)
     return result, [(first, intr, lens, piece.fed) for first, intr, lens, piece in made]
 
 
@@ -211,3 +223,30 @@ def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, mo
             r"before it: the camera turns on the spot\), and so did the SfM fallback ")
     with pytest.raises(TrackingLostError, match=said + r"\(SfM registered only 3"):
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False, restart_after_loss=True)
+
+
+def test_frames_failing_before_a_loss_get_no_pose(caplog):
+    """A piece that ends at a loss is asked to forget the frames before it whose tracking was
+    already failing (failing; its lookback never leaves it shorter than min_frames) and the
+    last piece, which ends with the video, is not. The frames forgotten get no pose, are said
+    once, and the "lost" break runs from the piece's last posed frame to the next piece."""
+    made = []
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        res, _ = _run(120, {0: 40, 40: 68}, failing_from={0: 33, 40: 50}, failing=(0.85, LOSS), pieces=made)
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [
+        ([0, 32], True), ([33, 39], False), ([40, 61], True), ([62, 67], False), ([68, 119], True)]
+    # The second piece (frames 40-67) fails from frame 50 but keeps min_frames (22) of its 28.
+    assert [p.failing for p in made] == [(0.85, LOSS), (0.85, 28 - 22), None]
+    assert not np.isfinite(res.poses[33:40]).any() and np.isfinite(res.poses[:33]).all()
+    assert [(b["before"], b["after"]) for b in res.diagnostics["scale_watch"]["breaks"] if b["kind"] == "lost"] \
+        == [(32, 40), (61, 68)]
+    said = [r.getMessage() for r in caplog.records if "no pose" in r.getMessage()]
+    assert said == ["frames 33-39 get no pose: tracking was failing there before the camera was lost",
+                    "frames 62-67 get no pose: tracking was failing there before the camera was lost"]
+
+
+def test_without_failing_the_frames_before_a_loss_are_kept():
+    made = []
+    res, _ = _run(80, {0: 40}, failing_from={0: 33}, pieces=made)
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 39], True), ([40, 79], True)]
+    assert [p.failing for p in made] == [None, None]

@@ -1,5 +1,6 @@
 """The quality gate of an estimated trajectory (recon.poses.quality): frames without image
-evidence are dropped and named; too little evidence is a tracking-lost error."""
+evidence are dropped and named; too little evidence is a tracking-lost error; where tracking
+began to fail before a loss."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon.poses import TrackingLostError
-from recon.poses.quality import GateConfig, gate_trajectory, runs
+from recon.poses.quality import GateConfig, failing_since, gate_trajectory, runs
 from recon.poses.result import PoseResult
 
 
@@ -36,3 +37,16 @@ def test_quality_gate_refuses_a_trajectory_with_too_little_evidence():
         gate_trajectory(_result(status, method="sfm"))
     assert gate_trajectory(_result(status), GateConfig(min_kept=0.2, min_frames=2)).keep.sum() == 2
     assert runs([1, 2, 3, 7, 9, 10]) == [(1, 3), (7, 7), (9, 10)]
+
+
+def test_failing_since_dates_a_loss_back_to_the_last_good_run():
+    good, weak = 0.95, 0.7
+    # The synthetic walk-through's corner, frames 170-185 after the global BA (its loss at 186).
+    corner = [0.96, 0.99, 0.81, 0.97, 0.98, 0.96, 0.76, 0.88, 0.65, 0.74, 0.86, 0.95, 0.72, 0.98, 0.83, 0.74]
+    assert failing_since(np.array(corner), 0.85, 11) == 6  # frame 176: the last three good are 173-175
+    assert failing_since(np.array([good] * 20), 0.85, 11) == 20  # a clean loss (a cut): nothing before it
+    assert failing_since(np.array([good] * 10 + [weak] * 10), 0.85, 11) == 10
+    assert failing_since(np.array([good] * 10 + [weak] * 10), 0.85, 4) == 16  # no further back than lookback
+    # Two good frames in a row are not yet a sound map again; NaN (no evidence) is failing.
+    assert failing_since(np.array([good] * 5 + [weak, good, good, weak, np.nan]), 0.85, 11) == 5
+    assert failing_since(np.array([weak, weak]), 0.85, 11) == 0

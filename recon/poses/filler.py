@@ -23,12 +23,13 @@ from recon.poses.frontend_config import FrontendConfig, ba_pixels
 from recon.poses.track_state import TrackState
 
 
-def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progress: bool) -> None:
-    """Motion-only alignment of every non-keyframe against the keyframes before and after it."""
+def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progress: bool, first: int = 0) -> None:
+    """Motion-only alignment of every non-keyframe (from frame `first` on) against the
+    keyframes before and after it."""
     g = state.graph
     T_kf = g.poses()
     kf_frames = np.array(g.frames)
-    jobs = [i for i in range(num_frames) if state.status.get(i) != "keyframe"]
+    jobs = [i for i in range(first, num_frames) if state.status.get(i) != "keyframe"]
 
     def init_of(i: int, prev: int, nxt: int) -> torch.Tensor:
         if i in state.rel:

@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler, motion_checks, normal_flow, plumb_line, scale_watch, vanishing
+from recon.poses import ba, backend, filler, motion_checks, normal_flow, plumb_line, quality, scale_watch, vanishing
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
@@ -144,6 +144,12 @@ class StreamingFrontend:
         """The lens' radial term as tracking has it now (the BA refines it when it calibrates)."""
         return self.state.k1 if self.state is not None else self.cfg.lens_k1
 
+    def evidence(self) -> np.ndarray:
+        """(count,) the share of each frame's flow confidence its tracked pose explains (the
+        quality gate's ``frame_inlier`` as tracking has it now; NaN where there is none)."""
+        inlier = self.state.inlier if self.state is not None else {}
+        return np.array([inlier.get(i, np.nan) for i in range(self.count)], dtype=np.float64)
+
     def lost_tail(self) -> int | None:
         """The first frame of a loss that runs into the last frame added and is long enough
         for ``finish`` to refuse it (more than half of ``max_lost``), else None."""
@@ -161,14 +167,17 @@ class StreamingFrontend:
                 self._calibrate()
 
     def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False,
-               stop: int | None = None) -> PoseResult:
+               stop: int | None = None, failing: tuple[float, int] | None = None) -> PoseResult:
         """Poses of every frame added, metric: the lost-at-the-end check, global BA, the
         non-keyframes aligned to their final keyframes (frames read back through
         ``frame_lookup(i)`` -> the frame given to ``add(i, ...)`` or its ``finish_image``), the
         metric rescale. seconds: the time spent in ``add`` and ``finish``. The diagnostics are
         those of :func:`estimate_poses_frontend`. stop: poses of frames [0, stop) only, the
         later ones forgotten (where tracking lost the camera and a new piece took over,
-        ``recon.poses.pieces``). Raises TrackingLostError."""
+        ``recon.poses.pieces``). failing: (share, lookback) for a video that ends where
+        the camera was lost: the frames of the last `lookback` whose tracking was already
+        failing there (``quality.failing_since`` on their evidence after the global BA) are
+        forgotten as well, and the BA solved again without them. Raises TrackingLostError."""
         if self._finished:
             raise RuntimeError("StreamingFrontend.finish called twice")
         if stop is not None and stop < self.count:
@@ -182,7 +191,7 @@ class StreamingFrontend:
         with self._running():
             if self.state is None:  # a video shorter than the focal search's buffer
                 self._calibrate()
-            result = self._finish(frame_lookup, progress)
+            result = self._finish(frame_lookup, progress, failing)
         result.seconds = self._seconds
         return result
 
@@ -249,10 +258,14 @@ class StreamingFrontend:
         if first is not None:
             raise TrackingLostError.at_the_end(first)
 
-    def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool) -> PoseResult:
-        s, n = self.state, self.count
+    def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool,
+                failing: tuple[float, int] | None = None) -> PoseResult:
+        s = self.state
         self._check_end()
         backend.global_ba(s)
+        if failing:
+            self._forget_failing(frame_lookup, *failing)
+        n = self.count
         filler.align_non_keyframes(s, frame_lookup, n, progress)
         g = s.graph
         for k, i in enumerate(g.frames):
@@ -300,6 +313,21 @@ class StreamingFrontend:
                          "motion_checks": motion.to_dict()},
             keyframe_depth=keyframe_depth,
         )
+
+    def _forget_failing(self, frame_lookup: Callable[[int], np.ndarray], share: float, lookback: int) -> None:
+        """Forget the last frames whose tracking was failing before the loss that ends the
+        video (``finish``'s failing) and solve the global BA again without them."""
+        s, n = self.state, self.count
+        lookback = min(lookback, n - 2)  # two frames are kept at least
+        if lookback <= 0:
+            return
+        filler.align_non_keyframes(s, frame_lookup, n, False, first=max(n - lookback - quality.GOOD_RUN, 0))
+        since = quality.failing_since(self.evidence(), share, lookback)
+        if since < n:
+            log.info("frames %d-%d: tracking was failing before the camera was lost; forgotten", since, n - 1)
+            s.forget_from(since)
+            self.count = since
+            backend.global_ba(s)
 
     def _short_flow(self, motion: motion_checks.MotionChecks) -> motion_checks.MotionChecks:
         """The motion checks with the stretches whose steps the dense flow made short
@@ -349,7 +377,9 @@ def streaming_frontend(intrinsics, prior, config: FrontendConfig) -> StreamingFr
             (lambda i, frame: source.get(first + i, frame))
         return StreamingFrontend(intr, piece_prior, piece_config)
 
-    return StreamingPieces(piece, intrinsics, min_frames=2 * (config.max_lost + 1), keep=config.max_lost + 2)
+    loss = config.max_lost + 1
+    return StreamingPieces(piece, intrinsics, min_frames=2 * loss, keep=loss + 1,
+                           failing=(config.failing_inlier, loss) if config.failing_inlier > 0 else None)
 
 
 # --------------------------------------------------------------------------- whole videos

@@ -98,6 +98,14 @@ class FrontendConfig:
         piece, with the first piece's camera (``recon.poses.pieces``), instead of falling
         back to SfM; the pieces come back as one estimate whose scale watch has a "lost"
         break at each restart. The pipeline turns it on with ``--on-break segments``.
+    failing_inlier: with ``restart_after_loss``, a piece that ends where the camera was
+        lost also gives up the frames before the loss whose tracking was already failing:
+        those after which, within a loss's length (max_lost + 1) of it, no three frames in a
+        row explain this share of their flow confidence once the piece's BA is solved
+        (``quality.failing_since``); its BA is then solved again without them. A map goes
+        wrong before the front end loses it, and the frames in between pass every check one
+        by one (the synthetic walk-through's corner: frames 176-185, 0.2-1.6 m off, each
+        explaining 0.65-0.98 of its flow). 0: keep them.
     min_match_correlation: a frame whose flow from a keyframe joins grey levels correlated
         less than this (``flow.match_correlation``) is not aligned to it: flow confidence
         alone passes unrelated images.
@@ -157,6 +165,7 @@ class FrontendConfig:
     join_scale_breaks: bool = False
     stop_untrusted: bool = True
     restart_after_loss: bool = False
+    failing_inlier: float = 0.85
     min_match_correlation: float = 0.5
     min_local_correlation: float = 0.5
     lost_inlier: float = 0.25

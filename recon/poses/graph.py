@@ -91,6 +91,12 @@ class FrameGraph:
         factors = [self._whiten[i] for i in ids]
         return None if any(f is None for f in factors) else torch.stack(factors)
 
+    def drop_from(self, k: int) -> None:
+        """Forget keyframes k, k+1, ... and every edge that touches one of them."""
+        for keyframes in (self.frames, self.gray, self._T, self._disp, self._prior, self._prior_w, self._whiten):
+            del keyframes[k:]
+        self.edges = {p: e for p, e in self.edges.items() if p[0] < k and p[1] < k}
+
     def set_state(self, ids, T_cw: torch.Tensor, disps: torch.Tensor) -> None:
         for n, i in enumerate(ids):
             self._T[i] = T_cw[n].clone()

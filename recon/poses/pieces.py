@@ -65,16 +65,20 @@ class StreamingPieces:
     frame `first`, its frames numbered from 0 (intrinsics None: searched; lens_k1 None: the
     front end's own setting). min_frames: the shortest piece kept. keep: recent frames kept
     for a restart, at least a whole loss (``max_lost + 1``); while the first piece buffers
-    frames for its focal search, all of them are kept.
+    frames for its focal search, all of them are kept. failing: (share, lookback): a piece
+    that ends where the camera was lost also gives up the frames before the loss whose
+    tracking was already failing (``StreamingFrontend.finish``'s failing; never below
+    min_frames); None: it keeps them.
 
     The first piece is always kept (one that loses the camera sooner hands the loss back):
     its front end is the camera's (intrinsics, lens, focal choice) for every later piece.
     """
 
     def __init__(self, make: Callable[[int, tuple | None, float | None], object], intrinsics, min_frames: int,
-                 keep: int):
+                 keep: int, failing: tuple[float, int] | None = None):
         self._make = make
         self._min_frames = min_frames
+        self._failing = failing
         self._keep = max(int(keep), 1)
         self._recent: list[tuple[int, np.ndarray]] = []
         self._pieces = [_Open(0, make(0, intrinsics, None))]
@@ -159,6 +163,7 @@ class StreamingPieces:
         # a loss in it starts a new piece as it would have while the frames came.
         self._track(lambda piece: piece.frontend.flush())
         pieces: list[Piece] = []
+        said: set[int] = set()  # frames without a pose whose reason is already said
         for p in self._pieces:
             stop = self.count if p.stop is None else p.stop
             if p.frontend is None:
@@ -176,7 +181,7 @@ class StreamingPieces:
                 continue
             try:
                 result = p.frontend.finish(lambda i, first=p.first: frame_lookup(first + i), progress,
-                                           stop=end - p.first)
+                                           stop=end - p.first, failing=self._failing_before(p.first, end))
             except TrackingLostError as err:
                 if first:
                     if self._loss is not None and not err.lost:
@@ -187,16 +192,30 @@ class StreamingPieces:
                 log.warning("frames %d-%d: no trajectory (%s)", p.first, stop - 1, err)
                 pieces.append(Piece(p.first, stop, None))
                 continue
-            pieces.append(Piece(p.first, end, result))
-            if end < stop:
-                pieces.append(Piece(end, stop, None))
+            failed = p.first + len(result.poses)  # the frames before the loss whose tracking was failing
+            if failed < end:
+                log.warning("frames %d-%d get no pose: tracking was failing there before the camera was lost",
+                            failed, end - 1)
+                said.update(range(failed, end))
+            pieces.append(Piece(p.first, failed, result))
+            if failed < stop:
+                pieces.append(Piece(failed, stop, None))
         if len(pieces) == 1:
             return pieces[0].result
         pieces = _joined_untracked(pieces)
-        for a, b in runs([i for p in pieces if p.result is None for i in range(p.first, p.stop)]):
+        for a, b in runs([i for p in pieces if p.result is None for i in range(p.first, p.stop) if i not in said]):
             log.warning("frames %d-%d get no pose: tracking, started again after the camera was lost, lost it "
                         "again within %d frames", a, b, self._min_frames)
         return merge_pieces(pieces, self.count)
+
+    def _failing_before(self, first: int, end: int) -> tuple[float, int] | None:
+        """``finish``'s failing for the piece of frames [first, end) when it ends at a loss
+        (its lookback never leaves it shorter than min_frames), else None."""
+        if self._failing is None or end >= self.count:
+            return None
+        share, lookback = self._failing
+        lookback = min(lookback, end - first - self._min_frames)
+        return (share, lookback) if lookback > 0 else None
 
 
 def _joined_untracked(pieces: list[Piece]) -> list[Piece]:

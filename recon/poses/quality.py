@@ -57,6 +57,29 @@ def runs(indices) -> list[tuple[int, int]]:
     return out
 
 
+# Frames in a row with good evidence that say tracking was still sound there.
+GOOD_RUN = 3
+
+
+def failing_since(evidence: np.ndarray, share: float, lookback: int, good_run: int = GOOD_RUN) -> int:
+    """Where tracking began to fail before the camera was lost: the first of the last
+    `lookback` frames after which no `good_run` frames in a row have evidence of at least
+    `share` (evidence: (n,) per frame up to the first lost one, NaN counted as failing).
+    n when the last `good_run` frames have it (a clean loss, as at a cut); n - lookback at
+    most.
+
+    Why: a front end is lost only after its map has gone wrong, and the frames just before
+    pass every check one by one (the synthetic walk-through's corner: frames 176-185, 0.2-1.6
+    m off); what gives them away is that their poses, once the map is solved as a whole,
+    keep explaining less of their flow than the frames of a sound map do."""
+    n = len(evidence)
+    good = np.asarray(evidence, dtype=np.float64) >= share
+    for end in range(n, max(n - lookback, 0) - 1, -1):
+        if end >= good_run and good[end - good_run:end].all():
+            return end
+    return max(n - lookback, 0)
+
+
 def gate_trajectory(result: PoseResult, config: GateConfig | None = None) -> GateResult:
     """Per-frame verdict on an estimate; raises TrackingLostError when too little is left."""
     config = config or GateConfig()

@@ -86,13 +86,20 @@ class TrackState:
         self.feature_starts = 0
 
     def forget_from(self, stop: int) -> None:
-        """Forget frames stop and later (a loss that tracking starts again from, as a new
-        piece): their records go; none of them may be a keyframe."""
-        if any(frame >= stop for frame in self.graph.frames):
-            raise RuntimeError(f"frames from {stop} on cannot be forgotten: one of them is a keyframe")
+        """Forget frames stop and later (where tracking starts again as a new piece,
+        ``recon.poses.pieces``): their records, and the keyframes among them with their
+        edges. The window BAs those keyframes took part in stay in the older keyframes'
+        state; the global BA at the end solves them again without them."""
         for records in (self.status, self.frame_T, self.refs, self.rel, self.frame_ratios, self.inlier):
             for frame in [f for f in records if f >= stop]:
                 del records[frame]
+        kept = sum(frame < stop for frame in self.graph.frames)
+        self.graph.drop_from(kept)
+        for k in [k for k in self.kf_detail if k >= kept]:
+            del self.kf_detail[k]
+        for k in [k for k in self.kf_keypoints if k >= kept]:
+            del self.kf_keypoints[k]
+        self.ref_kf = min(self.ref_kf, kept - 1)
         self.lost_run = [f for f in self.lost_run if f < stop]
         self.reloc_events = [e for e in self.reloc_events if e["frame"] < stop]
         if self.previous is not None and self.previous[0] >= stop:
