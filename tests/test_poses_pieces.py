@@ -178,6 +178,27 @@ def test_a_loss_among_the_frames_the_focal_search_waits_for_starts_a_new_piece()
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 29], True), ([30, 59], True)]
 
 
+def test_a_loss_while_the_kept_frames_are_tracked_again_starts_the_next_piece_once():
+    """The focal search's buffer (60 frames) holds two losses: the piece started at the first
+    loses the camera again while it is given the kept frames, and the piece started then
+    takes the rest of them; none is given a frame twice or out of order."""
+    made = []
+
+    def make(first, intr, lens):
+        piece = (_Buffering if first == 0 else _Scripted)(first, intr, lens, {0: 25, 25: 50}.get(first), False)
+        made.append(piece)
+        return piece
+
+    stream = StreamingPieces(make, None, min_frames=22, keep=LOSS + 1)
+    for i in range(90):
+        stream.add(i, i)
+    res = stream.finish(lambda i: i)
+    assert [p.first for p in made] == [0, 25, 50]
+    assert made[1].fed == list(range(25 + LOSS)) and made[2].fed == list(range(40))
+    assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [
+        ([0, 24], True), ([25, 49], True), ([50, 89], True)]
+
+
 def test_a_refused_first_piece_is_said_with_the_loss():
     with pytest.raises(TrackingLostError, match=r"^tracking lost at frame 29; the frames before it: the camera "
                                                 r"turns on the spot") as info:
@@ -225,14 +246,13 @@ def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, mo
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="auto", progress=False, restart_after_loss=True)
 
 
-def test_frames_failing_before_a_loss_get_no_pose(caplog):
+def test_frames_failing_before_a_loss_get_no_pose():
     """A piece that ends at a loss is asked to forget the frames before it whose tracking was
     already failing (failing; its lookback never leaves it shorter than min_frames) and the
     last piece, which ends with the video, is not. The frames forgotten get no pose, are said
-    once, and the "lost" break runs from the piece's last posed frame to the next piece."""
+    with the reason, and the "lost" break runs from the piece's last posed frame to the next piece."""
     made = []
-    with caplog.at_level(logging.WARNING, logger="recon"):
-        res, _ = _run(120, {0: 40, 40: 68}, failing_from={0: 33, 40: 50}, failing=(0.85, LOSS), pieces=made)
+    res, _ = _run(120, {0: 40, 40: 68}, failing_from={0: 33, 40: 50}, failing=(0.85, LOSS), pieces=made)
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [
         ([0, 32], True), ([33, 39], False), ([40, 61], True), ([62, 67], False), ([68, 119], True)]
     # The second piece (frames 40-67) fails from frame 50 but keeps min_frames (22) of its 28.
@@ -240,9 +260,9 @@ def test_frames_failing_before_a_loss_get_no_pose(caplog):
     assert not np.isfinite(res.poses[33:40]).any() and np.isfinite(res.poses[:33]).all()
     assert [(b["before"], b["after"]) for b in res.diagnostics["scale_watch"]["breaks"] if b["kind"] == "lost"] \
         == [(32, 40), (61, 68)]
-    said = [r.getMessage() for r in caplog.records if "no pose" in r.getMessage()]
-    assert said == ["frames 33-39 get no pose: tracking was failing there before the camera was lost",
-                    "frames 62-67 get no pose: tracking was failing there before the camera was lost"]
+    why = [p.get("why") for p in res.diagnostics["pieces"]]
+    assert why == [None, "tracking was failing there before the camera was lost", None,
+                   "tracking was failing there before the camera was lost", None]
 
 
 def test_without_failing_the_frames_before_a_loss_are_kept():
@@ -250,3 +270,19 @@ def test_without_failing_the_frames_before_a_loss_are_kept():
     res, _ = _run(80, {0: 40}, failing_from={0: 33}, pieces=made)
     assert [(p["frames"], p["tracked"]) for p in res.diagnostics["pieces"]] == [([0, 39], True), ([40, 79], True)]
     assert [p.failing for p in made] == [None, None]
+
+
+def test_the_run_names_the_pieces_without_a_pose_by_video_frame(caplog):
+    """recon.core.stages.gate_estimate says each piece without a pose with its reason, by
+    video frame (--start 5, --stride 2 here), and report.json lists the pieces so."""
+    from recon.core.stages import gate_estimate
+
+    res, _ = _run(120, {0: 40, 40: 45, 45: 80})
+    video = [5 + 2 * i for i in range(120)]
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        kept, info, note = gate_estimate(res, video)
+    said = [r.getMessage() for r in caplog.records if "no pose" in r.getMessage()]
+    assert said == ["video frames 85-93 get no pose: tracking, started again after the camera was lost, lost it "
+                    "again within 22 frames"]
+    assert [p["frames"] for p in info["diagnostics"]["pieces"]] == [[5, 83], [85, 93], [95, 163], [165, 243]]
+    assert not kept[40:45].any() and kept[:40].all() and "video frames 85-93" in note

@@ -335,9 +335,15 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     gate = gate_trajectory(result)
     names = [int(i) for i in frame_indices]
     diagnostics = {k: v for k, v in result.diagnostics.items() if k not in ("scale_watch", "motion_checks")}
+    if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.pieces): named by video frame
+        diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
             "quality": gate.summary(names)}
+    for piece in diagnostics.get("pieces", []):
+        if not piece["tracked"]:
+            a, b = piece["frames"]
+            log.warning("video frames %s get no pose: %s", f"{a}-{b}" if a != b else a, piece["why"])
     if "scale_watch" in result.diagnostics:
         watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
         # Verdicts by position in the selection, frames and breaks named by video frame.

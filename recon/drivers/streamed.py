@@ -142,7 +142,8 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
                         "out", frames[0], frames[-1], k)
             continue
         name = segment_name(len(pieces))
-        say(f"{name}: frames {frames[0]}-{frames[-1]}")
+        posed = video.indices[mine & np.isfinite(video.poses).all(axis=(1, 2))]  # as its report names them
+        say(f"{name}: frames {posed[0]}-{posed[-1]}")
         part = replace(video, poses=np.where(mine[:, None, None], video.poses, np.nan),
                        depth_frame=video.depth_frame & mine)
         part_out = OutputFolder(out.path / name, overwrite=True)

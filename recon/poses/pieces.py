@@ -30,7 +30,6 @@ from typing import Callable
 import numpy as np
 
 from recon.poses.motion_checks import MotionChecks
-from recon.poses.quality import runs
 from recon.poses.result import PoseResult, TrackingLostError
 from recon.poses.scale_watch import ScaleBreak, ScaleWatch
 
@@ -39,11 +38,12 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Piece:
-    """Frames [first, stop) of the video and their estimate (None: not tracked)."""
+    """Frames [first, stop) of the video and their estimate (None: not tracked, why says why)."""
 
     first: int
     stop: int
     result: PoseResult | None
+    why: str = ""
 
 
 @dataclass
@@ -54,6 +54,7 @@ class _Open:
     first: int
     frontend: object | None
     stop: int | None = None
+    why: str = ""
 
 
 class StreamingPieces:
@@ -144,15 +145,21 @@ class StreamingPieces:
         self._loss = self._loss or loss
         piece.stop = at
         if kept:
-            log.warning("tracking lost at frame %d; tracking again from there as a new piece", at)
+            # Said by the caller with the video's frame numbers (a "lost" break of the scale watch).
+            log.info("tracking lost at frame %d; tracking again from there as a new piece", at)
         else:
-            piece.frontend = None  # said with the frames that get no pose (finish)
+            piece.frontend = None
+            piece.why = (f"tracking, started again after the camera was lost, lost it again within "
+                         f"{self._min_frames} frames")
         again = [(i, f) for i, f in self._recent if i >= at]
         start = again[0][0] if again else self.count
         if start > at:  # frames older than what is kept (a loss inside the focal search's buffer)
-            self._pieces.append(_Open(at, None, start))
-        self._pieces.append(_Open(start, self._make(start, self._first.intrinsics, self._first.lens_k1)))
+            self._pieces.append(_Open(at, None, start, "lost with the camera, and no longer kept to be tracked again"))
+        new = _Open(start, self._make(start, self._first.intrinsics, self._first.lens_k1))
+        self._pieces.append(new)
         for i, f in again:
+            if self._pieces[-1] is not new:
+                break  # it lost the camera among them: the piece started there took the rest
             self._feed(i, f)
 
     def finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool = False) -> PoseResult:
@@ -163,11 +170,10 @@ class StreamingPieces:
         # a loss in it starts a new piece as it would have while the frames came.
         self._track(lambda piece: piece.frontend.flush())
         pieces: list[Piece] = []
-        said: set[int] = set()  # frames without a pose whose reason is already said
         for p in self._pieces:
             stop = self.count if p.stop is None else p.stop
             if p.frontend is None:
-                pieces.append(Piece(p.first, stop, None))
+                pieces.append(Piece(p.first, stop, None, p.why))
                 continue
             first = p is self._pieces[0]
             tail = p.frontend.lost_tail() if p.stop is None else None
@@ -176,8 +182,11 @@ class StreamingPieces:
             end = stop if tail is None else p.first + tail
             if tail is not None:
                 self._loss = self._loss or TrackingLostError.at_the_end(end)
+            lost_tail = Piece(end, stop, None, "the camera was lost and not found again before the end of the video")
             if not first and end - p.first < self._min_frames:
-                pieces.append(Piece(p.first, stop, None))  # too short a rest to be a reconstruction of its own
+                pieces.append(Piece(p.first, end, None, f"fewer than {self._min_frames} frames tracked after "
+                                                        "tracking started again"))
+                pieces += [lost_tail] if end < stop else []
                 continue
             try:
                 result = p.frontend.finish(lambda i, first=p.first: frame_lookup(first + i), progress,
@@ -189,23 +198,19 @@ class StreamingPieces:
                         raise TrackingLostError(f"{self._loss}; the frames before it: {err}", frame=self._loss.frame,
                                                 lost=True, sfm_may_help=self._loss.sfm_may_help) from None
                     raise
-                log.warning("frames %d-%d: no trajectory (%s)", p.first, stop - 1, err)
-                pieces.append(Piece(p.first, stop, None))
+                pieces.append(Piece(p.first, stop, None, f"no trajectory ({err})"))
                 continue
             failed = p.first + len(result.poses)  # the frames before the loss whose tracking was failing
-            if failed < end:
-                log.warning("frames %d-%d get no pose: tracking was failing there before the camera was lost",
-                            failed, end - 1)
-                said.update(range(failed, end))
             pieces.append(Piece(p.first, failed, result))
-            if failed < stop:
-                pieces.append(Piece(failed, stop, None))
+            if failed < end:
+                pieces.append(Piece(failed, end, None, "tracking was failing there before the camera was lost"))
+            pieces += [lost_tail] if end < stop else []
         if len(pieces) == 1:
             return pieces[0].result
         pieces = _joined_untracked(pieces)
-        for a, b in runs([i for p in pieces if p.result is None for i in range(p.first, p.stop) if i not in said]):
-            log.warning("frames %d-%d get no pose: tracking, started again after the camera was lost, lost it "
-                        "again within %d frames", a, b, self._min_frames)
+        for p in pieces:
+            if p.result is None:  # said by the caller with the video's frame numbers (diagnostics["pieces"])
+                log.info("frames %d-%d get no pose: %s", p.first, p.stop - 1, p.why)
         return merge_pieces(pieces, self.count)
 
     def _failing_before(self, first: int, end: int) -> tuple[float, int] | None:
@@ -219,11 +224,12 @@ class StreamingPieces:
 
 
 def _joined_untracked(pieces: list[Piece]) -> list[Piece]:
-    """Consecutive pieces without a pose as one (a run of frames each of which lost the camera at once)."""
+    """Consecutive pieces without a pose for the same reason as one (a run of frames each of
+    which lost the camera at once)."""
     out: list[Piece] = []
     for p in pieces:
-        if out and p.result is None and out[-1].result is None and out[-1].stop == p.first:
-            out[-1] = Piece(out[-1].first, p.stop, None)
+        if out and p.result is None and out[-1].result is None and out[-1].stop == p.first and out[-1].why == p.why:
+            out[-1] = Piece(out[-1].first, p.stop, None, p.why)
         else:
             out.append(p)
     return out
@@ -234,8 +240,8 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
     (NaN where a piece has none), keyframes, keyframe depth, per-frame states and evidence
     (frames without a pose "lost"), the scale watches with a "lost" break at the start of
     each piece after the first, the motion checks, and per piece its frames and metric
-    scale (``diagnostics["pieces"]``). The first tracked piece's intrinsics and other
-    settings stand for the whole."""
+    scale, or why it has no pose (``diagnostics["pieces"]``). The first tracked piece's
+    intrinsics and other settings stand for the whole."""
     tracked = [p for p in pieces if p.result is not None]
     first = tracked[0].result
     poses = np.full((count, 4, 4), np.nan)
@@ -265,7 +271,8 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
         "frame_status": status, "frame_inlier": inlier, "lost_frames": sorted(lost_frames + untracked),
         "num_keyframes": int(sum(len(k) for k in keyframes)),
         "pieces": [{"frames": [p.first, p.stop - 1], "tracked": p.result is not None,
-                    "metric_scale_factor": p.result.diagnostics.get("metric_scale_factor") if p.result else None}
+                    "metric_scale_factor": p.result.diagnostics.get("metric_scale_factor") if p.result else None,
+                    **({} if p.result else {"why": p.why})}
                    for p in pieces],
         "scale_watch": watch.to_dict(),
         "motion_checks": checks.to_dict(),
