@@ -263,6 +263,7 @@ class StreamingFrontend:
         s = self.state
         self._check_end()
         backend.global_ba(s)
+        given = self.count
         if failing:
             self._forget_failing(frame_lookup, *failing)
         n = self.count
@@ -297,7 +298,9 @@ class StreamingFrontend:
             # pieces: the user may choose it, the run does not fall back to it.
             jumping = motion.moves_too_fast and focal_estimated
             raise TrackingLostError(
-                f"the trajectory of frames 0-{n - 1} cannot be trusted: {'; '.join(why)}"
+                f"the trajectory of frames 0-{n - 1}"
+                + (f" (frames {n}-{given - 1} left out: tracking was failing there)" if n < given else "")
+                + f" cannot be trusted: {'; '.join(why)}"
                 + ("; give the camera's intrinsics (--intrinsics or --fov) to track a turning camera, or "
                    "--on-break keep to take the trajectory anyway" if turning else "")
                 + ("; give the camera's intrinsics (--intrinsics or --fov), try --pose-method sfm, or "
