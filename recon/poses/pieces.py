@@ -18,7 +18,10 @@ the pieces' estimates together, frames numbered in the whole video. A piece that
 camera within ``min_frames`` of its start, or a rest of the video shorter than that, is not
 kept: its frames get no pose (the quality gate leaves them out) and the next piece starts
 where it lost the camera. A first piece that loses it so soon hands the loss back, as a
-front end without restarts would (the caller may then try SfM).
+front end without restarts would (the caller may then try SfM). A piece that ends at a loss
+also gives up the frames just before it whose tracking was already failing (the map goes
+wrong before the camera is lost: ``quality.failing_since``). Each piece without a pose
+carries its reason (``diagnostics["pieces"]``), which the caller says by video frame.
 """
 
 from __future__ import annotations
