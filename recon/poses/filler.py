@@ -23,9 +23,24 @@ from recon.poses.frontend_config import FrontendConfig, ba_pixels
 from recon.poses.track_state import TrackState
 
 
-def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progress: bool, first: int = 0) -> None:
-    """Motion-only alignment of every non-keyframe (from frame `first` on) against the
-    keyframes before and after it."""
+def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progress: bool) -> None:
+    """Motion-only alignment of every non-keyframe against the keyframes before and after it."""
+    for i, (T, ok, ratio, inlier) in realigned(state, frames_lookup, num_frames, progress).items():
+        state.frame_T[i] = T
+        if np.isfinite(inlier):
+            state.inlier[i] = inlier
+        if ok:
+            if np.isfinite(ratio):
+                state.frame_ratios[i] = ratio
+            if state.status.get(i) == "lost":
+                state.status[i] = "recovered"
+        else:
+            state.status[i] = "interpolated"
+
+
+def realigned(state: TrackState, frames_lookup, num_frames: int, progress: bool = False, first: int = 0) -> dict:
+    """``align_to_keyframes``'s results for the non-keyframes of frames [first, num_frames)
+    against the graph as it is, the state left as it was."""
     g = state.graph
     T_kf = g.poses()
     kf_frames = np.array(g.frames)
@@ -37,20 +52,9 @@ def align_non_keyframes(state: TrackState, frames_lookup, num_frames: int, progr
         return interpolated_pose(i, prev, nxt, kf_frames, T_kf)
 
     prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
-    out = align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
-                             kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, state.refs,
-                             prior_of, progress, state.k1)
-    for i, (T, ok, ratio, inlier) in out.items():
-        state.frame_T[i] = T
-        if np.isfinite(inlier):
-            state.inlier[i] = inlier
-        if ok:
-            if np.isfinite(ratio):
-                state.frame_ratios[i] = ratio
-            if state.status.get(i) == "lost":
-                state.status[i] = "recovered"
-        else:
-            state.status[i] = "interpolated"
+    return align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
+                              kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, state.refs,
+                              prior_of, progress, state.k1)
 
 
 def interpolated_pose(i: int, prev: int, nxt: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:

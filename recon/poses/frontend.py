@@ -324,8 +324,14 @@ class StreamingFrontend:
         lookback = min(lookback, n - 2)  # two frames are kept at least
         if lookback <= 0:
             return
-        filler.align_non_keyframes(s, frame_lookup, n, False, first=max(n - lookback - quality.GOOD_RUN, 0))
-        since = quality.failing_since(self.evidence(), share, lookback)
+        # The last frames' evidence against the solved map; the state is left as it is until
+        # the filler aligns every frame.
+        first = max(n - lookback - quality.GOOD_RUN, 0)
+        evidence = self.evidence()
+        for i, (_, _, _, inlier) in filler.realigned(s, frame_lookup, n, first=first).items():
+            if np.isfinite(inlier):  # as the filler keeps it
+                evidence[i] = inlier
+        since = quality.failing_since(evidence, share, lookback)
         if since < n:
             log.info("frames %d-%d: tracking was failing before the camera was lost; forgotten", since, n - 1)
             s.forget_from(since)
