@@ -95,10 +95,9 @@ class TrackState:
                 del records[frame]
         kept = sum(frame < stop for frame in self.graph.frames)
         self.graph.drop_from(kept)
-        for k in [k for k in self.kf_detail if k >= kept]:
-            del self.kf_detail[k]
-        for k in [k for k in self.kf_keypoints if k >= kept]:
-            del self.kf_keypoints[k]
+        for cache in (self.kf_detail, self.kf_keypoints):
+            for k in [k for k in cache if k >= kept]:
+                del cache[k]
         self.ref_kf = min(self.ref_kf, kept - 1)
         self.lost_run = [f for f in self.lost_run if f < stop]
         self.reloc_events = [e for e in self.reloc_events if e["frame"] < stop]
