@@ -16,16 +16,21 @@ from ..errors import ReconInputError
 log = logging.getLogger(__name__)
 
 
-def estimator_options(config) -> dict:
+def estimator_options(config, frontend_only: bool = False) -> dict:
     """The pose estimator's options of a run (``config`` its PipelineConfig): the user's
     ``pose_options`` over what ``on_break`` implies for the front end: "segments" tracks again
     from where the camera was lost, a new piece of the trajectory (``restart_after_loss``,
     recon.poses.pieces), where the others fall back to SfM; "keep" returns a trajectory
     whatever the front end's motion checks or SfM's scale spread say (``stop_untrusted`` off,
-    ``max_scale_spread`` 0)."""
+    ``max_scale_spread`` 0). frontend_only: for a run that only has the front end (streamed),
+    which SfM's implied settings do not concern."""
     implied = {"segments": {"restart_after_loss": True}, "stop": {},
-               "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}
-    return {**implied[config.on_break], **config.pose_options}
+               "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}[config.on_break]
+    if frontend_only:
+        from ..poses.frontend_config import FrontendConfig
+
+        implied = {k: v for k, v in implied.items() if k in FrontendConfig.__dataclass_fields__}
+    return {**implied, **config.pose_options}
 
 
 def trajectory_stretches(info: dict, count: int) -> np.ndarray:

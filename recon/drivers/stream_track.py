@@ -278,8 +278,8 @@ class _Poser:
                 raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
             # With --on-break segments (restart_after_loss) it starts again where it loses the
             # camera, as the one-shot run does, instead of stopping the streamed run.
-            self.frontend = streaming_frontend(intrinsics, self._prior,
-                                               _frontend_config(estimator_options(config), config.device))
+            options = estimator_options(config, frontend_only=True)
+            self.frontend = streaming_frontend(intrinsics, self._prior, _frontend_config(options, config.device))
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,
