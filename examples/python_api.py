@@ -1,6 +1,9 @@
 """The pipeline from Python: one typed config, one call, arrays back (and files on disk).
 
-    python examples/python_api.py my_video.mp4 out/ [poses.txt]
+    python examples/python_api.py my_video.mp4 out/ [poses.txt|estimate] [depth_maps/]
+
+With a folder of depth maps (one per frame, matched by name) they are the depth prior;
+without, FastDepth predicts it.
 """
 
 import sys
@@ -18,7 +21,8 @@ config = PipelineConfig(
     width=640,  # working width in pixels
     fov=65.0,  # horizontal field of view when intrinsics are unknown
     poses=sys.argv[3] if len(sys.argv) > 3 else "estimate",  # or a pose file
-    prior="fastdepth",
+    prior="folder" if len(sys.argv) > 4 else "fastdepth",
+    prior_path=Path(sys.argv[4]) if len(sys.argv) > 4 else None,
     medea=MedeaConfig.fast(),  # or MedeaConfig() for the paper's settings
     fusion=FusionOptions(voxel_size=None, point_cloud=True),  # None: chosen from the depth range
     rerun="save",  # writes OUTPUT/recording.rrd

@@ -596,6 +596,28 @@ def test_a_known_lens_is_undone_before_every_stage(demo, tmp_path, capsys):
                "--distortion", "4 or 5 numbers")
 
 
+@pytest.mark.skipif(not pose_estimator_available(), reason="pose estimation not installed")
+def test_a_scale_the_prior_cannot_vouch_for_stops_the_run_unless_kept(demo, tmp_path, capsys):
+    """FastDepth does not see the rendered room (2.4x too near, its depth uncorrelated with
+    the room's): with the poses estimated, whose metres come from it, the run stops with one
+    line naming the frames and writes nothing; --on-break keep writes the result with the
+    same words as a warning, and report.json says why (recon.poses.prior_agreement)."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    common = [str(out / "input/synthetic.mp4"), "--width", "0", "--no-medea", "--refine", "none", "--quiet",
+              "--rerun", "off", "--no-npy", "--no-glb", "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}"]
+    stopped = tmp_path / "stopped"
+    _run_fails(capsys, ["run", "-o", str(stopped), *common], "does not follow the scene's geometry at frames 0-",
+               "--on-break keep")
+    assert not (stopped / "mesh.ply").exists() and not (stopped / "trajectory.txt").exists()
+    kept = tmp_path / "kept"
+    assert main(["run", "-o", str(kept), *common, "--on-break", "keep"]) == 0
+    assert "does not follow the scene's geometry" in capsys.readouterr().err
+    verdict = json.loads((kept / "report.json").read_text())["poses"]["metric_scale"]
+    assert verdict["judged"] and not verdict["trusted"] and verdict["median"] < verdict["min_correlation"]
+    assert (kept / "mesh.ply").is_file()
+
+
 def test_rolling_shutter_resamples_the_frames_and_estimates_the_poses_again(demo, tmp_path, capsys):
     """--rolling-shutter: a one-shot run resamples the turning frames and estimates the poses
     again on them (report.json: poses.rolling_shutter); a streamed run says it does not."""

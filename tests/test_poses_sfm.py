@@ -39,6 +39,9 @@ def test_sfm_synthetic_accuracy_and_metric_scale(sfm_room):
     assert ate_rmse(res.poses, seq.poses, "sim3")["rmse"] <= 0.01 * length
     assert scale_error(res.poses, seq.poses) <= 0.10
     assert abs(d["lens_k1"]) < 0.01  # a pinhole camera
+    # The prior's depth follows the triangulated points' (recon.poses.prior_agreement; 0.80 measured).
+    agreement = d["prior_agreement"]
+    assert agreement["judged"] and agreement["trusted"] and agreement["median"] > 0.7, agreement
 
 
 def test_a_model_whose_scale_the_prior_contradicts_is_refused(sfm_room):

@@ -92,7 +92,9 @@ class PipelineConfig:
         reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run
         stops with one line naming the frames) or "keep" (one trajectory, with a warning).
         Whatever it is, a trajectory the front end's motion checks distrust as a whole
-        (``recon.poses.motion_checks``) is not returned, except under "keep".
+        (``recon.poses.motion_checks``) is not returned, except under "keep"; nor is one whose
+        metric scale the depth prior cannot vouch for (its depth does not follow the scene's,
+        ``recon.poses.prior_agreement``), which "keep" returns with a warning.
     join_segments: before that, try to join the stretches on either side of each break
         (``recon.poses.join``: the frames after it posed by PnP in the stretch before it, a
         similarity between the two); joined stretches are one trajectory again.

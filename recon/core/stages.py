@@ -329,12 +329,14 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what
     report.json says of it, and the note naming the frames left out ("" when none)."""
     from ..poses.motion_checks import MotionChecks
+    from ..poses.prior_agreement import PriorAgreement
     from ..poses.quality import gate_trajectory
     from ..poses.scale_watch import ScaleWatch
 
     gate = gate_trajectory(result)
     names = [int(i) for i in frame_indices]
-    diagnostics = {k: v for k, v in result.diagnostics.items() if k not in ("scale_watch", "motion_checks")}
+    diagnostics = {k: v for k, v in result.diagnostics.items()
+                   if k not in ("scale_watch", "motion_checks", "prior_agreement")}
     if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.pieces): named by video frame
         diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
@@ -357,6 +359,10 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         info["motion_checks"] = {**named_checks.to_dict(), "frame_verdicts": checks.frame_verdicts(len(names))}
         if checks.short_flow:
             log.warning("%s (report.json: poses.motion_checks)", named_checks.short_said())
+    if "prior_agreement" in result.diagnostics:
+        agreement = PriorAgreement.from_dict(result.diagnostics["prior_agreement"]).renumbered(names)
+        # Acted on with the scale breaks (recon.drivers.segments.check_metric_scale).
+        info["metric_scale"] = agreement.to_dict()
     note = ""
     if gate.dropped:
         spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])

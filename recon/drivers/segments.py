@@ -1,6 +1,7 @@
 """What an estimated trajectory becomes where its scale breaks (``--on-break``): the
 stretches between the scale watch's breaks (``recon.poses.scale_watch``), their joins
-(``recon.poses.join``), the stop, and the estimator options each choice implies. Both
+(``recon.poses.join``), the stop, and the estimator options each choice implies; and, with
+the same choice, a metric scale the depth prior cannot vouch for (``recon.poses.prior_agreement``). Both
 drivers (``recon.drivers.oneshot``, ``recon.drivers.streamed``) call :func:`settle_breaks` after the
 poses and before depth; each writes the segments that stay apart its own way.
 """
@@ -89,6 +90,7 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
     the stop ("stop"). Returns (stretch (N,), poses, the pose report ``info`` with the joins):
     every stretch 0 where the run goes on as one trajectory ("keep", no break, or every break
     joined); the driver writes what stays apart as segments."""
+    check_metric_scale(config, info)
     if config.on_break == "keep" or stretch.max() == 0:
         return np.zeros_like(stretch), poses, info
     if config.join_segments:
@@ -98,6 +100,21 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
     if stretch.max() > 0 and config.on_break == "stop":
         stop_at_breaks(info)
     return stretch, poses, info
+
+
+def check_metric_scale(config, info: dict) -> None:
+    """The depth prior's verdict on an estimate's metric scale (``recon.poses.prior_agreement``,
+    report.json's poses.metric_scale): where the prior does not follow the scene, a stop
+    naming the frames, or under "keep" a warning."""
+    from ..poses.prior_agreement import PriorAgreement
+
+    if info.get("metric_scale", {}).get("trusted", True):
+        return
+    verdict = PriorAgreement.from_dict(info["metric_scale"])
+    if config.on_break == "keep":
+        log.warning("%s (report.json: poses.metric_scale)", verdict.said())
+    else:
+        raise ReconInputError(verdict.refusal())
 
 
 def say_joins(joins: list[dict]) -> None:
@@ -120,4 +137,5 @@ def stop_at_breaks(info: dict) -> None:
                               f"{ScaleWatch.from_dict(watch).describe()}")
 
 
-__all__ = ["estimator_options", "join_breaks", "say_joins", "settle_breaks", "stop_at_breaks", "trajectory_stretches"]
+__all__ = ["check_metric_scale", "estimator_options", "join_breaks", "say_joins", "settle_breaks", "stop_at_breaks",
+           "trajectory_stretches"]

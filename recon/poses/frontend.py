@@ -32,7 +32,18 @@ import torch
 from tqdm import tqdm
 
 from recon.errors import ReconInputError
-from recon.poses import ba, backend, filler, motion_checks, normal_flow, plumb_line, quality, scale_watch, vanishing
+from recon.poses import (
+    ba,
+    backend,
+    filler,
+    motion_checks,
+    normal_flow,
+    plumb_line,
+    prior_agreement,
+    quality,
+    scale_watch,
+    vanishing,
+)
 from recon.poses import flow as fl
 from recon.poses.calib import estimate_focal
 from recon.poses.focal_choice import choose_focal
@@ -252,6 +263,18 @@ class StreamingFrontend:
         for i, frame in enumerate(frames):
             self._track(i, frame)
 
+    def _prior_agreement(self, prior_disp: torch.Tensor, prior_w: torch.Tensor) -> dict:
+        """Whether the prior's depth follows the keyframes' depth as their flow measures it
+        (``recon.poses.prior_agreement``), for report.json and the gate's warning."""
+        s = self.state
+        _, edges = s.graph.edge_list()
+        depth, rel = prior_agreement.keyframe_triangulations(s.graph.poses(), edges.ii, edges.jj, edges.target,
+                                                             edges.weight, s.intr, float(s.k1))
+        cfg = prior_agreement.AgreementConfig()
+        measured = (rel < cfg.max_error) & (prior_w > 0)
+        correlation = prior_agreement.log_depth_correlation(depth.numpy(), (1.0 / prior_disp).numpy(), measured.numpy())
+        return prior_agreement.judge_agreement(s.graph.frames, *correlation, cfg).to_dict()
+
     def _check_end(self) -> None:
         """A loss that runs into the end of the video (more than half of ``max_lost``) is a failure."""
         first = self.lost_tail()
@@ -280,6 +303,7 @@ class StreamingFrontend:
         scale = backend.metric_rescale(s)
         T_cw = torch.stack([s.frame_T[i] for i in range(n)]).numpy()
         keyframe_depth = (1.0 / g.disps()).float().numpy()
+        self.diagnostics["prior_agreement"] = self._prior_agreement(prior, prior_w)
         motion = motion_checks.check_motion(
             g.poses().numpy(), keyframe_depth, g.frames, T_cw, float(self.intrinsics[0]), s.geo.shape[1],
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)

@@ -33,6 +33,8 @@ from typing import Callable
 import numpy as np
 
 from recon.poses.motion_checks import MotionChecks
+from recon.poses.prior_agreement import PriorAgreement
+from recon.poses.prior_agreement import joined as joined_agreement
 from recon.poses.result import PoseResult, TrackingLostError
 from recon.poses.scale_watch import ScaleBreak, ScaleWatch
 
@@ -249,7 +251,7 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
     first = tracked[0].result
     poses = np.full((count, 4, 4), np.nan)
     status, inlier = ["lost"] * count, [float("nan")] * count
-    keyframes, depth, watch, checks, lost_frames = [], [], None, None, []
+    keyframes, depth, watch, checks, lost_frames, agreements = [], [], None, None, [], []
     for n, p in enumerate(tracked):
         r, names = p.result, np.arange(p.first, p.stop)
         poses[p.first:p.stop] = r.poses
@@ -259,6 +261,8 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
         if r.keyframe_depth is not None:
             depth.append(r.keyframe_depth)
         lost_frames += [p.first + i for i in r.diagnostics.get("lost_frames", [])]
+        if "prior_agreement" in r.diagnostics:
+            agreements.append(PriorAgreement.from_dict(r.diagnostics["prior_agreement"]).renumbered(names))
         piece_watch = ScaleWatch.from_dict(r.diagnostics["scale_watch"]).renumbered(names) \
             if "scale_watch" in r.diagnostics else ScaleWatch([], [], float("nan"), judged=False)
         piece_checks = MotionChecks.from_dict(r.diagnostics["motion_checks"]).renumbered(names) \
@@ -279,6 +283,7 @@ def merge_pieces(pieces: list[Piece], count: int) -> PoseResult:
                    for p in pieces],
         "scale_watch": watch.to_dict(),
         "motion_checks": checks.to_dict(),
+        **({"prior_agreement": joined_agreement(agreements).to_dict()} if agreements else {}),
     }
     return PoseResult(poses, first.intrinsics, np.concatenate(keyframes), float(sum(p.result.seconds for p in tracked)),
                       diagnostics, np.concatenate(depth) if len(depth) == len(tracked) else None)

@@ -37,6 +37,7 @@ import torch
 
 from recon.errors import ReconInputError
 from recon.poses import flow as fl
+from recon.poses import prior_agreement as pa
 from recon.poses import sfm_keyframes as skf
 from recon.poses import sfm_model as sm
 from recon.poses.filler import align_to_keyframes
@@ -323,7 +324,8 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     model_only = ["keyframe" if i in T_model else "interpolated" for i in range(n)]
     if len(T_model) < 2:  # nothing to register the other frames against
         raise skf.registration_error(model_only, len(kf_ids), cfg.min_registered)
-    ratios = sm.depth_ratios(rec, prior, frames_list, cfg.correction_grid)
+    points = sm.point_depths(rec, prior, frames_list)
+    ratios = sm.depth_ratios(points, cfg.correction_grid)
     if not ratios:
         # Without depth no frame can be registered densely: usually a model of a few images
         # and points (COLMAP's mapper now and then ends with one on fast rotation).
@@ -367,6 +369,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
             f"from frame to frame, more than the prior's noise explains: its parts are at different scales "
             f"(--on-break keep takes it anyway)", frame=0)
     trusted = np.array([s in TRUSTED_STATES for s in status])
+    agreement = [(i, *pa.point_log_correlation(p.z, p.d)) for i, p in sorted(points.items())]
     diagnostics = {
         "method": "sfm",
         "mapper": cfg.mapper,
@@ -391,6 +394,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         "lost_frames": [i for i, s in enumerate(status) if s == "interpolated"],
         "unregistered_ranges": [list(r) for r in sorted(skf.unregistered_ranges(trusted))],
         "lens_k1": k1,
+        "prior_agreement": pa.judge_agreement(*zip(*agreement)).to_dict(),
     }
     if intr_in is None:
         diagnostics["focal_estimate"] = {"focal": intr[0], "source": "COLMAP bundle adjustment"}

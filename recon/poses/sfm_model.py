@@ -8,6 +8,7 @@ where the pipeline runs (``sfm._import_pycolmap``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -80,20 +81,29 @@ def model_evidence(pycolmap, db_path: Path, rec, min_inliers: int, max_error: fl
     return out
 
 
-def depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray], grid: tuple[int, int]
-                  ) -> dict[int, tuple[float, np.ndarray]]:
-    """Per registered image: the median ratio prior depth / SfM depth over its triangulated
-    points, and the same median per cell of a coarse (rows, cols) grid over the image (the
-    image median where a cell has fewer than 5 points). Network depth errors are mostly
-    smooth, so the grid corrects the prior's shape as well as its scale."""
+@dataclass
+class PointDepths:
+    """One registered image's triangulated points: u, v (P,) int their pixel in the prior's
+    depth map of ``shape`` (h, w); z (P,) their depth in the camera (SfM units); d (P,) the
+    prior's depth there (metres, > 0)."""
+
+    u: np.ndarray
+    v: np.ndarray
+    z: np.ndarray
+    d: np.ndarray
+    shape: tuple[int, int]
+
+
+def point_depths(rec, prior: PriorSource, frames: list[np.ndarray], min_points: int = 10) -> dict[int, PointDepths]:
+    """Per registered image with at least ``min_points`` points the prior has depth at: the
+    SfM depth and the prior's depth of its triangulated points (:class:`PointDepths`)."""
     out = {}
-    rows, cols = grid
     for image in rec.images.values():
         if not image.has_pose:
             continue
         i = int(Path(image.name).stem)
         pts = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in image.points2D if p.has_point3D()]
-        if len(pts) < 10:
+        if len(pts) < min_points:
             continue
         xy = np.array([a for a, _ in pts])
         xyz = np.array([b for _, b in pts])
@@ -106,11 +116,22 @@ def depth_ratios(rec, prior: PriorSource, frames: list[np.ndarray], grid: tuple[
         v = np.clip((xy[:, 1] * depth.shape[0] / height).astype(int), 0, depth.shape[0] - 1)
         d = depth[v, u]
         ok = (d > 0) & (z[:, 2] > 1e-6)
-        if ok.sum() < 10:
-            continue
-        ratio = d[ok] / z[ok, 2]
+        if ok.sum() >= min_points:
+            out[i] = PointDepths(u[ok], v[ok], z[ok, 2], d[ok], depth.shape[:2])
+    return out
+
+
+def depth_ratios(points: dict[int, PointDepths], grid: tuple[int, int]) -> dict[int, tuple[float, np.ndarray]]:
+    """Per image of ``points`` (:func:`point_depths`): the median ratio prior depth / SfM depth
+    over its points, and the same median per cell of a coarse (rows, cols) grid over the image
+    (the image median where a cell has fewer than 5 points). Network depth errors are mostly
+    smooth, so the grid corrects the prior's shape as well as its scale."""
+    out = {}
+    rows, cols = grid
+    for i, p in points.items():
+        ratio = p.d / p.z
         total = float(np.median(ratio))
-        cell = (v[ok] * rows // depth.shape[0]) * cols + (u[ok] * cols // depth.shape[1])
+        cell = (p.v * rows // p.shape[0]) * cols + (p.u * cols // p.shape[1])
         cells = np.full(rows * cols, total)
         for c in range(rows * cols):
             if (cell == c).sum() >= 5:
