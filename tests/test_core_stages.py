@@ -118,6 +118,11 @@ def test_tracking_states_name_dropped_frames_and_scale_breaks():
     assert states[2][1] == "dropped: too little texture; scale after break 1"
     np.testing.assert_array_equal(states[1][2], poses[1])
     assert tracking_states(PoseStage(poses, None, "given"), seq) is None  # given poses: nothing tracked
+    # A metric scale the depth prior cannot vouch for, kept (--on-break keep): on every frame.
+    kept = PoseStage(poses, None, "estimated", info={"frame_status": ["keyframe", "tracked", "tracked"],
+                                                     "metric_scale": {"trusted": False}})
+    assert [s[1] for s in tracking_states(kept, seq)] == [
+        "keyframe; metric scale untrusted", "tracked; metric scale untrusted", "tracked; metric scale untrusted"]
 
 
 def test_shutter_summary_counts_the_frames_it_moved():

@@ -394,9 +394,11 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
     # frame's pose belongs to when the trajectory's scale breaks (recon.poses.scale_watch).
     scale = stage.info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * len(status)
     motion = stage.info.get("motion_checks", {}).get("frame_verdicts") or ["ok"] * len(status)
+    # Kept under --on-break keep though the prior cannot vouch for its metres (prior_agreement).
+    metres = "" if stage.info.get("metric_scale", {}).get("trusted", True) else "; metric scale untrusted"
     return [(int(i), (f"dropped: {why[int(i)]}" if int(i) in why else state)
-             + ("" if scale[k] == "ok" else f"; scale {scale[k]}") + ("" if motion[k] == "ok" else f"; {motion[k]}"),
-             stage.poses[k])
+             + ("" if scale[k] == "ok" else f"; scale {scale[k]}") + ("" if motion[k] == "ok" else f"; {motion[k]}")
+             + metres, stage.poses[k])
             for k, (i, state) in enumerate(zip(seq.indices, status))]
 
 

@@ -265,7 +265,8 @@ class StreamingFrontend:
 
     def _prior_agreement(self, prior_disp: torch.Tensor, prior_w: torch.Tensor) -> dict:
         """Whether the prior's depth follows the keyframes' depth as their flow measures it
-        (``recon.poses.prior_agreement``), for report.json and the gate's warning."""
+        (``recon.poses.prior_agreement``): report.json's poses.metric_scale, which a run stops
+        at (``recon.drivers.segments.check_metric_scale``)."""
         s = self.state
         _, edges = s.graph.edge_list()
         depth, rel = prior_agreement.keyframe_triangulations(s.graph.poses(), edges.ii, edges.jj, edges.target,
