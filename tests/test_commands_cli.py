@@ -640,10 +640,12 @@ def test_rolling_shutter_resamples_the_frames_and_estimates_the_poses_again(demo
     assert "--rolling-shutter is not applied in a streamed run" in capsys.readouterr().err
 
 
-def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path, capsys):
+@pytest.mark.parametrize("stream", ["off", "on"])
+def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path, capsys, stream):
     """Three noise frames in the middle of the walk: the front end cannot place them, the
     quality gate drops them from depth and fusion with one warning, report.json names them,
-    and the recording shows each frame's tracking state (dropped ones in red)."""
+    and the recording shows each frame's tracking state (dropped ones in red), at once and
+    streamed."""
     out, _ = demo
     priors = sorted((out / "input/prior").iterdir())
     cap = cv2.VideoCapture(str(out / "input/synthetic.mp4"))
@@ -667,17 +669,23 @@ def test_frames_without_pose_evidence_are_dropped_with_a_warning(demo, tmp_path,
     result = tmp_path / "result"
     code = main(["run", str(images), "-o", str(result), "--poses", "estimate", "--pose-method", "frontend",
                  "--prior", "folder", "--prior-path", str(prior_folder), "--intrinsics",
-                 f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "save", "--no-npy"])
+                 f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "save", "--no-npy",
+                 "--stream", stream])
     assert code == 0
     err = capsys.readouterr().err
     assert "recon: warning: 3 of 27 frames have no pose the images back (video frames 12-14)" in err
     report = json.loads((result / "report.json").read_text())
     quality = report["poses"]["quality"]
     assert quality["dropped"] == 3 and quality["dropped_ranges"] == [[12, 14]]
-    assert report["frames"]["count"] == 24 and 12 not in report["frames"]["indices"]
-    assert len(list((result / "depth").glob("*.png"))) == 24
+    if stream == "off":
+        assert report["frames"]["count"] == 24 and 12 not in report["frames"]["indices"]
+        assert len(list((result / "depth").glob("*.png"))) == 24
+    else:  # depth for the frames the camera's motion selects, none of them dropped
+        assert not {12, 13, 14} & set(report["frames"]["depth_indices"])
+        assert len(list((result / "depth").glob("*.png"))) == len(report["frames"]["depth_indices"])
     entities, _, frames, _ = read_recording(result / "recording.rrd")
-    assert "/tracking" in entities and "/world/dropped" in entities
+    # A streamed run keeps no pose for a dropped frame, so it has no red camera to show.
+    assert "/tracking" in entities and ("/world/dropped" in entities) == (stream == "off")
     assert sorted(frames["/tracking"]) == list(range(27))
 
 

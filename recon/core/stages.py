@@ -341,7 +341,7 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
-            "quality": gate.summary(names)}
+            "quality": gate.summary(names), "frame_status": list(result.diagnostics.get("frame_status", []))}
     for piece in diagnostics.get("pieces", []):
         if not piece["tracked"]:
             a, b = piece["frames"]
@@ -377,7 +377,6 @@ def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, p
     result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
                                progress=progress, **options)
     kept, info, note = gate_estimate(result, seq.indices)
-    info["frame_status"] = list(result.diagnostics.get("frame_status", []))
     keep = None if kept.all() else np.flatnonzero(kept)
     return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info, keep=keep,
                      lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)

@@ -34,7 +34,7 @@ import numpy as np
 from ..core.clock import StageClock
 from ..core.config import PipelineConfig
 from ..core.report import segments_summary, segments_warning
-from ..core.stages import PosePlan, shutter_summary, window_frames
+from ..core.stages import PosePlan, PoseStage, shutter_summary, tracking_states, window_frames
 from ..errors import ReconInputError
 from ..geometry.rolling_shutter import angular_velocity
 from ..io.frame_store import FrameStore
@@ -96,6 +96,11 @@ def run_streamed(config: PipelineConfig, source: FrameSource, out: OutputFolder,
                                                  lambda p: (store.get(p, "rgb"), store.get(p, "prior")),
                                                  video.intrinsics, video.pose_info)
             video = replace(video, poses=poses, pose_info=info)
+            if logger is not None:
+                # Each frame's tracking state and verdicts, once the trajectory is settled (as at once).
+                stage = PoseStage(video.poses, video.intrinsics, video.pose_source, video.pose_info)
+                for index, state, pose in tracking_states(stage, video) or []:
+                    logger.log_tracking(index, state, pose)
         if stretch.max() > 0:
             result = _run_segments(config, source, out, pose_plan, video, stretch, store, logger, clock, say)
             result.rerun_url = logger.url if logger is not None else None
