@@ -122,8 +122,9 @@ def log_depth_correlation(map_depth: np.ndarray, prior_depth: np.ndarray, measur
 
     map_depth, prior_depth: (K, h, w) depth (any unit; <= 0 or non-finite: none); measured:
     (K, h, w) bool, pixels whose depth the images measured (for the front end: pixels whose
-    outgoing flow carries weight). Returns (correlation, spread, pixels), each (K,): spread is
-    the standard deviation of the map's log depth over those pixels."""
+    depth :func:`triangulated_depth` knows within ``AgreementConfig.max_error``). Returns
+    (correlation, spread, pixels), each (K,): spread is the standard deviation of the map's
+    log depth over those pixels."""
     m = np.asarray(map_depth, np.float64)
     p = np.asarray(prior_depth, np.float64)
     ok = np.asarray(measured, bool) & (m > 0) & (p > 0) & np.isfinite(m) & np.isfinite(p)
@@ -214,26 +215,27 @@ def point_log_correlation(point_depth: np.ndarray, prior_depth: np.ndarray) -> t
 
 def judge_agreement(frames, correlation, spread, pixels, cfg: AgreementConfig | None = None) -> PriorAgreement:
     """The verdict over keyframes (module docstring): frames (K,) their frame indices,
-    correlation, spread and pixels (K,) as :func:`log_depth_correlation` returns them."""
+    correlation, spread and pixels (K,) as :func:`log_depth_correlation` returns them;
+    keyframes below the spread or pixel floors, or without a value, are not counted."""
     cfg = cfg or AgreementConfig()
     corr = np.asarray(correlation, np.float64)
     count = (np.asarray(spread, np.float64) >= cfg.min_spread) & (np.asarray(pixels) >= cfg.min_pixels) \
         & np.isfinite(corr)
-    kept = [int(f) for f, c in zip(frames, count) if c]
-    values = corr[count]
-    judged = len(kept) >= cfg.min_keyframes
-    median = float(np.median(values)) if values.size else float("nan")
-    return PriorAgreement(kept, [round(float(v), 4) for v in values], median, judged,
-                          trusted=not judged or median >= cfg.min_correlation, min_correlation=cfg.min_correlation)
+    return _verdict([int(f) for f, c in zip(frames, count) if c], corr[count], cfg)
 
 
 def joined(parts: list[PriorAgreement], cfg: AgreementConfig | None = None) -> PriorAgreement:
-    """One verdict over several pieces' keyframes (frames already in one numbering)."""
-    frames = [f for p in parts for f in p.frames]
-    corr = [c for p in parts for c in p.correlation]
-    cfg = cfg or AgreementConfig()
-    # Every keyframe here already passed the spread and pixel floors.
-    return judge_agreement(frames, corr, [np.inf] * len(frames), [cfg.min_pixels] * len(frames), cfg)
+    """One verdict over several pieces' counted keyframes (frames already in one numbering)."""
+    return _verdict([f for p in parts for f in p.frames], np.array([c for p in parts for c in p.correlation]),
+                    cfg or AgreementConfig())
+
+
+def _verdict(frames: list[int], values: np.ndarray, cfg: AgreementConfig) -> PriorAgreement:
+    """The median of the counted keyframes' correlations against the threshold."""
+    judged = len(frames) >= cfg.min_keyframes
+    median = float(np.median(values)) if values.size else float("nan")
+    return PriorAgreement(frames, [round(float(v), 4) for v in values], median, judged,
+                          trusted=not judged or median >= cfg.min_correlation, min_correlation=cfg.min_correlation)
 
 
 __all__ = ["AgreementConfig", "PriorAgreement", "judge_agreement", "joined", "log_depth_correlation",
