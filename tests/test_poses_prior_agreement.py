@@ -106,6 +106,8 @@ def test_the_gate_reports_by_video_frame_and_the_run_stops_unless_kept(caplog):
         kept, info, _ = gate_estimate(result, video)
         assert kept.all() and info["metric_scale"]["frames"] == [10, 16, 22]
         assert info["metric_scale"]["trusted"] is (corr > 0) and "prior_agreement" not in info["diagnostics"]
+        # Each verdict once in report.json: the frame states too (poses.frame_status only).
+        assert info["frame_status"] == ["keyframe"] * n and "frame_status" not in info["diagnostics"]
         for on_break in ("segments", "stop", "keep"):
             config = SimpleNamespace(on_break=on_break, join_segments=True)
             caplog.clear()

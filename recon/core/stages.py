@@ -335,8 +335,9 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
 
     gate = gate_trajectory(result)
     names = [int(i) for i in frame_indices]
+    # Said once each, below, by video frame.
     diagnostics = {k: v for k, v in result.diagnostics.items()
-                   if k not in ("scale_watch", "motion_checks", "prior_agreement")}
+                   if k not in ("scale_watch", "motion_checks", "prior_agreement", "frame_status")}
     if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.pieces): named by video frame
         diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
