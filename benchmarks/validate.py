@@ -22,7 +22,11 @@ and the warnings said.
 Usage: python benchmarks/validate.py [--variant "LABEL=RECON RUN ARGS" ...] [--recordings NAME ...]
     [--modes given nothing] [--segments 0 1] [--work DIR] [--json validate] [--markdown FILE]
 The first variant (default: ``default``, no extra arguments) is the baseline the others are
-compared with, row by row. Prints the table, writes benchmarks/results/<json>.json.
+compared with, row by row. In a variant's arguments ``{sensor_depth}`` stands for a folder of
+the recording's own sensor depth, named as the footage's frames (nothing-given mode, where
+the recording has depth; other rows skip that variant): ``--variant default= --variant
+"sensor=--prior folder --prior-path {sensor_depth}"`` separates the depth network's error
+from the pipeline's. Prints the table, writes benchmarks/results/<json>.json.
 """
 
 from __future__ import annotations
@@ -116,6 +120,33 @@ def image_folder(rec: Recording, work: Path) -> Path:
         for k, path in enumerate(dataset.rgb_paths):
             (tmp / f"{k:06d}{Path(path).suffix}").symlink_to(Path(path).resolve())
         tmp.rename(folder)
+    return folder
+
+
+# In a variant's arguments: the recording's own depth maps as a `--prior folder`.
+SENSOR_DEPTH = "{sensor_depth}"
+
+
+def sensor_depth_folder(rec: Recording, work: Path) -> Path | None:
+    """The recording's sensor depth of its segments' frames as a depth-map folder named as
+    the nothing-given footage names its frames (``frame_000123`` in a video, the image
+    folder's own stems), for ``--prior folder``: what the pipeline makes of a metric prior
+    without the network's error. None where the recording has no depth or its own footage."""
+    from recon.io.output_folder import depth_png_bytes, frame_name
+
+    dataset = dataset_of(rec)
+    if not dataset.has_depth or rec.footage not in ("video", "images"):
+        return None
+    folder = work / f"{rec.name}-sensor-depth"
+    if folder.is_dir():
+        return folder
+    tmp = work / f".{rec.name}-sensor-depth.tmp"
+    tmp.mkdir(parents=True, exist_ok=True)
+    for first, count in rec.segments:
+        for k in range(first, first + count):
+            name = frame_name(k) if rec.footage == "video" else f"{k:06d}"
+            (tmp / f"{name}.png").write_bytes(depth_png_bytes(dataset.depth(k)))
+    tmp.rename(folder)
     return folder
 
 
@@ -393,7 +424,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variant", type=parse_variant, action="append",
                         help="LABEL=ARGS: every run also with these `recon run` arguments (repeatable; the first is "
-                             "the baseline; default: default=)")
+                             "the baseline; default: default=); {sensor_depth} in ARGS: a folder of the recording's "
+                             "own depth maps (nothing-given rows with sensor depth only)")
     parser.add_argument("--recordings", nargs="*", default=list(RECORDINGS), choices=list(RECORDINGS))
     parser.add_argument("--modes", nargs="*", default=["given", "nothing"], choices=["given", "nothing"])
     parser.add_argument("--segments", nargs="*", type=int, default=[0, 1], choices=[0, 1])
@@ -416,6 +448,12 @@ def main() -> None:
             for segment in args.segments:
                 # Variants back to back on each row, so that the machine's drift touches them alike.
                 for k, (label, variant) in enumerate(variants):
+                    if any(SENSOR_DEPTH in a for a in variant):
+                        folder = sensor_depth_folder(rec, args.work) if mode == "nothing" else None
+                        if folder is None:
+                            say(f"{name} {mode} segment {segment}: {label}: no sensor depth to give, not run")
+                            continue
+                        variant = [a.replace(SENSOR_DEPTH, str(folder)) for a in variant]
                     say(f"{name} {mode} segment {segment}: {label}")
                     row = {**run_one(rec, mode, segment, variant, args.work, str(k), args.code), "variant": label}
                     rows.append(row)
