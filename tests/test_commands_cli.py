@@ -279,18 +279,22 @@ def test_bad_pose_file(tmp_path, capsys):
     assert "frame" in msg and not (tmp_path / "out").exists()
 
 
-def test_pose_options_reach_the_estimator(demo, tmp_path, capsys):
+@pytest.mark.parametrize("stream", ["off", "on"])
+def test_pose_options_reach_the_estimator(demo, tmp_path, capsys, stream):
     """--pose-option sets FrontendConfig fields: a correlation floor no moving frame can pass, with
-    no lost frames allowed, stops tracking at the first frame after the keyframe, saying why."""
+    no lost frames allowed, stops tracking at the first frame after the keyframe, saying why,
+    and naming it as the video counts its frames (every 2nd frame read: the second is frame 2),
+    in one-shot and streamed runs."""
     out, _ = demo
     k = json.loads((out / "intrinsics.json").read_text())
     result = tmp_path / "result"
     msg = _run_fails(capsys, ["run", str(out / "input/synthetic.mp4"), "-o", str(result), "--width", "160",
+                              "--stride", "2", "--stream", stream,
                               "--poses", "estimate", "--pose-method", "frontend", "--pose-option", "max_lost=0",
                               "--pose-option", "min-match-correlation=1", "--prior", "folder",
                               "--prior-path", str(out / "input/prior"), "--intrinsics",
                               f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--quiet", "--rerun", "off"],
-                     "tracking lost at frame 1", "correlation")
+                     "tracking lost at frame 2:", "correlation")
     assert "< 1.0" in msg and ": 1 consecutive" in msg and not result.exists()  # both options applied
 
 

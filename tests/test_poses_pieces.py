@@ -77,12 +77,14 @@ class _Scripted:
                            "scale_watch": watch.to_dict()}, np.ones((len(kf), 4, 5), np.float32))
 
 
-def _run(count, losses, refusals=(), min_frames=22, intrinsics=None, failing_from=None, failing=None, pieces=None):
+def _run(count, losses, refusals=(), min_frames=22, intrinsics=None, failing_from=None, failing=None, pieces=None,
+         number=None):
     """StreamingPieces over frames 0..count-1 (each frame is its own number) with scripted
     pieces: losses maps a piece's first frame to the video frame it loses the camera at,
     failing_from to the video frame its tracking fails from (when finish is asked to forget
     such frames: StreamingPieces' failing). Returns (the result, the pieces made as (first,
-    intrinsics, lens, frames fed)); `pieces`, a list, receives the scripted front ends."""
+    intrinsics, lens, frames fed)); `pieces`, a list, receives the scripted front ends;
+    number: how the pieces name frames (default: positions)."""
     made = []
 
     def make(first, intr, lens):
@@ -90,7 +92,8 @@ def _run(count, losses, refusals=(), min_frames=22, intrinsics=None, failing_fro
         made.append((first, intr, lens, piece))
         return piece
 
-    stream = StreamingPieces(make, intrinsics, min_frames=min_frames, keep=LOSS + 1, failing=failing)
+    stream = StreamingPieces(make, intrinsics, min_frames=min_frames, keep=LOSS + 1, failing=failing,
+                             **({} if number is None else {"number": number}))
     for i in range(count):
         stream.add(i, i)
     result = stream.finish(lambda i: i)
@@ -206,6 +209,21 @@ def test_a_refused_first_piece_is_said_with_the_loss():
     assert info.value.frame == 29 and info.value.sfm_may_help
 
 
+def test_what_the_pieces_say_names_the_frames_as_the_video_numbers_them(caplog):
+    """Every 2nd frame of a video from its frame 100: the loss at the end (position 30) is
+    said as video frame 160, and the frames without a pose (positions 50-57) as 200-214;
+    the error's frame stays a position."""
+    every_2nd = lambda i: 100 + 2 * i  # noqa: E731
+    with pytest.raises(TrackingLostError, match=r"^tracking lost at frame 160 and not recovered before the end of "
+                                                r"the video; the frames before it: the camera turns") as info:
+        _run(40, {0: 30}, refusals=(0,), number=every_2nd)
+    assert info.value.frame == 30
+    with caplog.at_level(logging.INFO, logger="recon"):
+        _run(58, {0: 50}, number=every_2nd)
+    said = [r.getMessage() for r in caplog.records if "get no pose" in r.getMessage()]
+    assert said == ["frames 200-214 get no pose: the camera was lost and not found again before the end of the video"]
+
+
 def test_only_on_break_segments_tracks_in_pieces():
     """--on-break segments (the default) asks the front end to start again after a loss; stop
     and keep fall back to SfM as before; the user's --pose-option has the last word."""
@@ -230,7 +248,7 @@ def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, mo
 
     seq, prior = pose_room
 
-    def scripted(intrinsics, prior, config):
+    def scripted(intrinsics, prior, config, number):
         return StreamingPieces(lambda first, intr, lens: _Scripted(first, intr, lens, 29 if first == 0 else None,
                                                                    first == 0),
                                intrinsics, min_frames=22, keep=LOSS + 1)

@@ -35,6 +35,8 @@ def test_quality_gate_refuses_a_trajectory_with_too_little_evidence():
     status = ["keyframe", "tracked"] + ["interpolated"] * 6
     with pytest.raises(TrackingLostError, match=r"sfm: only 2 of 8 frames .* frames 2-7"):
         gate_trajectory(_result(status, method="sfm"))
+    with pytest.raises(TrackingLostError, match=r"not tracked: frames 54-64$"):  # named as the video numbers them
+        gate_trajectory(_result(status, method="sfm"), frame_numbers=range(50, 66, 2))
     assert gate_trajectory(_result(status), GateConfig(min_kept=0.2, min_frames=2)).keep.sum() == 2
     assert runs([1, 2, 3, 7, 9, 10]) == [(1, 3), (7, 7), (9, 10)]
 

@@ -48,4 +48,7 @@ def test_registration_error_names_the_unregistered_range():
     assert str(err) == ("SfM registered only 13 of 18 frames (7 of 7 keyframes in COLMAP's model, 6 densely; need "
                         "80%): frames 10-13 and 1 shorter range(s) could not be registered")
     assert skf.registration_error(status, 7, 0.7) is None
+    # Named as the video numbers the frames (every 3rd from 30); the error's frame stays a position.
+    err = skf.registration_error(status, 7, 0.8, number=lambda i: 30 + 3 * i)
+    assert err.frame == 10 and "frames 60-69 and 1 shorter range(s)" in str(err)
     assert skf.unregistered_ranges(np.array([s in TRUSTED_STATES for s in status])) == [(10, 13), (16, 16)]

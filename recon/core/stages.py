@@ -333,8 +333,8 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     from ..poses.quality import gate_trajectory
     from ..poses.scale_watch import ScaleWatch
 
-    gate = gate_trajectory(result)
     names = [int(i) for i in frame_indices]
+    gate = gate_trajectory(result, frame_numbers=names)
     # Said once each, below, by video frame.
     diagnostics = {k: v for k, v in result.diagnostics.items()
                    if k not in ("scale_watch", "motion_checks", "prior_agreement", "frame_status")}
@@ -376,7 +376,7 @@ def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, p
     """Poses estimated from the frames, through the quality gate (recon.poses.quality):
     frames whose pose the images do not back are left out, named in report.json."""
     result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
-                               progress=progress, **options)
+                               progress=progress, frame_numbers=seq.indices, **options)
     kept, info, note = gate_estimate(result, seq.indices)
     keep = None if kept.all() else np.flatnonzero(kept)
     return PoseStage(np.asarray(result.poses, np.float64), tuple(result.intrinsics), "estimated", info, keep=keep,

@@ -271,6 +271,8 @@ class _Poser:
         self.file_intrinsics = None
         self.frontend = None
         self.recent_prior: dict[int, np.ndarray] = {}
+        # Position -> the video's frame number, for what tracking says (recon.poses.result.FrameNumbers).
+        self.frame_number: dict[int, int] = {}
         if self.estimating:
             from ..poses.frontend import streaming_frontend
 
@@ -279,7 +281,8 @@ class _Poser:
             # With --on-break segments (restart_after_loss) it starts again where it loses the
             # camera, as the one-shot run does, instead of stopping the streamed run.
             options = estimator_options(config, frontend_only=True)
-            self.frontend = streaming_frontend(intrinsics, self._prior, _frontend_config(options, config.device))
+            self.frontend = streaming_frontend(intrinsics, self._prior, _frontend_config(options, config.device),
+                                               self.frame_number.__getitem__)
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,
@@ -298,6 +301,7 @@ class _Poser:
         out = []
         for k, position in enumerate(positions):
             self.recent_prior[int(position)] = prior_depth[k]
+            self.frame_number[int(position)] = int(seq.indices[k])
             _, pose = self.frontend.add(int(position), seq.rgb[k])
             out.append(np.full((4, 4), np.nan) if pose is None else pose)
         # The tracker asks for a frame's prior when it tracks it or promotes it to a

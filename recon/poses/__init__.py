@@ -33,7 +33,7 @@ __all__ = ["POSE_METHODS", "PoseResult", "TrackingLostError", "check_pose_config
 
 
 def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", device: str = "cpu",
-                   progress: bool = True, **options) -> PoseResult:
+                   progress: bool = True, frame_numbers=None, **options) -> PoseResult:
     """Metric camera-to-world poses of every frame of a video.
 
     frames: (N, H, W, 3) uint8 RGB at working resolution. prior_depth: (N, h, w) float32
@@ -44,7 +44,9 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     (dense flow + BA), "sfm" (pycolmap) or "auto" (front end, then SfM when tracking is
     lost, with a logged warning and ``diagnostics["fallback"]``). device: where the front
     end's dense bundle adjustment runs (``ba.BAOptions.device``); DIS flow, the tracking
-    bookkeeping and SfM stay on the CPU.
+    bookkeeping and SfM stay on the CPU. frame_numbers: the video's frame number of each
+    frame, as errors and log lines name them (default: positions); the result counts
+    positions.
     options: ``FrontendConfig`` fields for the front end (``config=`` for a whole config),
     ``SfMConfig`` fields for SfM (``sfm_config=``); a field name that belongs to neither
     raises ReconInputError.
@@ -64,9 +66,11 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
     sfm_cfg = replace(sfm_cfg, **{k: v for k, v in options.items() if k in SfMConfig.__dataclass_fields__})
     check_pose_config(sfm_cfg)
     if method == "sfm":
-        return estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
+        return estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg,
+                                  frame_numbers=frame_numbers)
     try:
-        return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg)
+        return estimate_poses_frontend(frames, prior_depth, intrinsics, progress=progress, config=fe_cfg,
+                                       frame_numbers=frame_numbers)
     except TrackingLostError as err:
         if method == "frontend" or not err.sfm_may_help:
             raise
@@ -75,7 +79,8 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
         if progress:
             log.warning("front end failed (%s); falling back to SfM (pycolmap)", err)
         try:
-            result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg)
+            result = estimate_poses_sfm(frames, prior_depth, intrinsics, progress=progress, config=sfm_cfg,
+                                        frame_numbers=frame_numbers)
         except TrackingLostError as sfm_err:
             raise TrackingLostError(f"no camera poses: the front end failed ({err}), and so did the SfM fallback "
                                     f"({sfm_err})", frame=err.frame) from None

@@ -50,12 +50,16 @@ from recon.poses.focal_choice import choose_focal
 from recon.poses.frontend_config import FrontendConfig, calibrates_lens, make_geometry
 from recon.poses.pieces import StreamingPieces
 from recon.poses.result import (
+    FrameNumbers,
     PoseResult,
     PriorSource,
     TrackingLostError,
+    by_position,
     check_frame,
+    frame_spans,
     invert_poses,
     iterate_frames,
+    numbered,
     parse_intrinsics,
 )
 from recon.poses.track_state import TrackState
@@ -77,7 +81,9 @@ class StreamingFrontend:
     the focal length (principal point at the centre): the first ``8 * calib_keyframes``
     frames are then kept until the search has them, and tracked after it. prior: a callable
     ``prior(index, frame)`` -> (h, w) metric depth (0 invalid), called for the frames that
-    need it (keyframes), or an (N, h, w) array (see :class:`PriorSource`).
+    need it (keyframes), or an (N, h, w) array (see :class:`PriorSource`). number: how its
+    errors and log lines name frame `index` (``result.FrameNumbers``: the video's frame
+    numbers; default: the index).
 
     Memory (``TrackState``): frames are not kept (the previous one excepted, which may
     become a keyframe); what grows is the keyframe graph, per keyframe its grey image,
@@ -86,8 +92,9 @@ class StreamingFrontend:
     ``frame_lookup``.
     """
 
-    def __init__(self, intrinsics, prior, config: FrontendConfig | None = None):
+    def __init__(self, intrinsics, prior, config: FrontendConfig | None = None, number: FrameNumbers = by_position):
         self.prior = prior if isinstance(prior, PriorSource) else PriorSource(prior)
+        self.number = number
         self.intrinsics = parse_intrinsics(intrinsics)
         config = config or FrontendConfig()
         self.cfg = replace(config, calibrate_lens=calibrates_lens(config.calibrate_lens, self.intrinsics))
@@ -227,7 +234,7 @@ class StreamingFrontend:
         if self.state is None:
             geo = make_geometry(frame.shape[:2], self.cfg.ba_stride)
             self.state = TrackState(self.intrinsics, geo, self.prior, self.cfg)
-            self.tracker = Tracker(self.state)
+            self.tracker = Tracker(self.state, self.number)
             self.tracker.start(index, frame)
         else:
             self.tracker.track(index, frame)
@@ -280,7 +287,7 @@ class StreamingFrontend:
         """A loss that runs into the end of the video (more than half of ``max_lost``) is a failure."""
         first = self.lost_tail()
         if first is not None:
-            raise TrackingLostError.at_the_end(first)
+            raise TrackingLostError.at_the_end(first, self.number)
 
     def _finish(self, frame_lookup: Callable[[int], np.ndarray], progress: bool,
                 failing: tuple[float, int] | None = None) -> PoseResult:
@@ -311,7 +318,7 @@ class StreamingFrontend:
         if self.cfg.check_short_flow:
             motion = self._short_flow(motion)
         focal_estimated = self._focal_choice is not None
-        why = motion.untrusted(focal_estimated=focal_estimated)
+        why = motion.renumbered([self.number(i) for i in range(n)]).untrusted(focal_estimated=focal_estimated)
         if focal_estimated and not self._focal_choice.found:
             why.insert(0, self._focal_choice.not_found())
         if why and self.cfg.stop_untrusted:
@@ -323,8 +330,9 @@ class StreamingFrontend:
             # pieces: the user may choose it, the run does not fall back to it.
             jumping = motion.moves_too_fast and focal_estimated
             raise TrackingLostError(
-                f"the trajectory of frames 0-{n - 1}"
-                + (f" (frames {n}-{given - 1} left out: tracking was failing there)" if n < given else "")
+                f"the trajectory of frames {frame_spans([(0, n - 1)], self.number)}"
+                + (f" (frames {frame_spans([(n, given - 1)], self.number)} left out: tracking was failing there)"
+                   if n < given else "")
                 + f" cannot be trusted: {'; '.join(why)}"
                 + ("; give the camera's intrinsics (--intrinsics or --fov) to track a turning camera, or "
                    "--on-break keep to take the trajectory anyway" if turning else "")
@@ -358,7 +366,8 @@ class StreamingFrontend:
                 evidence[i] = inlier
         since = quality.failing_since(evidence, share, lookback)
         if since < n:
-            log.info("frames %d-%d: tracking was failing before the camera was lost; forgotten", since, n - 1)
+            log.info("frames %s: tracking was failing before the camera was lost; forgotten",
+                     frame_spans([(since, n - 1)], self.number))
             s.forget_from(since)
             self.count = since
             backend.global_ba(s)
@@ -394,13 +403,15 @@ class StreamingFrontend:
         )
 
 
-def streaming_frontend(intrinsics, prior, config: FrontendConfig) -> StreamingFrontend | StreamingPieces:
+def streaming_frontend(intrinsics, prior, config: FrontendConfig,
+                       number: FrameNumbers = by_position) -> StreamingFrontend | StreamingPieces:
     """The streaming front end for a video: with ``config.restart_after_loss`` one that starts
     again where it loses the camera (``recon.poses.pieces.StreamingPieces``: pieces of at
     least twice a loss's length, each with the first piece's camera and lens), else one
-    that stops there. prior: as :class:`StreamingFrontend` takes it, by video frame."""
+    that stops there. prior and number: as :class:`StreamingFrontend` takes them, by
+    position in the video."""
     if not config.restart_after_loss:
-        return StreamingFrontend(intrinsics, prior, config)
+        return StreamingFrontend(intrinsics, prior, config, number)
     source = prior if isinstance(prior, PriorSource) else PriorSource(prior)
 
     def piece(first: int, intr, k1) -> StreamingFrontend:
@@ -409,24 +420,26 @@ def streaming_frontend(intrinsics, prior, config: FrontendConfig) -> StreamingFr
         # every frame's prior for the metric scale only when it is not asked for one by one.
         piece_prior = source.prior[first:] if not source.is_callable else \
             (lambda i, frame: source.get(first + i, frame))
-        return StreamingFrontend(intr, piece_prior, piece_config)
+        return StreamingFrontend(intr, piece_prior, piece_config, lambda i: number(first + i))
 
     loss = config.max_lost + 1
     return StreamingPieces(piece, intrinsics, min_frames=2 * loss, keep=loss + 1,
-                           failing=(config.failing_inlier, loss) if config.failing_inlier > 0 else None)
+                           failing=(config.failing_inlier, loss) if config.failing_inlier > 0 else None, number=number)
 
 
 # --------------------------------------------------------------------------- whole videos
 
 
 def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool = True,
-                            config: FrontendConfig | None = None) -> PoseResult:
+                            config: FrontendConfig | None = None, frame_numbers=None) -> PoseResult:
     """Track a video with the dense front end (:class:`StreamingFrontend` fed every frame).
 
     frames: (N, H, W, 3) uint8 RGB (or a sequence of such frames); prior_depth: (N, h, w)
     metric depth (0 invalid) or a callable ``prior(index, frame)``; intrinsics: (fx, fy,
     cx, cy) in pixels of the frames, or None to search the focal length (principal point
-    at the centre). Returns camera-to-world poses of every frame, metric.
+    at the centre); frame_numbers: the video's frame number of each frame, how errors and
+    log lines name them (``result.numbered``; default: positions). Returns camera-to-world
+    poses of every frame, metric.
 
     diagnostics: method, num_keyframes, edges per kind, focal search (evaluations,
     bracketed), metric scale factor applied, per-frame status ("keyframe", "tracked",
@@ -441,7 +454,7 @@ def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool
     prior = PriorSource(prior_depth)
     if not prior.is_callable and len(prior) != len(frames_list):
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
-    stream = streaming_frontend(intrinsics, prior, config or FrontendConfig())
+    stream = streaming_frontend(intrinsics, prior, config or FrontendConfig(), numbered(frame_numbers))
     try:
         for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress,
                                        leave=False)):

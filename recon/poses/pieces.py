@@ -35,7 +35,7 @@ import numpy as np
 from recon.poses.motion_checks import MotionChecks
 from recon.poses.prior_agreement import PriorAgreement
 from recon.poses.prior_agreement import joined as joined_agreement
-from recon.poses.result import PoseResult, TrackingLostError
+from recon.poses.result import FrameNumbers, PoseResult, TrackingLostError, by_position, frame_spans
 from recon.poses.scale_watch import ScaleBreak, ScaleWatch
 
 log = logging.getLogger(__name__)
@@ -74,15 +74,17 @@ class StreamingPieces:
     frames for its focal search, all of them are kept. failing: (share, lookback): a piece
     that ends where the camera was lost also gives up the frames before the loss whose
     tracking was already failing (``StreamingFrontend.finish``'s failing; never below
-    min_frames); None: it keeps them.
+    min_frames); None: it keeps them. number: how what it says names video frames
+    (``result.FrameNumbers``); `make` gives each piece's front end the same numbers.
 
     The first piece is always kept (one that loses the camera sooner hands the loss back):
     its front end is the camera's (intrinsics, lens, focal choice) for every later piece.
     """
 
     def __init__(self, make: Callable[[int, tuple | None, float | None], object], intrinsics, min_frames: int,
-                 keep: int, failing: tuple[float, int] | None = None):
+                 keep: int, failing: tuple[float, int] | None = None, number: FrameNumbers = by_position):
         self._make = make
+        self._number = number
         self._min_frames = min_frames
         self._failing = failing
         self._keep = max(int(keep), 1)
@@ -151,7 +153,7 @@ class StreamingPieces:
         piece.stop = at
         if kept:
             # Said by the caller with the video's frame numbers (a "lost" break of the scale watch).
-            log.info("tracking lost at frame %d; tracking again from there as a new piece", at)
+            log.info("tracking lost at frame %d; tracking again from there as a new piece", self._number(at))
         else:
             piece.frontend = None
             piece.why = (f"tracking, started again after the camera was lost, lost it again within "
@@ -186,7 +188,7 @@ class StreamingPieces:
                 tail = None  # its own error says where it lost the camera
             end = stop if tail is None else p.first + tail
             if tail is not None:
-                self._loss = self._loss or TrackingLostError.at_the_end(end)
+                self._loss = self._loss or TrackingLostError.at_the_end(end, self._number)
             lost_tail = Piece(end, stop, None, "the camera was lost and not found again before the end of the video")
             if not first and end - p.first < self._min_frames:
                 pieces.append(Piece(p.first, end, None, f"fewer than {self._min_frames} frames tracked after "
@@ -215,7 +217,7 @@ class StreamingPieces:
         pieces = _joined_untracked(pieces)
         for p in pieces:
             if p.result is None:  # said by the caller with the video's frame numbers (diagnostics["pieces"])
-                log.info("frames %d-%d get no pose: %s", p.first, p.stop - 1, p.why)
+                log.info("frames %s get no pose: %s", frame_spans([(p.first, p.stop - 1)], self._number), p.why)
         return merge_pieces(pieces, self.count)
 
     def _failing_before(self, first: int, end: int) -> tuple[float, int] | None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.poses.result import TRUSTED_STATES, PoseResult, TrackingLostError
+from recon.poses.result import TRUSTED_STATES, PoseResult, TrackingLostError, frame_spans, numbered
 
 
 @dataclass
@@ -80,8 +80,9 @@ def failing_since(evidence: np.ndarray, share: float, lookback: int, good_run: i
     return max(n - lookback, 0)
 
 
-def gate_trajectory(result: PoseResult, config: GateConfig | None = None) -> GateResult:
-    """Per-frame verdict on an estimate; raises TrackingLostError when too little is left."""
+def gate_trajectory(result: PoseResult, config: GateConfig | None = None, frame_numbers=None) -> GateResult:
+    """Per-frame verdict on an estimate; raises TrackingLostError when too little is left
+    (frames named by ``frame_numbers``, ``result.numbered``)."""
     config = config or GateConfig()
     n = len(result.poses)
     status = list(result.diagnostics.get("frame_status") or ["tracked"] * n)
@@ -102,7 +103,7 @@ def gate_trajectory(result: PoseResult, config: GateConfig | None = None) -> Gat
             keep[i] = True
     kept = int(keep.sum())
     if kept < max(config.min_frames, config.min_kept * n):
-        spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in runs(sorted(dropped))[:5])
+        spans = frame_spans(runs(sorted(dropped))[:5], numbered(frame_numbers))
         method = result.diagnostics.get("method", "the estimator")
         raise TrackingLostError(
             f"{method}: only {kept} of {n} frames have a pose backed by the images (need {config.min_kept:.0%}); "

@@ -16,6 +16,34 @@ import numpy as np
 
 from recon.errors import ReconInputError
 
+# Estimators count the frames they are given by position (0, 1, ...). What they say (errors,
+# log lines) names frames as the user counts them, the video's own frame numbers under
+# --start, --stride or a dataset's selection, through a map from position to number that the
+# caller gives; without one, positions. The data they return stays by position: the caller
+# renumbers it (recon.core.stages.gate_estimate).
+FrameNumbers = Callable[[int], int]
+
+
+def by_position(position: int) -> int:
+    """The frame numbers of a caller that gives none: positions."""
+    return int(position)
+
+
+def numbered(frame_numbers=None) -> FrameNumbers:
+    """A position -> frame number map from a sequence of frame numbers (one per frame given),
+    an existing map, or None (positions)."""
+    if frame_numbers is None:
+        return by_position
+    if callable(frame_numbers):
+        return frame_numbers
+    numbers = [int(i) for i in frame_numbers]
+    return numbers.__getitem__
+
+
+def frame_spans(spans: Iterable[tuple[int, int]], number: FrameNumbers = by_position) -> str:
+    """'a-b, c' of [first, last] position spans, by frame number."""
+    return ", ".join(f"{number(a)}-{number(b)}" if a != b else f"{number(a)}" for a, b in spans)
+
 
 class TrackingLostError(ReconInputError):
     """The video could not be tracked: names the frame where it failed and why.
@@ -26,7 +54,7 @@ class TrackingLostError(ReconInputError):
 
     def __init__(self, message: str, frame: int | None = None, sfm_may_help: bool = True, lost: bool = False):
         super().__init__(message)
-        self.frame = frame
+        self.frame = frame  # by position; the message names its frame number (FrameNumbers)
         # True where the camera was lost at `frame` (frames before it tracked), rather than a
         # trajectory refused as a whole: tracking may start again there (recon.poses.pieces).
         self.lost = lost
@@ -38,10 +66,10 @@ class TrackingLostError(ReconInputError):
         self.focal_choice = None
 
     @classmethod
-    def at_the_end(cls, frame: int) -> "TrackingLostError":
-        """The camera lost at `frame` and not found again before the video ends."""
-        return cls(f"tracking lost at frame {frame} and not recovered before the end of the video", frame=frame,
-                   lost=True)
+    def at_the_end(cls, frame: int, number: FrameNumbers = by_position) -> "TrackingLostError":
+        """The camera lost at position `frame` and not found again before the video ends."""
+        return cls(f"tracking lost at frame {number(frame)} and not recovered before the end of the video",
+                   frame=frame, lost=True)
 
 
 # Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every

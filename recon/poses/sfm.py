@@ -49,6 +49,7 @@ from recon.poses.result import (
     TrackingLostError,
     invert_poses,
     iterate_frames,
+    numbered,
     parse_intrinsics,
     pool_depth,
     robust_log_mean,
@@ -283,10 +284,11 @@ def choose_keyframes(grays: list[np.ndarray], px_scale: float, cfg: SfMConfig) -
 
 
 def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = True,
-                       config: SfMConfig | None = None) -> PoseResult:
+                       config: SfMConfig | None = None, frame_numbers=None) -> PoseResult:
     """Metric camera-to-world poses of every frame by COLMAP SfM on keyframes.
 
-    Same inputs as ``frontend.estimate_poses_frontend``. diagnostics: method "sfm",
+    Same inputs as ``frontend.estimate_poses_frontend`` (frame_numbers: how errors name
+    the frames). diagnostics: method "sfm",
     keyframe selection, registered keyframes and frames, loop pairs (proposed, verified),
     seconds per stage, model points, mean reprojection error, the metric scale factor and
     its spread over images, per-frame ``frame_status`` (``result.FRAME_STATES``:
@@ -298,6 +300,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     TrackingLostError when fewer than ``min_registered`` of the frames are registered.
     """
     cfg = config or SfMConfig()
+    number = numbered(frame_numbers)
     if cfg.loop_matching not in LOOP_MATCHING:
         raise ReconInputError(f"SfM loop_matching must be one of {', '.join(LOOP_MATCHING)}, got {cfg.loop_matching!r}")
     if cfg.mapper not in MAPPERS:
@@ -323,13 +326,13 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     T_model, intr, k1 = sm.model_poses(rec) if rec is not None else ({}, None, 0.0)
     model_only = ["keyframe" if i in T_model else "interpolated" for i in range(n)]
     if len(T_model) < 2:  # nothing to register the other frames against
-        raise skf.registration_error(model_only, len(kf_ids), cfg.min_registered)
+        raise skf.registration_error(model_only, len(kf_ids), cfg.min_registered, number)
     points = sm.point_depths(rec, prior, frames_list)
     ratios = sm.depth_ratios(points, cfg.correction_grid)
     if not ratios:
         # Without depth no frame can be registered densely: usually a model of a few images
         # and points (COLMAP's mapper now and then ends with one on fast rotation).
-        raise (skf.registration_error(model_only, len(kf_ids), cfg.min_registered) or TrackingLostError(
+        raise (skf.registration_error(model_only, len(kf_ids), cfg.min_registered, number) or TrackingLostError(
             "SfM: no triangulated point has a valid prior depth; cannot fix the metric scale"))
     scale = robust_log_mean(np.array([r for r, _ in ratios.values()]))
 
@@ -358,7 +361,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
         T_all[i] = T.numpy()
         status[i] = "tracked" if ok else "interpolated"
         inlier[i] = fraction
-    if (err := skf.registration_error(status, len(kf_ids), cfg.min_registered)) is not None:
+    if (err := skf.registration_error(status, len(kf_ids), cfg.min_registered, number)) is not None:
         raise err
     poses = invert_poses(T_all)
     poses[:, :3, 3] *= scale

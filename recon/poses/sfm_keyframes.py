@@ -27,7 +27,7 @@ import numpy as np
 
 from recon.geometry import lie
 from recon.poses import flow as fl
-from recon.poses.result import TRUSTED_STATES, TrackingLostError
+from recon.poses.result import TRUSTED_STATES, FrameNumbers, TrackingLostError, by_position
 
 
 def step_motion(grays: list[np.ndarray], flow_cfg: fl.FlowConfig, px_scale: float, min_correlation: float,
@@ -192,10 +192,11 @@ def dense_candidates(n: int, kf_ids: list[int], in_model) -> list[int]:
     return out
 
 
-def registration_error(status: list[str], num_keyframes: int, need: float) -> TrackingLostError | None:
+def registration_error(status: list[str], num_keyframes: int, need: float,
+                       number: FrameNumbers = by_position) -> TrackingLostError | None:
     """The one-line failure when fewer than `need` (a fraction) of the frames have a
     trusted status (``result.TRUSTED_STATES``; status: N labels of ``FRAME_STATES``), else
-    None. Names the longest range of frames that could not be registered."""
+    None. Names the longest range of frames that could not be registered (by `number`)."""
     n = len(status)
     trusted = np.array([s in TRUSTED_STATES for s in status])
     if trusted.sum() >= need * n and trusted.sum() >= 2:
@@ -203,7 +204,7 @@ def registration_error(status: list[str], num_keyframes: int, need: float) -> Tr
     model = status.count("keyframe")
     ranges = unregistered_ranges(trusted)
     first, last = ranges[0]
-    where = f"frame {first}" if first == last else f"frames {first}-{last}"
+    where = f"frame {number(first)}" if first == last else f"frames {number(first)}-{number(last)}"
     more = f" and {len(ranges) - 1} shorter range(s)" if len(ranges) > 1 else ""
     return TrackingLostError(
         f"SfM registered only {int(trusted.sum())} of {n} frames ({model} of {num_keyframes} keyframes in COLMAP's "

@@ -20,17 +20,19 @@ from recon.poses import backend, features, motion_filter, motion_only
 from recon.poses import flow as fl
 from recon.poses import graph as gr
 from recon.poses.frontend_config import ba_pixels
-from recon.poses.result import TrackingLostError
+from recon.poses.result import FrameNumbers, TrackingLostError, by_position
 from recon.poses.track_state import TrackState
 
 log = logging.getLogger(__name__)
 
 
 class Tracker:
-    """Frame-by-frame tracking over one TrackState (``state``)."""
+    """Frame-by-frame tracking over one TrackState (``state``); number: how what it says
+    names frames (``result.FrameNumbers``)."""
 
-    def __init__(self, state: TrackState):
+    def __init__(self, state: TrackState, number: FrameNumbers = by_position):
         self.state = state
+        self.number = number
 
     def start(self, index: int, frame: np.ndarray) -> None:
         """The first frame: the first keyframe, at the origin."""
@@ -224,8 +226,8 @@ class Tracker:
             return False
         prev, frame, gray, T, kf, flows = s.previous
         s.previous = None
-        log.info("frame %d: keyframe at frame %d too far, the previous frame becomes a keyframe", index,
-                 s.graph.frames[kf])
+        log.info("frame %d: keyframe at frame %d too far, the previous frame becomes a keyframe", self.number(index),
+                 self.number(s.graph.frames[kf]))
         self._add_keyframe(prev, frame, gray, T, kf, flows)
         return True
 
@@ -241,7 +243,8 @@ class Tracker:
                 found = self._from_features(k, gray, frame)
             if found is not None:
                 s.reloc_events.append({"frame": index, "keyframe": int(s.graph.frames[k])})
-                log.info("frame %d: relocalised against keyframe at frame %d", index, s.graph.frames[k])
+                log.info("frame %d: relocalised against keyframe at frame %d", self.number(index),
+                         self.number(s.graph.frames[k]))
                 return found
         return None
 
@@ -252,9 +255,8 @@ class Tracker:
         if len(s.lost_run) > s.cfg.max_lost:
             first = s.lost_run[0]
             raise TrackingLostError(
-                f"tracking lost at frame {first}: {len(s.lost_run)} consecutive frames could not be aligned to any "
-                f"of the last keyframes ({s.last_failure}); the video may cut, "
-                "blur or move too fast",
+                f"tracking lost at frame {self.number(first)}: {len(s.lost_run)} consecutive frames could not be "
+                f"aligned to any of the last keyframes ({s.last_failure}); the video may cut, blur or move too fast",
                 frame=first, lost=True,
             )
 
