@@ -300,7 +300,13 @@ def test_the_run_names_the_pieces_without_a_pose_by_video_frame(caplog):
     with caplog.at_level(logging.WARNING, logger="recon"):
         kept, info, note = gate_estimate(res, video)
     said = [r.getMessage() for r in caplog.records if "no pose" in r.getMessage()]
-    assert said == ["video frames 85-93 get no pose: tracking, started again after the camera was lost, lost it "
-                    "again within 22 frames"]
+    assert said == ["video frames 85-93 get no pose and are left out of depth and fusion: tracking, started again "
+                    "after the camera was lost, lost it again within 22 frames"]
     assert [p["frames"] for p in info["diagnostics"]["pieces"]] == [[5, 83], [85, 93], [95, 163], [165, 243]]
-    assert not kept[40:45].any() and kept[:40].all() and "video frames 85-93" in note
+    # Those frames said once: the gate's note is for frames it leaves out otherwise (none here).
+    assert not kept[40:45].any() and kept[:40].all() and note == ""
+    assert info["quality"]["dropped_ranges"] == [[85, 93]]
+    res.diagnostics["frame_inlier"][10] = 0.01  # a frame the gate leaves out for its evidence: in the note alone
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        _, _, note = gate_estimate(res, video)
+    assert note.startswith("1 of 120 frames have no pose the images back (video frames 25)")

@@ -330,7 +330,8 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     report.json says of it, and the note naming the frames left out ("" when none)."""
     from ..poses.motion_checks import MotionChecks
     from ..poses.prior_agreement import PriorAgreement
-    from ..poses.quality import gate_trajectory
+    from ..poses.quality import gate_trajectory, runs
+    from ..poses.result import frame_spans
     from ..poses.scale_watch import ScaleWatch
 
     names = [int(i) for i in frame_indices]
@@ -343,10 +344,15 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
             "quality": gate.summary(names), "frame_status": list(result.diagnostics.get("frame_status", []))}
-    for piece in diagnostics.get("pieces", []):
+    # Frames of a piece without a pose are said once, with the piece's reason; the note below
+    # names the other frames the gate leaves out.
+    said = set()
+    for piece, at in zip(diagnostics.get("pieces", []), result.diagnostics.get("pieces", [])):
         if not piece["tracked"]:
             a, b = piece["frames"]
-            log.warning("video frames %s get no pose: %s", f"{a}-{b}" if a != b else a, piece["why"])
+            log.warning("video frames %s get no pose and are left out of depth and fusion: %s",
+                        f"{a}-{b}" if a != b else a, piece["why"])
+            said.update(range(at["frames"][0], at["frames"][1] + 1))
     if "scale_watch" in result.diagnostics:
         watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
         # Verdicts by position in the selection, frames and breaks named by video frame.
@@ -365,9 +371,10 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         # Acted on with the scale breaks (recon.drivers.segments.check_metric_scale).
         info["metric_scale"] = agreement.to_dict()
     note = ""
-    if gate.dropped:
-        spans = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in info["quality"]["dropped_ranges"][:5])
-        note = (f"{len(gate.dropped)} of {len(gate.keep)} frames have no pose the images back "
+    others = sorted(set(gate.dropped) - said)
+    if others:
+        spans = frame_spans(runs(others)[:5], names.__getitem__)
+        note = (f"{len(others)} of {len(gate.keep)} frames have no pose the images back "
                 f"(video frames {spans}) and are left out of depth and fusion (report.json: poses.quality)")
     return gate.keep, info, note
 
