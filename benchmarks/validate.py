@@ -132,7 +132,8 @@ def sensor_depth_folder(rec: Recording, work: Path) -> Path | None:
     the nothing-given footage names its frames (``frame_000123`` in a video, the image
     folder's own stems), for ``--prior folder``: what the pipeline makes of a metric prior
     without the network's error. None where the recording has no depth or its own footage."""
-    from recon.io.output_folder import depth_png_bytes, frame_name
+    from recon.io.depth_maps import depth_png_bytes
+    from recon.io.output_folder import frame_name
 
     dataset = dataset_of(rec)
     if not dataset.has_depth or rec.footage not in ("video", "images"):

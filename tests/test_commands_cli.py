@@ -20,7 +20,7 @@ from recon.commands.cli_args import pipeline_config_from_args
 from recon.commands.demo import pose_estimator_available
 from recon.export.writers import to_gltf_axes
 from recon.fusion.upright import camera_up
-from recon.io.output_folder import read_depth_png_mm
+from recon.io.depth_maps import read_depth_png_mm
 from recon.io.trajectories import read_poses
 
 from helpers import glb_vertex_colors, read_recording, save_tiny_depth_anything, save_tiny_dpt

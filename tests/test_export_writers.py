@@ -12,6 +12,7 @@ import pytest
 import trimesh
 
 from recon.export import export_reconstruction, write_mesh_glb
+from recon.io.depth_maps import read_depth_png_mm
 from recon.io.output_folder import (
     DEPTH_DIR,
     INTRINSICS_JSON,
@@ -21,7 +22,6 @@ from recon.io.output_folder import (
     REPORT_JSON,
     TRAJECTORY,
     OutputFolder,
-    read_depth_png_mm,
 )
 from recon.io.trajectories import read_poses
 

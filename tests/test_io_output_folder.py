@@ -11,7 +11,8 @@ import pytest
 
 from recon.errors import ReconInputError
 from recon.export import glb_bytes, write_mesh_ply
-from recon.io.output_folder import OutputFolder, atomic_write_bytes, depth_to_mm, read_depth_png_mm
+from recon.io.depth_maps import depth_to_mm, read_depth_file, read_depth_png_mm
+from recon.io.output_folder import OutputFolder, atomic_write_bytes
 
 from helpers import no_temp_files
 
@@ -19,14 +20,16 @@ from helpers import no_temp_files
 def test_depth_png_round_trip(tmp_path):
     depth = np.array([[0.0, 1.2344, 0.0004], [np.nan, 70.0, -1.0], [np.inf, 65.535, 2.5]], np.float32)
     mm = depth_to_mm(depth)
-    assert mm.tolist() == [[0, 1234, 1], [0, 65535, 0], [0, 65535, 2500]]
+    # Beyond 65.534 m clipped there: 65535 means "no measurement" to depth readers (ours too).
+    assert mm.tolist() == [[0, 1234, 1], [0, 65534, 0], [0, 65534, 2500]]
     out = OutputFolder(tmp_path / "o")
     from recon.export import write_depth_frame
 
     png, npy = write_depth_frame(out, "f", depth)
     back = read_depth_png_mm(png)
-    assert back.dtype == np.float32 and back[0, 1] == pytest.approx(1.234) and back[1, 1] == pytest.approx(65.535)
+    assert back.dtype == np.float32 and back[0, 1] == pytest.approx(1.234) and back[1, 1] == pytest.approx(65.534)
     assert np.array_equal(back > 0, np.isfinite(depth) & (depth > 0))
+    np.testing.assert_allclose(read_depth_file(png), back, rtol=1e-6)  # what --prior folder reads of it
     stored = np.load(npy)
     assert stored.dtype == np.float32 and stored[1, 0] == 0 and stored[1, 1] == 70.0 and stored[2, 0] == 0
 

@@ -31,12 +31,11 @@ import numpy as np
 
 from recon.errors import ReconInputError
 from recon.geometry.rigid import opencv_to_opengl
+from recon.io.depth_maps import PNG_DEPTH_SCALE, depth_png_bytes
 from recon.io.output_folder import (
     DEPTH_DIR,
     DEPTH_PNG,
-    DEPTH_PNG_SCALE,
     depth_name,
-    depth_png_bytes,
     json_bytes,
     read_depth,
 )
@@ -46,7 +45,7 @@ from .run_folder import RunFiles
 
 TRANSFORMS_JSON = "transforms.json"
 POINTS_PLY = "points.ply"
-DEPTH_UNIT_SCALE_FACTOR = 1.0 / DEPTH_PNG_SCALE  # depth PNG units (mm) -> metres
+DEPTH_UNIT_SCALE_FACTOR = PNG_DEPTH_SCALE  # depth PNG units (mm) -> metres
 
 
 def points_ply_bytes(xyz: np.ndarray, rgb: np.ndarray) -> bytes:

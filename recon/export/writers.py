@@ -21,6 +21,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 import open3d as o3d
 
+from recon.io.depth_maps import depth_png_bytes
 from recon.io.output_folder import (
     DEPTH_DIR,
     DEPTH_NPY,
@@ -35,7 +36,6 @@ from recon.io.output_folder import (
     atomic_path,
     atomic_write_bytes,
     depth_name,
-    depth_png_bytes,
     frame_name,
     intrinsics_dict,
     json_bytes,

@@ -1,10 +1,12 @@
-"""Depth maps stored as files by other tools: listing a folder of them and reading one.
+"""Depth maps as files: listing a folder of them, reading one, and the 16-bit PNG recon writes.
 
-This module owns the file side of user-supplied depth (or disparity) maps: .npy, .npz,
-16-bit PNG (millimetres unless told otherwise; 0 and 65535 invalid) and float EXR/PFM/TIFF
-through OpenCV, each read as one (H, W) float32 map, with one-line ReconInputErrors naming
-the file. Matching files to frames and checking their values is the folder prior's
-business (:mod:`recon.priors.folder`).
+This module owns the file side of depth (or disparity) maps: reading user-supplied .npy,
+.npz, 16-bit PNG (millimetres unless told otherwise; 0 and 65535 invalid) and float
+EXR/PFM/TIFF through OpenCV, each as one (H, W) float32 map, with one-line
+ReconInputErrors naming the file; and encoding recon's own depth PNGs so that every reader,
+this one included, reads back what was written. Matching files to frames and checking their
+values is the folder prior's business (:mod:`recon.priors.folder`); where the files go in
+an output folder, :mod:`recon.io.output_folder`'s.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from recon.errors import ReconInputError
@@ -22,6 +25,8 @@ DEPTH_SUFFIXES = (".npy", ".npz", ".png", ".exr", ".pfm", ".tif", ".tiff")
 PNG_DEPTH_SCALE = 0.001
 # 16-bit value some sensors (7-Scenes, Kinect tools) write for "no measurement".
 UINT16_INVALID = 65535
+# The largest value recon writes (65.534 m): 65535 would read back as no measurement.
+PNG_DEPTH_MAX = UINT16_INVALID - 1
 
 
 def list_depth_files(folder: Path) -> list[Path]:
@@ -92,3 +97,29 @@ def _read_depth_image(path: Path) -> np.ndarray:
             raise ReconInputError(f"{path}: depth must be single-channel, got {image.shape[2]} different channels")
         image = image[..., 0]
     return image
+
+
+def depth_to_mm(depth: np.ndarray) -> np.ndarray:
+    """(H, W) metres -> uint16 millimetres: invalid (0, negative, NaN, inf) -> 0, valid depth
+    rounded and clipped to [1, PNG_DEPTH_MAX] so a valid pixel never turns into "invalid"."""
+    d = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    mm = np.zeros(d.shape, np.uint16)
+    mm[valid] = np.clip(np.round(d[valid] / PNG_DEPTH_SCALE), 1, PNG_DEPTH_MAX).astype(np.uint16)
+    return mm
+
+
+def depth_png_bytes(depth: np.ndarray) -> bytes:
+    """16-bit PNG (millimetres) of a (H, W) depth map in metres."""
+    ok, buf = cv2.imencode(".png", depth_to_mm(depth))
+    if not ok:
+        raise OSError("OpenCV could not encode a 16-bit PNG")
+    return buf.tobytes()
+
+
+def read_depth_png_mm(path) -> np.ndarray:
+    """(H, W) float32 metres from a depth PNG written by :func:`depth_png_bytes`."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ReconInputError(f"{path}: not a 16-bit single-channel depth PNG")
+    return raw.astype(np.float32) / np.float32(1.0 / PNG_DEPTH_SCALE)

@@ -22,7 +22,8 @@ Layout (written by :func:`recon.export.export_reconstruction` and the pipeline):
     point_cloud.ply   optional surface points with colours
     trajectory.txt    camera-to-world poses, TUM format (t tx ty tz qx qy qz qw), OpenCV camera axes
     intrinsics.json   fx, fy, cx, cy, width, height of the depth maps (+ per-frame values)
-    depth/<name>.png  16-bit PNG, millimetres, 0 = invalid, valid depth clipped to [1 mm, 65.535 m]
+    depth/<name>.png  16-bit PNG, millimetres, 0 = invalid, valid depth clipped to [1 mm, 65.534 m]
+                      (``depth_maps.depth_png_bytes``)
     depth/<name>.npy  float32 metres, 0 = invalid (lossless; one file per frame so frames
                       stream to disk and can be memory-mapped back: ``np.load(p, mmap_mode="r")``)
     recording.rrd     optional Rerun recording of the run
@@ -52,10 +53,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
-import cv2
 import numpy as np
 
 from recon.errors import ReconInputError
+from recon.io.depth_maps import read_depth_png_mm
 from recon.io.naming import natural_key
 from recon.io.trajectories import read_poses
 
@@ -73,8 +74,6 @@ REPORT_JSON = "report.json"
 EVAL_JSON = "eval.json"
 SEGMENT_PREFIX = "segment_"
 
-DEPTH_PNG_SCALE = 1000.0  # PNG units per metre (millimetres)
-DEPTH_PNG_MAX = 65535
 
 
 # --------------------------------------------------------------------------- names
@@ -269,32 +268,6 @@ def stale_results(folder, segments: list[str]) -> list[str]:
 # --------------------------------------------------------------------------- file formats
 
 
-def depth_to_mm(depth: np.ndarray) -> np.ndarray:
-    """(H, W) metres -> uint16 millimetres: invalid (0, negative, NaN, inf) -> 0, valid depth
-    rounded and clipped to [1, 65535] so a valid pixel never turns into "invalid"."""
-    d = np.asarray(depth, dtype=np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    mm = np.zeros(d.shape, np.uint16)
-    mm[valid] = np.clip(np.round(d[valid] * DEPTH_PNG_SCALE), 1, DEPTH_PNG_MAX).astype(np.uint16)
-    return mm
-
-
-def depth_png_bytes(depth: np.ndarray) -> bytes:
-    """16-bit PNG (millimetres) of a (H, W) depth map in metres."""
-    ok, buf = cv2.imencode(".png", depth_to_mm(depth))
-    if not ok:
-        raise OSError("OpenCV could not encode a 16-bit PNG")
-    return buf.tobytes()
-
-
-def read_depth_png_mm(path) -> np.ndarray:
-    """(H, W) float32 metres from a depth PNG written by :func:`depth_png_bytes`."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
-        raise ReconInputError(f"{path}: not a 16-bit single-channel depth PNG")
-    return raw.astype(np.float32) / np.float32(DEPTH_PNG_SCALE)
-
-
 def npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
@@ -478,8 +451,6 @@ __all__ = [
     "DEPTH_DIR",
     "DEPTH_NPY",
     "DEPTH_PNG",
-    "DEPTH_PNG_MAX",
-    "DEPTH_PNG_SCALE",
     "EVAL_JSON",
     "INTRINSICS_JSON",
     "MESH_GLB",
@@ -494,14 +465,11 @@ __all__ = [
     "atomic_write_bytes",
     "depth_files",
     "depth_name",
-    "depth_png_bytes",
-    "depth_to_mm",
     "frame_name",
     "intrinsics_dict",
     "json_bytes",
     "load_output",
     "read_depth",
-    "read_depth_png_mm",
     "read_intrinsics",
     "read_mesh",
     "read_report",
