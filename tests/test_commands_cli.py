@@ -16,7 +16,7 @@ import pytest
 import trimesh
 
 from recon.commands.cli import build_parser, main
-from recon.commands.cli_args import pipeline_config_from_args
+from recon.commands.cli_config import pipeline_config_from_args
 from recon.commands.demo import pose_estimator_available
 from recon.export.writers import to_gltf_axes
 from recon.fusion.upright import camera_up
@@ -79,9 +79,9 @@ def test_a_runs_report_reruns_it_with_the_same_config(demo):
     """`recon run IN -o OUT --config OUT/report.json` is the run's config again, exactly."""
     out, report = demo
     options = report["options"]
-    args = build_parser().parse_args(["run", options["input"], "-o", options["output"], "--config",
-                                      str(out / "report.json")])
-    assert json.loads(json.dumps(pipeline_config_from_args(args).to_dict())) == options  # as report.json holds it
+    parser = build_parser()
+    args = parser.parse_args(["run", options["input"], "-o", options["output"], "--config", str(out / "report.json")])
+    assert json.loads(json.dumps(pipeline_config_from_args(args, parser).to_dict())) == options  # as report.json has it
 
 
 def test_demo_mesh_quality(demo):

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from recon.commands.cli import main
-from recon.commands.cli_args import build_parser, pipeline_config_from_args
+from recon.commands.cli_args import build_parser
+from recon.commands.cli_config import pipeline_config_from_args
 from recon.core.config import PipelineConfig
 
 RICH = ["--stride", "2", "--max-frames", "40", "--stream", "off", "--fov", "62.5", "--distortion", "0.1,-0.02,0,0",
@@ -18,7 +19,8 @@ RICH = ["--stride", "2", "--max-frames", "40", "--stream", "off", "--fov", "62.5
 
 
 def _config(*argv: str) -> PipelineConfig:
-    return pipeline_config_from_args(build_parser().parse_args(["run", *argv]))
+    parser = build_parser()
+    return pipeline_config_from_args(parser.parse_args(["run", *argv]), parser)
 
 
 @pytest.fixture(autouse=True)
@@ -28,7 +30,7 @@ def _plain_machine(monkeypatch):
     import torch
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    monkeypatch.setattr("recon.commands.cli_args.default_rerun_mode", lambda: "off")
+    monkeypatch.setattr("recon.commands.cli_config.default_rerun_mode", lambda: "off")
 
 
 def test_cli_defaults_are_the_configs():
@@ -119,16 +121,16 @@ def test_set_list_names_every_setting_with_its_default(capsys):
 
 
 def test_the_command_line_of_a_config_makes_that_config(tmp_path):
-    """recon.commands.cli_args.command_line (what `recon demo` prints) parsed again is the same config."""
+    """recon.commands.cli_config.command_line (what `recon demo` prints) parsed again is the same config."""
     import shlex
     from dataclasses import replace
 
-    from recon.commands.cli_args import command_line
+    from recon.commands.cli_config import command_line
 
     original = _config("in.mp4", "-o", str(tmp_path / "a"), *RICH)
     original = replace(original, pose_options={"window": 6, "keyframe_flow": 12.5}, overwrite=True,
                        intrinsics=(500.0, 510.0, 320.0, 240.0), prior_path=tmp_path / "prior dir")
-    words = shlex.split(command_line(original))
+    words = shlex.split(command_line(original, build_parser()))
     assert words[:2] == ["recon", "run"]
     assert _config(*words[2:]) == original
 

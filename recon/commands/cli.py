@@ -4,8 +4,8 @@
 a nerfstudio dataset of a result, recon.export.tools).
 
 This module runs the commands; their options, which mirror the typed configs
-(recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed and turned into
-those configs by recon.commands.cli_args.
+(recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed by
+recon.commands.cli_args and turned into those configs by recon.commands.cli_config.
 
 What the user reads: results and stage names on stdout; on stderr, progress bars (unless
 --quiet) and one line per message. The library never prints: its warnings go through the
@@ -28,8 +28,8 @@ import threading
 from pathlib import Path
 
 from ..errors import ReconInputError
-from .cli_args import (
-    build_parser,
+from .cli_args import build_parser
+from .cli_config import (
     default_rerun_mode,
     medea_config_from_args,
     pipeline_config_from_args,
@@ -57,7 +57,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from ..pipeline import format_summary, run_pipeline
 
     formats = parse_formats(args.export) if args.export is not None else ()  # bad names fail before the run
-    config = pipeline_config_from_args(args)
+    config = pipeline_config_from_args(args, build_parser())
     result = run_pipeline(config, on_stage=None if args.quiet else lambda stage: print(stage, flush=True))
     print(format_summary(result))
     if formats:
@@ -83,7 +83,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     # on the node Ray picks, not here.
     run_args = argparse.Namespace(**{**vars(args), "input": ".", "output": ".", "overwrite": False, "device": "cpu",
                                      "rerun": ["save" if args.save_recording else "off"]})
-    template = dataclasses.replace(pipeline_config_from_args(run_args), device=args.device)
+    template = dataclasses.replace(pipeline_config_from_args(run_args, build_parser()), device=args.device)
     gpus = default_gpus_per_task(args.device) if args.gpus_per_task is None else args.gpus_per_task
     options = BatchOptions(address=args.address, num_cpus=args.num_cpus, cpus_per_task=args.cpus_per_task,
                            gpus_per_task=gpus, memory_per_task=args.memory_per_task)

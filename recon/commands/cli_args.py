@@ -1,16 +1,14 @@
 """The `recon` command line's arguments: the parser (`build_parser`: the sub-commands run,
-batch, demo, view, eval and export), its option groups mirroring the typed configs
+batch, demo, view, eval and export) and its option groups mirroring the typed configs
 (recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions, mvs_core.MvsConfig, the pose
-options), and the conversion of parsed arguments into those configs. Named choices come
-from recon.choices. The commands that run on the parsed arguments are in recon.commands.cli.
+options). Named choices come from recon.choices; turning parsed arguments into those
+configs is recon.commands.cli_config's, running them recon.commands.cli's.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
-
-import torch
 
 from medea_core import MedeaConfig
 
@@ -23,10 +21,9 @@ from ..choices import (
     PRIOR_ALIGN_CHOICES,
     PRIOR_CHOICES,
     REFINE_CHOICES,
-    RERUN_MODES,
     STREAM_CHOICES,
 )
-from ..errors import ReconInputError
+from .cli_config import config_from_flags
 
 
 def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -> None:
@@ -65,66 +62,7 @@ def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -
     g.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
 
 
-def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
-    config = preset_medea(args.preset)
-    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_stride", "feature_channels", "feature_loss"):
-        if getattr(args, name) is not None:
-            setattr(config, name, getattr(args, name))
-    if args.stage1_epochs is not None:
-        config.stage1.epochs = args.stage1_epochs
-    if args.stage2_epochs is not None:
-        config.stage2.epochs = args.stage2_epochs
-    if args.lr is not None:
-        config.stage1.lr = config.stage2.lr = args.lr
-    config.run_stage1 = not args.no_stage1
-    config.run_stage2 = not args.no_stage2
-    config.propagate_scale = not args.no_propagation
-    config.use_photometric = not args.no_photometric
-    config.use_depth = not args.no_depth_loss
-    config.use_features = not args.no_feature_loss
-    config.seed = args.seed
-    config.device = resolve_device(args.device)
-    return config
-
-
-def preset_medea(name: str) -> MedeaConfig:
-    """The MEDeA settings of preset `name`: its shipped config file's ``medea`` section over
-    the paper's MedeaConfig (recon.core.config_file.preset_path)."""
-    from ..core.config_file import preset_path, read_config_file, updated
-
-    return updated(MedeaConfig(), read_config_file(preset_path(name)).get("medea", {}), "medea")
-
-
-def resolve_device(name: str) -> str:
-    """The torch device for --device NAME (cpu, cuda, cuda:N or auto), checked here."""
-    from ..core.config import device_index
-
-    index = device_index(name)
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ReconInputError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
-    if index is not None and index >= torch.cuda.device_count():
-        raise ReconInputError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s), "
-                              f"numbered from 0")
-    return name
-
-
 # --------------------------------------------------------------------------- shared options
-
-
-def _numbers(text: str, count: int | tuple[int, ...], what: str) -> tuple[float, ...]:
-    """`count` numbers (or one of the counts of a tuple) separated by commas."""
-    counts = (count,) if isinstance(count, int) else count
-    parts = [p for p in text.replace(",", " ").split() if p]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) not in counts:
-        expected = " or ".join(str(c) for c in counts)
-        raise ReconInputError(f"{what}: expected {expected} numbers separated by commas, got {text!r}")
-    return values
 
 
 def add_device_arguments(parser: argparse.ArgumentParser) -> None:
@@ -139,19 +77,6 @@ def add_rerun_argument(parser: argparse.ArgumentParser, default: str | None, wha
         help=f"Rerun inspection of {what}: spawn (desktop viewer), save [PATH.rrd] (default OUT/recording.rrd), "
              f"serve (web viewer on localhost; waits until Ctrl-C), off (default: {default_text})",
     )
-
-
-def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None]:
-    """(mode, path or None) from --rerun MODE [PATH]."""
-    values = args.rerun or [default]
-    mode, rest = values[0], values[1:]
-    if mode not in RERUN_MODES:
-        raise ReconInputError(f"--rerun: mode must be one of {', '.join(RERUN_MODES)}, got {mode!r}")
-    if rest and mode != "save":
-        raise ReconInputError(f"--rerun {mode} takes no path (only 'save' does)")
-    if len(rest) > 1:
-        raise ReconInputError(f"--rerun save takes one path, got {len(rest)}")
-    return mode, Path(rest[0]) if rest else None
 
 
 # --------------------------------------------------------------------------- recon run
@@ -306,16 +231,6 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-glb", action="store_true", help="do not write mesh.glb")
 
 
-def fusion_options_from_args(args: argparse.Namespace):
-    from ..fusion import FusionOptions
-
-    return FusionOptions(
-        voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
-        min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
-        min_confidence=args.min_confidence, max_triangles=args.max_triangles,
-    )
-
-
 class _ListableAction(argparse.Action):
     """Collects the values of a repeatable KEY=VALUE option; `list` prints the settings it takes
     (``heading``, then ``table()``) and exits while parsing, as --help does, so that it needs
@@ -323,13 +238,14 @@ class _ListableAction(argparse.Action):
 
     heading = ""
 
-    def table(self) -> str:
+    def table(self, parser: argparse.ArgumentParser) -> str:
+        """parser: the (sub)command's parser this option belongs to."""
         raise NotImplementedError
 
     def __call__(self, parser, namespace, values, option_string=None):
         if values == "list":
             print(self.heading)
-            print(self.table())
+            print(self.table(parser))
             parser.exit()
         # Not append: the default list would be shared between parses.
         setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
@@ -339,7 +255,7 @@ class _PoseOptionAction(_ListableAction):
     heading = ("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
                "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
 
-    def table(self) -> str:
+    def table(self, parser: argparse.ArgumentParser) -> str:
         from ..poses.options import pose_option_table
 
         return pose_option_table()
@@ -348,10 +264,10 @@ class _PoseOptionAction(_ListableAction):
 class _SetAction(_ListableAction):
     heading = "settings (--set NAME=VALUE, and the names of a --config file's sections): name, type, default"
 
-    def table(self) -> str:
+    def table(self, parser: argparse.ArgumentParser) -> str:
         from ..core.config_file import settings_listing
-
-        return settings_listing(_bare_config("IN", "OUT"))
+        # A bare `recon run IN -o OUT`'s settings, parsed by the run command's own parser.
+        return settings_listing(config_from_flags(parser.parse_args(["IN", "-o", "OUT"])))
 
 
 class _FieldOptionAction(_ListableAction):
@@ -361,7 +277,7 @@ class _FieldOptionAction(_ListableAction):
     def config():
         raise NotImplementedError
 
-    def table(self) -> str:
+    def table(self, parser: argparse.ArgumentParser) -> str:
         from ..options import option_table
 
         return option_table(self.config())
@@ -389,106 +305,10 @@ class _PolishOptionAction(_FieldOptionAction):
         return PolishConfig
 
 
-def polish_config_from_args(args: argparse.Namespace):
-    from dataclasses import replace
-
-    from ..options import parse_field_option
-    from ..poses.polish import PolishConfig
-
-    values = dict(parse_field_option(text, PolishConfig, "polish option") for text in args.polish_option)
-    return replace(PolishConfig(), **values)
-
-
-def mvs_config_from_args(args: argparse.Namespace):
-    from dataclasses import replace
-
-    from mvs_core import MvsConfig
-
-    from ..options import parse_field_option
-
-    values = dict(parse_field_option(text, MvsConfig, "refine option") for text in args.refine_option)
-    config = replace(MvsConfig(), **values)
-    try:
-        config.validate()
-    except ValueError as error:
-        raise ReconInputError(f"--refine-option: {error}") from None
-    return config
-
-
 def add_pose_option_argument(parser) -> None:
     parser.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
                         help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
                              "(repeatable); `--pose-option list` prints every setting with its default")
-
-
-def pose_options_from_args(args: argparse.Namespace) -> dict:
-    from ..poses.options import parse_pose_option
-
-    return dict(parse_pose_option(text) for text in args.pose_option)
-
-
-def pipeline_config_from_args(args: argparse.Namespace):
-    """The run's PipelineConfig: the flags, over the settings of --config FILE if given
-    (recon.core.config_file: a flag overrides the file where it differs from its default)."""
-    from ..core.config_file import merged, read_config_file, with_settings
-
-    config = _config_from_flags(args)
-    if getattr(args, "config", None) is not None:
-        config = merged(read_config_file(args.config), config, _bare_config(args.input, args.output))
-    return with_settings(config, getattr(args, "settings", None) or [])
-
-
-def command_line(config) -> str:
-    """The `recon run` command line that makes `config`: its input and output, and a ``--set``
-    for every setting in which it differs from a bare `recon run IN -o OUT`
-    (recon.core.config_file.changed_settings), so that it cannot drift from the flags."""
-    import shlex
-
-    from ..core.config_file import changed_settings
-
-    words = ["recon", "run", str(config.input), "-o", str(config.output)] + (["--overwrite"] * config.overwrite)
-    for item in changed_settings(config, _bare_config(config.input, config.output)):
-        if item.partition("=")[0] != "overwrite":
-            words += ["--set", item]
-    return shlex.join(words)
-
-
-def _bare_config(input_path, output):
-    """The config of a bare `recon run INPUT -o OUTPUT`: every flag at its default."""
-    return _config_from_flags(build_parser().parse_args(["run", str(input_path), "-o", str(output)]))
-
-
-def _config_from_flags(args: argparse.Namespace):
-    from ..pipeline import PipelineConfig
-
-    medea = medea_config_from_args(args)
-    mode, path = rerun_mode(args, default_rerun_mode())
-    return PipelineConfig(
-        input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
-        max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
-        stream=args.stream, depth_frames=args.depth_frames, depth_motion=args.depth_motion,
-        depth_rotation=args.depth_rotation, window=args.window, window_overlap=args.window_overlap,
-        mesh_every=args.mesh_every,
-        width=args.width or None, fps=args.fps,
-        intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
-        distortion=_numbers(args.distortion, (4, 5), "--distortion") if args.distortion else None,
-        rolling_shutter=args.rolling_shutter,
-        poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
-        on_break=args.on_break, join_segments=args.join_segments,
-        prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
-        weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
-        refine=args.refine, mvs=mvs_config_from_args(args),
-        polish=args.polish, polish_config=polish_config_from_args(args),
-        medea_gate=args.medea_gate,
-        fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
-        progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
-    )
-
-
-def default_rerun_mode() -> str:
-    from viewer import default_mode
-
-    return default_mode()
 
 
 # --------------------------------------------------------------------------- parser

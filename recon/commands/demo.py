@@ -41,7 +41,8 @@ from ..fusion import FusionOptions, fuse
 from ..io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
 from ..pipeline import PipelineConfig, PipelineResult, run_pipeline
 from ..synthetic import SyntheticSequence, render_sequence, simulate_prior
-from .cli_args import command_line
+from .cli_args import build_parser
+from .cli_config import command_line
 
 log = logging.getLogger(__name__)
 
@@ -209,7 +210,7 @@ def run_demo(options: DemoOptions, say: Callable[[str], None] | None = None) -> 
         adjust=options.adjust, medea=options.medea, rerun=options.rerun, device=options.device,
         progress=options.progress, stream="off",  # the scoring below reads the one-shot run's prior and MEDeA depth
     )
-    command = command_line(config)
+    command = command_line(config, build_parser())
     say(f"running: {command}")
     result = run_pipeline(config, on_stage=lambda stage: say(f"  {stage}") if options.progress else None)
 
