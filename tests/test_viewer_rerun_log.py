@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from viewer import RerunLogger, default_blueprint, default_mode, rerun_log
+from viewer import RerunLogger, arrays, default_blueprint, default_mode, rerun_log
 from viewer.blueprint import LOSSES_TAB, RECONSTRUCTION_TAB, SCENE_VIEW
 
 from helpers import read_recording, recording_blueprint
@@ -126,9 +126,9 @@ def test_save_downscaled(tmp_path):
 
 def test_resize_nearest_keeps_invalid_pixels_unmixed():
     depth = np.array([[0.0, 2.0], [3.0, 4.0]], dtype=np.float32).repeat(2, 0).repeat(2, 1)
-    small = rerun_log._resize_nearest(depth, 2, 2)
+    small = arrays.resize_nearest(depth, 2, 2)
     assert set(np.unique(small)) <= {0.0, 2.0, 3.0, 4.0}
-    np.testing.assert_array_equal(rerun_log._resize_nearest(depth, 4, 4), depth)
+    np.testing.assert_array_equal(arrays.resize_nearest(depth, 4, 4), depth)
 
 
 def test_off_mode_is_noop(tmp_path):

@@ -46,6 +46,17 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
+from .arrays import (
+    as_intrinsics,
+    camera_of,
+    depth_f32,
+    logged_size,
+    pose_matrix,
+    resize_nearest,
+    resize_rgb,
+    rgb_uint8,
+    to_numpy,
+)
 from .blueprint import default_blueprint
 from .entities import (
     ADJUSTED_DEPTH,
@@ -92,91 +103,6 @@ def default_mode() -> str:
     return "off"
 
 
-def _to_numpy(array: Any) -> np.ndarray:
-    """numpy view of an array-like, torch tensors (any device, with grad) included."""
-    if hasattr(array, "detach"):
-        array = array.detach().cpu().numpy()
-    return np.asarray(array)
-
-
-def _as_intrinsics(intrinsics: Any) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) from a 4-sequence or a 3x3 camera matrix."""
-    k = _to_numpy(intrinsics).astype(np.float64)
-    if k.shape == (3, 3):
-        return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
-    if k.shape == (4,):
-        return tuple(float(v) for v in k)  # type: ignore[return-value]
-    raise ValueError(f"intrinsics must be (fx, fy, cx, cy) or a 3x3 matrix, got shape {k.shape}")
-
-
-def _rgb_uint8(rgb: Any) -> np.ndarray:
-    """(H, W, 3|4) or (H, W) uint8; floats are taken to be in [0, 1]."""
-    image = _to_numpy(rgb)
-    if image.ndim == 3 and image.shape[0] in (1, 3, 4) and image.shape[-1] not in (1, 3, 4):
-        image = np.moveaxis(image, 0, -1)  # CHW -> HWC
-    if image.ndim == 3 and image.shape[-1] == 1:
-        image = image[..., 0]
-    if image.dtype != np.uint8:
-        image = np.clip(np.nan_to_num(image.astype(np.float32)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(image)
-
-
-def _depth_f32(depth: Any) -> np.ndarray:
-    """(H, W) float32 metres, non-finite and negative values set to 0 (invalid)."""
-    d = _to_numpy(depth).astype(np.float32)
-    if d.ndim == 3 and d.shape[0] == 1:
-        d = d[0]
-    elif d.ndim == 3 and d.shape[-1] == 1:
-        d = d[..., 0]
-    if d.ndim != 2:
-        raise ValueError(f"depth must be (H, W), got shape {d.shape}")
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
-    return np.ascontiguousarray(d)
-
-
-def _logged_size(height: int, width: int, max_width: int | None) -> tuple[int, int]:
-    if max_width is None or width <= max_width:
-        return height, width
-    return max(1, round(height * max_width / width)), max_width
-
-
-def _resize_rgb(image: np.ndarray, height: int, width: int) -> np.ndarray:
-    if image.shape[:2] == (height, width):
-        return image
-    from PIL import Image as PILImage  # pillow is a rerun-sdk dependency
-
-    return np.asarray(PILImage.fromarray(image).resize((width, height), PILImage.Resampling.BOX))
-
-
-def _resize_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Nearest-neighbour resize (never mixes valid depth with 0 = invalid)."""
-    h, w = depth.shape
-    if (h, w) == (height, width):
-        return depth
-    rows = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
-    return np.ascontiguousarray(depth[rows[:, None], cols[None, :]])
-
-
-def _camera(intrinsics: Any, source: tuple[int, int] | None) -> tuple[Any, tuple[int, int]] | None:
-    """(intrinsics, (H, W) of the image they are in pixels of) from (fx, fy, cx, cy, width,
-    height), or from 4 values or a 3x3 matrix in pixels of ``source``; None when either is
-    unknown."""
-    if intrinsics is None:
-        return None
-    k = _to_numpy(intrinsics).astype(np.float64)
-    if k.shape == (6,):
-        return k[:4], (int(k[5]), int(k[4]))
-    return None if source is None else (k, tuple(source))
-
-
-def _pose_matrix(pose: Any) -> np.ndarray:
-    t = _to_numpy(pose).astype(np.float64)
-    if t.shape != (4, 4):
-        raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {t.shape}")
-    return t
-
-
 def _log_transform(rec: rr.RecordingStream, pose: np.ndarray) -> None:
     rec.log(CAMERA, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
 
@@ -184,7 +110,7 @@ def _log_transform(rec: rr.RecordingStream, pose: np.ndarray) -> None:
 def _log_pinhole(rec: rr.RecordingStream, intrinsics: Any, source: tuple[int, int], logged: tuple[int, int]) -> None:
     """The camera's pinhole: intrinsics in pixels of a ``source`` (H, W) image, for the images
     logged under it at ``logged`` (H, W)."""
-    fx, fy, cx, cy = _as_intrinsics(intrinsics)
+    fx, fy, cx, cy = as_intrinsics(intrinsics)
     (src_h, src_w), (height, width) = source, logged
     sx, sy = width / src_w, height / src_h
     rec.log(
@@ -317,18 +243,18 @@ class RerunLogger:
 
         # The logged resolution, shared by every image under the pinhole: the RGB's, else
         # the one this frame's RGB was logged at earlier, else the depth's.
-        image = _rgb_uint8(rgb) if rgb is not None else None
+        image = rgb_uint8(rgb) if rgb is not None else None
         first = next((d for d in (prior_depth, adjusted_depth, refined_depth, confidence) if d is not None), None)
         source = None  # (H, W) of the images given
         if image is not None:
             source = image.shape[:2]
-            self._sizes[index] = _logged_size(*source, self.max_width)
+            self._sizes[index] = logged_size(*source, self.max_width)
         elif first is not None:
-            source = _depth_f32(first).shape
-            self._sizes.setdefault(index, _logged_size(*source, self.max_width))
+            source = depth_f32(first).shape
+            self._sizes.setdefault(index, logged_size(*source, self.max_width))
 
         if image is not None:
-            image = _resize_rgb(image, *self._sizes[index])
+            image = resize_rgb(image, *self._sizes[index])
             archetype = rr.Image(image)
             if self.jpeg_quality is not None and image.ndim == 3 and image.shape[-1] == 3:
                 archetype = archetype.compress(jpeg_quality=self.jpeg_quality)
@@ -336,17 +262,17 @@ class RerunLogger:
         for entity, depth in ((PRIOR_DEPTH, prior_depth), (ADJUSTED_DEPTH, adjusted_depth),
                               (REFINED_DEPTH, refined_depth)):
             if depth is not None:
-                rec.log(entity, rr.DepthImage(_resize_nearest(_depth_f32(depth), *self._sizes[index]), meter=1.0))
+                rec.log(entity, rr.DepthImage(resize_nearest(depth_f32(depth), *self._sizes[index]), meter=1.0))
         if confidence is not None:
-            conf = _resize_nearest(np.clip(_depth_f32(confidence), 0.0, 1.0), *self._sizes[index])
+            conf = resize_nearest(np.clip(depth_f32(confidence), 0.0, 1.0), *self._sizes[index])
             rec.log(CONFIDENCE, rr.Image((conf * 255.0 + 0.5).astype(np.uint8)))
 
-        camera = _camera(intrinsics, source)
+        camera = camera_of(intrinsics, source)
         if camera is not None:
             k, k_size = camera
-            _log_pinhole(rec, k, k_size, self._sizes.get(index) or _logged_size(*k_size, self.max_width))
+            _log_pinhole(rec, k, k_size, self._sizes.get(index) or logged_size(*k_size, self.max_width))
         if pose is not None:
-            t = _pose_matrix(pose)
+            t = pose_matrix(pose)
             _log_transform(rec, t)
             self._centres.setdefault(index // TRAJECTORY_PIECE, {})[index] = t[:3, 3].copy()
             self._log_piece(rec, index)
@@ -368,8 +294,8 @@ class RerunLogger:
         rec = self._rec
         if rec is None:
             return
-        indices = [int(i) for i in _to_numpy(indices).ravel()]
-        poses = _to_numpy(poses).astype(np.float64)
+        indices = [int(i) for i in to_numpy(indices).ravel()]
+        poses = to_numpy(poses).astype(np.float64)
         if len(poses) != len(indices):
             raise ValueError(f"{len(indices)} frame indices for {len(poses)} poses")
         self._centres = {}  # the trajectory is these poses alone
@@ -377,12 +303,12 @@ class RerunLogger:
         for k in np.argsort(indices, kind="stable"):
             index, pose = indices[k], poses[k]
             if np.isfinite(pose).all():
-                held = _pose_matrix(pose)
+                held = pose_matrix(pose)
                 self._centres.setdefault(index // TRAJECTORY_PIECE, {})[index] = held[:3, 3].copy()
             elif held is None:
                 continue
             self._at_frame(rec, index)
-            _log_pinhole(rec, intrinsics, size, self._sizes.get(index) or _logged_size(*size, self.max_width))
+            _log_pinhole(rec, intrinsics, size, self._sizes.get(index) or logged_size(*size, self.max_width))
             _log_transform(rec, held)
             self._log_piece(rec, index)
 
@@ -430,7 +356,7 @@ class RerunLogger:
         rec.log(TRACKING, rr.TextLog(f"frame {index}: {state}", level=rr.TextLogLevel.WARN if trouble
                                      else rr.TextLogLevel.INFO))
         if pose is not None and state.startswith("dropped"):
-            t = _to_numpy(pose).astype(np.float64)
+            t = to_numpy(pose).astype(np.float64)
             if np.isfinite(t).all():
                 self._dropped.append(t[:3, 3].copy())
                 rec.log(DROPPED, rr.Points3D(np.stack(self._dropped), colors=[[230, 30, 30]], radii=0.02))
@@ -451,12 +377,12 @@ class RerunLogger:
             raise TypeError(f"index must be a frame index or None, got {index!r} (entity is keyword-only)")
         colors = None
         if vertex_colors is not None:
-            colors = _to_numpy(vertex_colors)
+            colors = to_numpy(vertex_colors)
             if colors.dtype != np.uint8:
                 colors = np.clip(colors.astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
         mesh = rr.Mesh3D(
-            vertex_positions=_to_numpy(vertices).astype(np.float32),
-            triangle_indices=_to_numpy(triangles).astype(np.uint32),
+            vertex_positions=to_numpy(vertices).astype(np.float32),
+            triangle_indices=to_numpy(triangles).astype(np.uint32),
             vertex_colors=colors,
         )
         if index is None:
@@ -471,10 +397,10 @@ class RerunLogger:
         if rec is None:
             return
         if colors is not None:
-            colors = _to_numpy(colors)
+            colors = to_numpy(colors)
             if colors.dtype != np.uint8:
                 colors = np.clip(colors.astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        rec.log(entity, rr.Points3D(_to_numpy(points).astype(np.float32), colors=colors, radii=radii), static=True)
+        rec.log(entity, rr.Points3D(to_numpy(points).astype(np.float32), colors=colors, radii=radii), static=True)
 
     # ------------------------------------------------------------------ losses
 
