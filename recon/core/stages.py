@@ -347,12 +347,12 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     # Frames of a piece without a pose are said once, with the piece's reason; the note below
     # names the other frames the gate leaves out.
     said = set()
-    for piece, at in zip(diagnostics.get("pieces", []), result.diagnostics.get("pieces", [])):
+    for piece in result.diagnostics.get("pieces", []):
         if not piece["tracked"]:
             a, b = piece["frames"]
             log.warning("video frames %s get no pose and are left out of depth and fusion: %s",
-                        f"{a}-{b}" if a != b else a, piece["why"])
-            said.update(range(at["frames"][0], at["frames"][1] + 1))
+                        frame_spans([(a, b)], names.__getitem__), piece["why"])
+            said.update(range(a, b + 1))
     if "scale_watch" in result.diagnostics:
         watch = ScaleWatch.from_dict(result.diagnostics["scale_watch"])
         # Verdicts by position in the selection, frames and breaks named by video frame.
