@@ -74,13 +74,16 @@ def test_folder_errors(tmp_path):
     np.save(tmp_path / "f1.npy", depth[1])
     # Frame without a file (by stem), and count mismatch (by order).
     prior_error(FolderDepthPrior(tmp_path, frame_names=["f0.png", "f7.png"], progress=False), prior_frames(2),
-                    "frame 1", "f7", tmp_path)
+                    "no depth file for f7.png", "f7.npy", tmp_path)
     prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(3), "2 depth files for 3 frames")
     # Wrong size with resizing disabled; wrong aspect even with resizing.
     np.save(tmp_path / "f1.npy", depth[1][:, :20])
     prior_error(FolderDepthPrior(tmp_path, resize=False, progress=False), prior_frames(2), "frame 1",
                     tmp_path / "f1.npy", "resizing disabled")
     prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(2), "frame 1", "aspect")
+    # Frames with names are named so, not by their place in a batch (the streamed run's).
+    prior_error(FolderDepthPrior(tmp_path, frame_names=["f0", "f1"], resize=False, progress=False), prior_frames(2),
+                "depth of frame f1 is", "resizing disabled")
     # All-zero and NaN maps.
     np.save(tmp_path / "f1.npy", np.zeros((H, W), np.float32))
     prior_error(FolderDepthPrior(tmp_path, progress=False), prior_frames(2), "frame 1", tmp_path / "f1.npy",

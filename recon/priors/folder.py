@@ -56,9 +56,7 @@ def match_depth_files(files: list[Path], frame_names: list[str] | None, count: i
     for k, name in enumerate(frame_names):
         path = next((index[key] for key in stem_keys(name) if key in index), None)
         if path is None:
-            raise ReconInputError(
-                f"{folder}: no depth file for frame {k} ({name}); expected e.g. {Path(name).stem}.npy"
-            )
+            raise ReconInputError(f"{folder}: no depth file for {name} (expected e.g. {Path(name).stem}.npy)")
         matched.append(path)
     return matched
 
@@ -145,13 +143,13 @@ class FolderDepthPrior(DepthPrior):
         if values.shape != size:
             if not self.resize:
                 raise ReconInputError(
-                    f"{path}: depth of frame {frame} is {values.shape[0]}x{values.shape[1]},"
+                    f"{path}: depth of frame {label} is {values.shape[0]}x{values.shape[1]},"
                     f" the frame is {size[0]}x{size[1]} (resizing disabled)"
                 )
             try:
                 values = resize_nearest(values, size)
             except ValueError as exc:
-                raise ReconInputError(f"{path}: frame {frame}: {exc}") from None
+                raise ReconInputError(f"{path}: frame {label}: {exc}") from None
         return values
 
     def predict_batch(self, frames, intrinsics, indices, plan=None) -> PriorOutput:
