@@ -238,5 +238,5 @@ def _verdict(frames: list[int], values: np.ndarray, cfg: AgreementConfig) -> Pri
                           trusted=not judged or median >= cfg.min_correlation, min_correlation=cfg.min_correlation)
 
 
-__all__ = ["AgreementConfig", "PriorAgreement", "judge_agreement", "joined", "log_depth_correlation",
-           "point_log_correlation"]
+__all__ = ["AgreementConfig", "PriorAgreement", "judge_agreement", "joined", "keyframe_triangulations",
+           "log_depth_correlation", "point_log_correlation", "triangulated_depth"]

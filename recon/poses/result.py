@@ -31,11 +31,9 @@ def by_position(position: int) -> int:
 
 def numbered(frame_numbers=None) -> FrameNumbers:
     """A position -> frame number map from a sequence of frame numbers (one per frame given),
-    an existing map, or None (positions)."""
+    or None (positions)."""
     if frame_numbers is None:
         return by_position
-    if callable(frame_numbers):
-        return frame_numbers
     numbers = [int(i) for i in frame_numbers]
     return numbers.__getitem__
 
