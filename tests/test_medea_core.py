@@ -194,7 +194,13 @@ def test_run_is_deterministic_for_a_seed_and_keeps_shapes(device):
     config.stage1.epochs, config.stage2.epochs = 8, 4
     first = run_medea(images, prior, poses, intr, config=config)
     second = run_medea(images, prior, poses, intr, config=config)
-    assert torch.equal(first.depth, second.depth)
+    if device == "cpu":
+        assert torch.equal(first.depth, second.depth)
+    else:
+        # CUDA sums the gradients of bilinear sampling with atomic adds, in an order that
+        # changes from run to run: the same seed gives the same depth up to that round-off.
+        rel = ((first.depth - second.depth).abs() / second.depth).flatten()
+        assert float(rel.median()) <= 1e-4 and float(rel.max()) <= 1e-2, (float(rel.median()), float(rel.max()))
     assert first.depth.shape == prior.shape and first.depth.device == prior.device  # back on the caller's device
     assert first.log_scales.shape == (10, 8, 10)
     assert first.keyframes.tolist() == [0, 8]
