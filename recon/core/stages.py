@@ -70,7 +70,7 @@ def select_frames(path: Path, *, stride: int | None = None, max_frames: int | No
     capacity = budget_capacity(frame_budget, source.shape)
     if source.count > capacity:
         step = math.ceil(source.count / capacity)
-        log.warning("%d frames at %dx%d exceed the frame budget (%d such frames); using every %dth frame (set "
+        log.warning("%d frames at %dx%d exceed the frame budget (%d such frames); using one frame in %d (set "
                     "--stride or --max-frames to choose)", source.count, source.shape[1], source.shape[0], capacity,
                     step)
         source = open_with(step)
