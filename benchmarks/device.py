@@ -85,7 +85,7 @@ def open3d_available() -> bool:
 def stand_in_for_open3d() -> None:
     """Lets recon import and run without open3d: fusion gives an empty mesh (the one-shot
     run's fuse, the streamed run's finished volume), export writes nothing. A streamed run
-    still integrates its windows, into a stand-in volume that costs nothing."""
+    still integrates its windows, into a stand-in volume that costs nothing and holds nothing."""
     for name in ("open3d", "open3d.core", "trimesh", "rerun"):
         stand_in = mock.MagicMock(name=name)
         stand_in.__version__ = "not installed"
@@ -94,6 +94,7 @@ def stand_in_for_open3d() -> None:
     import recon.export
     import recon.fusion
     import recon.fusion.tsdf
+    import recon.fusion.volume
 
     empty = types.SimpleNamespace(vertices=np.zeros((0, 3)), triangles=np.zeros((0, 3), np.int64),
                                   vertex_colors=np.zeros((0, 3)))
@@ -106,7 +107,11 @@ def stand_in_for_open3d() -> None:
 
     recon.fusion.fuse = fuse
     recon.fusion.tsdf.finished_mesh = lambda volume, options, confidence_used: (empty, None, 0, 0)
-    recon.fusion.tsdf.o3d_device = lambda device: f"stand-in for {device}"  # a streamed run's volume
+    # A streamed run's volume: made on a stand-in device, and its ray casting (which anchors a
+    # window to the surface fused so far) sees nothing, so windows anchor to shared frames.
+    recon.fusion.tsdf.o3d_device = lambda device: f"stand-in for {device}"
+    recon.fusion.volume.TsdfVolume.render_depth = lambda self, pose, intrinsics, size, min_weight=2.0: np.zeros(
+        tuple(int(v) for v in size), np.float32)
     recon.export.export_reconstruction = recon.drivers.oneshot.export_reconstruction = lambda out, **kw: {}
 
 
