@@ -28,6 +28,7 @@ machine as one folder (frames as JPEG, quality 95: both devices decode the same 
 
     python benchmarks/device.py --make-inputs gpu_inputs/                 # here
     python benchmarks/device.py --inputs gpu_inputs/ --devices cpu cuda   # there
+    bash benchmarks/device_check.sh gpu_inputs/ out/                       # or every check there at once
 
 Where open3d is not installed (the GPU machine), TSDF fusion, export and Rerun logging
 are not run: a stand-in returns an empty mesh, and the table says so. Their cost does
