@@ -80,3 +80,12 @@ def test_check_motion_names_what_makes_a_trajectory_untrusted():
     assert "rotation only" in looked.frame_verdicts(n)[15:25]
     again = MotionChecks.from_dict(turned.to_dict()).renumbered(list(range(100, 100 + n)))
     assert again.rotation_only == [[100, 100 + n - 1]]
+
+
+def test_stretches_are_named_as_every_other_frame_range():
+    """'a-b' for a stretch, 'a' for a single frame, the rest counted after the first four."""
+    checks = MotionChecks(short_flow=[[3, 3], [10, 14], [20, 21], [30, 30], [40, 44], [50, 52]], short_flow_slope=1.4)
+    said = checks.short_said()
+    assert said.startswith("frames 3, 10-14, 20-21, 30 and 2 more: the dense flow made the camera's steps short")
+    turned = MotionChecks(rotation_only=[[7, 7]], turns_on_the_spot=True, translation_share=0.05)
+    assert "(frames 7)" in turned.untrusted()[0]
