@@ -450,13 +450,12 @@ def test_missing_pose_estimator_is_a_clear_error(tmp_path, capsys):
                "pose estimation not available", "--poses FILE")
 
 
-def test_frame_budget_raises_the_stride(tmp_path, caplog):
+def test_frame_budget_raises_the_stride(tmp_path):
     from recon.core.stages import select_frames
 
     video = _video(tmp_path / "clip.mp4", 12)
     source = select_frames(video, frame_budget=5)
     assert source.selection.stride == 3 and source.count == 4
-    assert "using one frame in 3" in caplog.text
     source = select_frames(video, frame_budget=5, stride=1)
     assert source.count == 12
 
