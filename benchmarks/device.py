@@ -173,7 +173,8 @@ def make_inputs(folder: Path, frames: int) -> None:
 
 
 def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, threads: int | None,
-        medea_eps: float | None = None, on_break: str = "segments", stream: str = "off") -> dict:
+        medea_eps: float | None = None, on_break: str = "segments", stream: str = "off",
+        pose_threads: int | None = None) -> dict:
     """One ``recon run`` in this process. stream "off" (the one-shot run, whose depth arrays
     the agreement compares) or "auto" (the default: a video with estimated poses streams)."""
     from recon.pipeline import PipelineConfig, run_pipeline
@@ -184,6 +185,8 @@ def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, th
                             overwrite=True, intrinsics=tuple(intrinsics), poses=poses, rerun="off", progress=False,
                             device=device, stream=stream, on_break=on_break)
     config.medea.device = device
+    if pose_threads:
+        config.pose_options["torch_threads"] = pose_threads  # FrontendConfig.torch_threads
     if medea_eps is not None:
         config.medea.stage1.adam_eps = medea_eps
     if device.startswith("cuda"):
@@ -410,6 +413,10 @@ def main() -> None:
     parser.add_argument("--cpu-threads", type=int, default=2, help="torch threads of the CPU runs (default 2)")
     parts = ["prior", "agreement", "speed", "poses", "profile"]
     parser.add_argument("--parts", nargs="+", default=parts[:3], choices=parts)
+    parser.add_argument("--pose-threads", type=int,
+                        help="the front end's torch threads in the speed part (FrontendConfig.torch_threads; default: "
+                             "torch's, all cores): on the H200 machine its 16 threads are a suspect for the pose stage "
+                             "taking 0.129 s/frame against 0.089 with 2")
     parser.add_argument("--stream", choices=["auto", "off"], default="auto",
                         help="the speed part's runs: auto (the default of recon run: a video with estimated poses "
                              "streams) or off (one-shot)")
@@ -504,7 +511,8 @@ def main() -> None:
                         threads = args.cpu_threads if device == "cpu" else None
                         # FastDepth does not see the rendered room as a room (the metric-scale check
                         # stops the default run): the estimated run keeps its scale to be timed.
-                        r = run(video, poses, camera, device, workdir, threads, on_break="keep", stream=args.stream)
+                        r = run(video, poses, camera, device, workdir, threads, on_break="keep", stream=args.stream,
+                                pose_threads=args.pose_threads)
                         r["label"] = f"{device} {'estimated' if poses == 'estimate' else 'given'}"
                         r["video_frames"] = len(read_poses(poses_file).poses)
                         runs.append(r)

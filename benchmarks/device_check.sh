@@ -5,9 +5,9 @@
 #   bash benchmarks/device_check.sh gpu_inputs/ OUT/
 # The machine needs torch with CUDA, opencv, scipy, tqdm, pyyaml and pytest; open3d,
 # trimesh and rerun may be missing (a stand-in takes fusion's place). Writes OUT/log.txt,
-# OUT/{agreement,speed,profile}.json and OUT/fused/ (bring them back; then, where open3d
+# OUT/{agreement,speed,speed_pose_threads_2,profile}.json and OUT/fused/ (bring them back; then, where open3d
 # is: `python benchmarks/device.py --inputs gpu_inputs/ --compare OUT/fused/fused-cpu
-# OUT/fused/fused-cuda` scores both runs' meshes). About 4 minutes on an H200.
+# OUT/fused/fused-cuda` scores both runs' meshes). About 6 minutes on an H200.
 set -o pipefail
 inputs="${1:?usage: device_check.sh INPUTS OUT}"
 out="${2:?usage: device_check.sh INPUTS OUT}"
@@ -26,6 +26,9 @@ cd "$(dirname "$0")/.."
         --save-depth "$out/fused" --json "$out/agreement.json"
     echo "== speed (the 300-frame video at the defaults)"
     timeout 240 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts speed --json "$out/speed.json"
+    echo "== speed with the front end on 2 torch threads (16 were a suspect at stop 62)"
+    timeout 150 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts speed --pose-threads 2 \
+        --json "$out/speed_pose_threads_2.json"
     echo "== profile (the front end)"
     timeout 100 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts profile --json "$out/profile.json"
     date -u
