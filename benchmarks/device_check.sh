@@ -5,7 +5,7 @@
 #   bash benchmarks/device_check.sh gpu_inputs/ OUT/
 # The machine needs torch with CUDA, opencv, scipy, tqdm, pyyaml and pytest; open3d,
 # trimesh and rerun may be missing (a stand-in takes fusion's place). Writes OUT/log.txt,
-# OUT/{agreement,speed,speed_pose_threads_2,profile}.json and OUT/fused/ (bring them back; then, where open3d
+# OUT/{agreement,speed,speed_suspects,profile}.json and OUT/fused/ (bring them back; then, where open3d
 # is: `python benchmarks/device.py --inputs gpu_inputs/ --compare OUT/fused/fused-cpu
 # OUT/fused/fused-cuda` scores both runs' meshes). About 6 minutes on an H200.
 set -o pipefail
@@ -26,9 +26,11 @@ cd "$(dirname "$0")/.."
         --save-depth "$out/fused" --json "$out/agreement.json"
     echo "== speed (the 300-frame video at the defaults)"
     timeout 240 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts speed --json "$out/speed.json"
-    echo "== speed with the front end on 2 torch threads (16 were a suspect at stop 62)"
+    # Two suspects of stop 62 at once: the front end on torch's 16 threads (the estimated
+    # row's pose stage) and the prior given 1-8 frames a call (the given row's prior stage).
+    echo "== speed with the front end on 2 torch threads and the prior's batches padded"
     timeout 150 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts speed --pose-threads 2 \
-        --json "$out/speed_pose_threads_2.json"
+        --prior-fixed-batch --json "$out/speed_suspects.json"
     echo "== profile (the front end)"
     timeout 100 python3 benchmarks/device.py --inputs "$inputs" --devices cuda --parts profile --json "$out/profile.json"
     date -u
