@@ -12,6 +12,7 @@ set -o pipefail
 inputs="${1:?usage: device_check.sh INPUTS OUT}"
 out="${2:?usage: device_check.sh INPUTS OUT}"
 mkdir -p "$out"
+inputs="$(cd "$inputs" && pwd)" out="$(cd "$out" && pwd)"  # before moving to the repository's root
 export PYTHONUNBUFFERED=1
 cd "$(dirname "$0")/.."
 {
