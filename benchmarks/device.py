@@ -21,7 +21,8 @@ Parts (``--parts``; the first three by default), each per device in one process:
 integrates it: the refined depth where its confidence passes, uint16 mm), so that runs
 made on different machines can be compared where open3d is installed: ``--compare
 DIR/fused-cpu DIR2/fused-cuda`` gives their median depth difference, and fuses each on
-the CPU to score its mesh (F@5cm) against the sensor's (7-Scenes in ../shared).
+the CPU to score its mesh (F@5cm) against the sensor's (7-Scenes in ../shared;
+``device_compare``).
 
 The inputs need neither open3d nor ``../shared`` at run time, so they travel to a GPU
 machine as one folder (frames as JPEG, quality 95: both devices decode the same pixels):
@@ -31,7 +32,7 @@ machine as one folder (frames as JPEG, quality 95: both devices decode the same 
     bash benchmarks/device_check.sh gpu_inputs/ out/                       # or every check there at once
 
 Where open3d is not installed (the GPU machine), TSDF fusion, export and Rerun logging
-are not run: a stand-in returns an empty mesh, and the table says so. Their cost does
+are not run: a stand-in returns an empty mesh (``device_setup``), and the table says so. Their cost does
 not depend on the device except fusion, which Open3D runs on ``CUDA:0`` when its build
 has CUDA. Prints tables, writes benchmarks/results/device.json (or --json).
 """
@@ -43,9 +44,7 @@ import json
 import sys
 import tempfile
 import time
-import types
 from pathlib import Path
-from unittest import mock
 
 import numpy as np
 import torch
@@ -54,88 +53,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-FUSED: dict = {}  # what the last run gave TSDF fusion: depth as integrated, its options
-
-
-def record_fusion(fuse):
-    """`fuse`, recording the depth it integrates (masked by the confidence as fusion masks it)."""
-    def recording(depth, rgb, poses, intrinsics, options, confidence=None):
-        depth = np.asarray(depth, np.float32)
-        if confidence is not None:
-            from recon.fusion.tsdf import DEFAULT_MIN_CONFIDENCE
-
-            threshold = DEFAULT_MIN_CONFIDENCE if options.min_confidence is None else options.min_confidence
-            depth = np.where(np.asarray(confidence) >= threshold, depth, np.float32(0.0))
-        FUSED.update(depth=depth, poses=np.asarray(poses, np.float64), intrinsics=np.asarray(intrinsics, np.float64),
-                     min_confidence=options.min_confidence)
-        return fuse(depth, rgb, poses, intrinsics, options)
-    return recording
-
+from device_compare import abs_rel, compare_saved, median_difference, save_fused  # noqa: E402
+from device_setup import FUSED, set_up  # noqa: E402
 
 STAGES = ("decode", "store", "prior", "poses", "undistort", "medea", "refine", "fusion", "export", "logging")
-
-
-def open3d_available() -> bool:
-    try:
-        import open3d  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def stand_in_for_open3d() -> None:
-    """Lets recon import and run without open3d: fusion gives an empty mesh (the one-shot
-    run's fuse, the streamed run's finished volume), export writes nothing. A streamed run
-    still integrates its windows, into a stand-in volume that costs nothing and holds nothing."""
-    for name in ("open3d", "open3d.core", "trimesh", "rerun"):
-        stand_in = mock.MagicMock(name=name)
-        stand_in.__version__ = "not installed"
-        sys.modules.setdefault(name, stand_in)
-    import recon.drivers.oneshot
-    import recon.export
-    import recon.fusion
-    import recon.fusion.tsdf
-    import recon.fusion.volume
-
-    empty = types.SimpleNamespace(vertices=np.zeros((0, 3)), triangles=np.zeros((0, 3), np.int64),
-                                  vertex_colors=np.zeros((0, 3)))
-
-    def fuse(depth, rgb, poses, intrinsics, options, confidence=None):
-        from recon.fusion.upright import estimate_upright
-
-        return recon.fusion.FusionResult(mesh=empty, point_cloud=None, voxel_size=0.0, trunc=0.0, seconds=0.0,
-                                         upright=estimate_upright(np.asarray(poses), empty.vertices))
-
-    recon.fusion.fuse = fuse
-    recon.fusion.tsdf.finished_mesh = lambda volume, options, confidence_used: (empty, None, 0, 0)
-    # A streamed run's volume: made on a stand-in device, and its ray casting (which anchors a
-    # window to the surface fused so far) sees nothing, so windows anchor to shared frames.
-    recon.fusion.tsdf.o3d_device = lambda device: f"stand-in for {device}"
-    recon.fusion.volume.TsdfVolume.render_depth = lambda self, pose, intrinsics, size, min_weight=2.0: np.zeros(
-        tuple(int(v) for v in size), np.float32)
-    recon.export.export_reconstruction = recon.drivers.oneshot.export_reconstruction = lambda out, **kw: {}
-
-
-def save_fused(folder: Path, run: dict, chunk: int = 50) -> None:
-    """One agreement run's depth as fused, in millimetres (uint16, 0 = none), as files of
-    `chunk` frames (``fused-DEVICE-K.npz``: a GPU machine sends back files of 16 MiB at most)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    depth = np.clip(np.round(run["fused"]["depth"] * 1000.0), 0, 65534).astype(np.uint16)
-    name = run["device"].replace(":", "")
-    for k, start in enumerate(range(0, len(depth), chunk)):
-        np.savez_compressed(folder / f"fused-{name}-{k:02d}.npz", fused_mm=depth[start:start + chunk],
-                            poses=run["fused"]["poses"][start:start + chunk], intrinsics=run["fused"]["intrinsics"],
-                            device=run["device"], gpu=str(run.get("gpu")))
-
-
-def load_fused(prefix: Path) -> dict:
-    """The files `save_fused` wrote for one run (``PREFIX-*.npz``), joined."""
-    parts = [dict(np.load(p)) for p in sorted(prefix.parent.glob(prefix.name + "-*.npz"))]
-    if not parts:
-        raise SystemExit(f"no {prefix}-*.npz")
-    return {"fused_mm": np.concatenate([p["fused_mm"] for p in parts]),
-            "poses": np.concatenate([p["poses"] for p in parts]), "intrinsics": parts[0]["intrinsics"],
-            "device": str(parts[0]["device"]), "gpu": str(parts[0]["gpu"]), "name": prefix.name}
 
 
 # --------------------------------------------------------------------------- inputs
@@ -208,25 +129,6 @@ def run(input_path: Path, poses: str, intrinsics, device: str, workdir: Path, th
     return record
 
 
-def fixed_prior_batches() -> None:
-    """FastDepth's network always given a batch of its full batch size (the frames padded with
-    copies of the last, their outputs dropped): the experiment behind ``--prior-fixed-batch``.
-    A streamed run with given poses hands the prior 1 to 8 frames a call; on the H200 its
-    prior stage took 0.053 s/frame against 0.010 with one batch shape (stop 62)."""
-    from recon.priors.fastdepth import FastDepthPrior
-
-    run_network = FastDepthPrior._run
-
-    def padded(self, x: torch.Tensor, taps: tuple[str, ...]):
-        n = len(x)
-        if n >= self.batch_size:
-            return run_network(self, x, taps)
-        out, tapped = run_network(self, torch.cat([x, x[-1:].expand(self.batch_size - n, *x.shape[1:])]), taps)
-        return out[:n], {k: v[:n] for k, v in tapped.items()}
-
-    FastDepthPrior._run = padded
-
-
 def warm_up(device: str) -> None:
     """Pays a process's one-time costs on `device` before a timed run: CUDA's start and
     kernel selection for FastDepth (seconds the first run of a process would count)."""
@@ -244,18 +146,6 @@ def warm_up(device: str) -> None:
 def kept(run: dict) -> dict:
     """A run's record for the JSON: everything but its arrays."""
     return {k: v for k, v in run.items() if "depth" not in k and k != "fused"}
-
-
-def median_difference(a: np.ndarray, b: np.ndarray) -> float:
-    both = (a > 0) & (b > 0)
-    return float(np.median(np.abs(a[both] / b[both] - 1.0)))
-
-
-def abs_rel(depth: np.ndarray, sensor_mm: np.ndarray) -> float:
-    gt = sensor_mm.astype(np.float32) / 1000.0
-    pred = depth[:, ::2, ::2]
-    valid = (gt > 0) & (pred > 0)
-    return float(np.mean(np.abs(pred[valid] - gt[valid]) / gt[valid]))
 
 
 def prior_variants(frames: np.ndarray, intrinsics, devices: list[str], threads: int) -> list[dict]:
@@ -318,41 +208,6 @@ def pose_devices(folder: Path, devices: list[str], threads: int) -> dict:
             print(f"{job} BA on {device}: {r['seconds_per_frame']:.4f} s/frame, cameras {r['centre_gap_max_m']:.2e} m "
                   f"(max) from {devices[0]}'s", flush=True)
         out[job] = results
-    return out
-
-
-def compare_saved(prefixes: list[Path], inputs: Path | None) -> dict:
-    """Median difference of two agreement runs' depth as fused (``--save-depth``: ``PREFIX``
-    is e.g. ``DIR/fused-cuda``), and each one's mesh: that depth integrated again here on the
-    CPU (the same function and inputs as the run's own fusion) and scored against the TSDF
-    mesh of 7-Scenes' sensor depth."""
-    from recon.eval.evaluate import reference_tsdf_mesh
-    from recon.eval.mesh import mesh_metrics
-    from recon.fusion import FusionOptions, fuse
-    from recon.io.datasets import open_dataset
-
-    runs = [load_fused(p) for p in prefixes]
-    data = open_dataset(ROOT.parent / "shared" / "data" / "7scenes-redkitchen").select(stride=4).with_valid_poses()
-    sensor = np.load(inputs / "kitchen" / "sensor_depth.npz")["depth_mm"] if inputs else None
-    depths = [r["fused_mm"].astype(np.float32) / 1000.0 for r in runs]
-    out: dict = {"runs": [], "median_difference_fused": median_difference(depths[1], depths[0])}
-    reference = None
-    for r, depth in zip(runs, depths):
-        fused = fuse(depth, None, r["poses"], r["intrinsics"], FusionOptions(progress=False))
-        if reference is None:
-            reference = reference_tsdf_mesh(data, np.arange(len(data)), fused.voxel_size, 10.0, False)
-        metrics = mesh_metrics(fused.mesh, reference)
-        row = {"run": r["name"], "device": r["device"], "gpu": r["gpu"], "voxel_size": fused.voxel_size,
-               "triangles": len(fused.mesh.triangles), "f_score": metrics.fscore,
-               "precision": metrics.precision, "recall": metrics.recall}
-        if sensor is not None:
-            row["abs_rel_fused"] = abs_rel(depth, sensor)
-        out["runs"].append(row)
-        print(f"{r['name']} ({r['device']}, {r['gpu']}): mesh F@5cm {metrics.fscore:.4f}, "
-              f"{row['triangles']} triangles, abs rel {row.get('abs_rel_fused')}", flush=True)
-    out["f_score_difference"] = abs(out["runs"][0]["f_score"] - out["runs"][1]["f_score"])
-    print(f"median depth difference (as fused): {out['median_difference_fused']:.5f}; "
-          f"F@5cm difference {out['f_score_difference']:.4f}")
     return out
 
 
@@ -422,19 +277,6 @@ def stage_table(runs: list[dict], fused: bool) -> str:
     return table(headers, rows)
 
 
-def set_up(prior_fixed_batch: bool) -> bool:
-    """open3d or its stand-in, fusion recorded, the experiments asked for: whether fusion runs."""
-    fused = open3d_available()
-    if not fused:
-        stand_in_for_open3d()
-    if prior_fixed_batch:
-        fixed_prior_batches()
-    import recon.fusion
-
-    recon.fusion.fuse = record_fusion(recon.fusion.fuse)
-    return fused
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--make-inputs", type=Path, help="write the inputs to this folder and stop")
@@ -450,7 +292,8 @@ def main() -> None:
                              "torch's, all cores): on the H200 machine its 16 threads are a suspect for the pose stage "
                              "taking 0.129 s/frame against 0.089 with 2")
     parser.add_argument("--prior-fixed-batch", action="store_true",
-                        help="pad every FastDepth call to its full batch (an experiment: fixed_prior_batches)")
+                        help="pad every FastDepth call to its full batch (an experiment: "
+                             "device_setup.fixed_prior_batches)")
     parser.add_argument("--stream", choices=["auto", "off"], default="auto",
                         help="the speed part's runs: auto (the default of recon run: a video with estimated poses "
                              "streams) or off (one-shot)")
