@@ -118,7 +118,7 @@ class MotionChecks:
         """One sentence on the stretches whose steps the dense flow made short (empty: none)."""
         if not self.short_flow:
             return ""
-        spans = _first_spans(self.short_flow)
+        spans = frame_spans(self.short_flow, shown=4)  # already frame numbers
         # "or more": the edges see only part of such a stretch; on the synthetic walk-through's
         # corridor they said x1.40 where the steps had come out x2.6 short (docs/validation.md, stop 61).
         return (f"frames {spans}: the dense flow made the camera's steps short; the images' edges put them at "
@@ -136,7 +136,7 @@ class MotionChecks:
             why.append(f"the lens term the trajectory was fitted with ended on its bound (k1 = {self.lens_k1:+.2f}): "
                        "the camera model does not explain the frames' flow")
         if self.turns_on_the_spot and focal_estimated:
-            spans = _first_spans(self.rotation_only)
+            spans = frame_spans(self.rotation_only, shown=4)
             why.append(f"the camera turns on the spot (frames {spans}): its translation makes "
                        f"{100 * self.translation_share:.0f} % of the keyframes' flow, too little parallax to measure "
                        "its path or the map's scale")
@@ -147,12 +147,6 @@ class MotionChecks:
                        "a tenth of it from the frame before), farther than the front end follows a camera it "
                        "does not know")
         return why
-
-
-def _first_spans(spans: list[list[int]], shown: int = 4) -> str:
-    """'a-b, c, ...' of the first `shown` [first, last] frame spans (already frame numbers)."""
-    more = f" and {len(spans) - shown} more" if len(spans) > shown else ""
-    return frame_spans(spans[:shown]) + more
 
 
 def rotation_angles(R: np.ndarray) -> np.ndarray:

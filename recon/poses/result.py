@@ -38,9 +38,13 @@ def numbered(frame_numbers=None) -> FrameNumbers:
     return numbers.__getitem__
 
 
-def frame_spans(spans: Iterable[tuple[int, int]], number: FrameNumbers = by_position) -> str:
-    """'a-b, c' of [first, last] position spans, by frame number."""
-    return ", ".join(f"{number(a)}-{number(b)}" if a != b else f"{number(a)}" for a, b in spans)
+def frame_spans(spans: Iterable[tuple[int, int]], number: FrameNumbers = by_position,
+                shown: int | None = None) -> str:
+    """'a-b, c' of [first, last] position spans, by frame number; with `shown`, the first
+    `shown` of them and how many more ('a-b, c and 2 more')."""
+    spans = list(spans)
+    more = f" and {len(spans) - shown} more" if shown is not None and len(spans) > shown else ""
+    return ", ".join(f"{number(a)}-{number(b)}" if a != b else f"{number(a)}" for a, b in spans[:shown]) + more
 
 
 class TrackingLostError(ReconInputError):
