@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from device_compare import abs_rel, compare_saved, median_difference, save_fused  # noqa: E402
+from device_compare import abs_rel, compare_saved, kitchen_dataset, median_difference, save_fused  # noqa: E402
 from device_setup import FUSED, set_up  # noqa: E402
 
 STAGES = ("decode", "store", "prior", "poses", "undistort", "medea", "refine", "fusion", "export", "logging")
@@ -67,7 +67,6 @@ def make_inputs(folder: Path, frames: int) -> None:
     import cv2
 
     from recon.commands.demo import write_demo_inputs
-    from recon.io.datasets import open_dataset
     from recon.io.output_folder import OutputFolder
     from recon.io.trajectories import write_poses
     from recon.synthetic import render_sequence
@@ -77,7 +76,7 @@ def make_inputs(folder: Path, frames: int) -> None:
     write_demo_inputs(OutputFolder(folder / "synthetic", overwrite=True), seq, None)
     json.dump({"intrinsics": [float(v) for v in seq.intrinsics]}, open(folder / "synthetic" / "camera.json", "w"))
 
-    data = open_dataset(ROOT.parent / "shared" / "data" / "7scenes-redkitchen").select(stride=4).with_valid_poses()
+    data = kitchen_dataset()
     rgb, depth = data.load_rgb_batch(), data.load_depth_batch()
     kitchen = folder / "kitchen"
     (kitchen / "frames").mkdir(parents=True, exist_ok=True)
@@ -218,16 +217,11 @@ def profile_frontend(folder: Path, devices: list[str], threads: int, top: int = 
     import io
     import pstats
 
-    import cv2
-
+    from recon.core.stages import decode, select_frames
     from recon.poses import estimate_poses
     from recon.priors.fastdepth import FastDepthPrior
 
-    capture = cv2.VideoCapture(str(folder / "input" / "synthetic.mp4"))
-    frames = []
-    while (read := capture.read())[0]:
-        frames.append(read[1][..., ::-1])
-    frames = np.stack(frames)
+    frames = decode(select_frames(folder / "input" / "synthetic.mp4", frame_budget=None), progress=False).rgb
     camera = np.asarray(json.loads((folder / "camera.json").read_text())["intrinsics"])
     torch.set_num_threads(threads)
     prior = FastDepthPrior(progress=False, device=devices[-1])(frames, camera).depth

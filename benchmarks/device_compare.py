@@ -11,6 +11,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
+
+def kitchen_dataset():
+    """The agreement's frames: 7-Scenes redkitchen, every 4th of 0-399 (``../shared``), the
+    frames ``device.py --make-inputs`` writes and ``compare_saved`` scores against."""
+    from recon.io.datasets import open_dataset
+
+    return open_dataset(ROOT.parent / "shared" / "data" / "7scenes-redkitchen").select(stride=4).with_valid_poses()
+
 def save_fused(folder: Path, run: dict, chunk: int = 50) -> None:
     """One agreement run's depth as fused, in millimetres (uint16, 0 = none), as files of
     `chunk` frames (``fused-DEVICE-K.npz``: a GPU machine sends back files of 16 MiB at most)."""
@@ -53,10 +61,9 @@ def compare_saved(prefixes: list[Path], inputs: Path | None) -> dict:
     from recon.eval.evaluate import reference_tsdf_mesh
     from recon.eval.mesh import mesh_metrics
     from recon.fusion import FusionOptions, fuse
-    from recon.io.datasets import open_dataset
 
     runs = [load_fused(p) for p in prefixes]
-    data = open_dataset(ROOT.parent / "shared" / "data" / "7scenes-redkitchen").select(stride=4).with_valid_poses()
+    data = kitchen_dataset()
     sensor = np.load(inputs / "kitchen" / "sensor_depth.npz")["depth_mm"] if inputs else None
     depths = [r["fused_mm"].astype(np.float32) / 1000.0 for r in runs]
     out: dict = {"runs": [], "median_difference_fused": median_difference(depths[1], depths[0])}
