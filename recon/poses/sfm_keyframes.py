@@ -27,7 +27,7 @@ import numpy as np
 
 from recon.geometry import lie
 from recon.poses import flow as fl
-from recon.poses.result import TRUSTED_STATES, FrameNumbers, TrackingLostError, by_position
+from recon.poses.result import TRUSTED_STATES, FrameNumbers, TrackingLostError, by_position, frame_spans
 
 
 def step_motion(grays: list[np.ndarray], flow_cfg: fl.FlowConfig, px_scale: float, min_correlation: float,
@@ -204,7 +204,7 @@ def registration_error(status: list[str], num_keyframes: int, need: float,
     model = status.count("keyframe")
     ranges = unregistered_ranges(trusted)
     first, last = ranges[0]
-    where = f"frame {number(first)}" if first == last else f"frames {number(first)}-{number(last)}"
+    where = f"frame{'s' if first != last else ''} {frame_spans([(first, last)], number)}"
     more = f" and {len(ranges) - 1} shorter range(s)" if len(ranges) > 1 else ""
     return TrackingLostError(
         f"SfM registered only {int(trusted.sum())} of {n} frames ({model} of {num_keyframes} keyframes in COLMAP's "
