@@ -23,7 +23,9 @@ def save_fused(folder: Path, run: dict, chunk: int = 50) -> None:
     """One agreement run's depth as fused, in millimetres (uint16, 0 = none), as files of
     `chunk` frames (``fused-DEVICE-K.npz``: a GPU machine sends back files of 16 MiB at most)."""
     folder.mkdir(parents=True, exist_ok=True)
-    depth = np.clip(np.round(run["fused"]["depth"] * 1000.0), 0, 65534).astype(np.uint16)
+    from recon.io.depth_maps import depth_to_mm
+
+    depth = depth_to_mm(run["fused"]["depth"])
     name = run["device"].replace(":", "")
     for k, start in enumerate(range(0, len(depth), chunk)):
         np.savez_compressed(folder / f"fused-{name}-{k:02d}.npz", fused_mm=depth[start:start + chunk],
