@@ -601,23 +601,26 @@ def test_a_known_lens_is_undone_before_every_stage(demo, tmp_path, capsys):
 
 
 @pytest.mark.skipif(not pose_estimator_available(), reason="pose estimation not installed")
-def test_a_scale_the_prior_cannot_vouch_for_stops_the_run_unless_kept(demo, tmp_path, capsys):
+def test_a_scale_the_prior_cannot_vouch_for_is_written_and_marked_unless_stopped(demo, tmp_path, capsys):
     """FastDepth does not see the rendered room (2.4x too near, its depth uncorrelated with
-    the room's): with the poses estimated, whose metres come from it, the run stops with one
-    line naming the frames and writes nothing; --on-break keep writes the result with the
-    same words as a warning, and report.json says why (recon.poses.prior_agreement)."""
+    the room's): with the poses estimated, whose metres come from it, the run writes the
+    result, says once that its size is not to be trusted, and marks it in report.json
+    (recon.poses.prior_agreement), the fusion's voxel following the depth alone; under
+    --on-break stop it stops with one line naming the frames and writes nothing."""
     out, _ = demo
     k = json.loads((out / "intrinsics.json").read_text())
     common = [str(out / "input/synthetic.mp4"), "--width", "0", "--no-medea", "--refine", "none", "--quiet",
               "--rerun", "off", "--no-npy", "--no-glb", "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}"]
     stopped = tmp_path / "stopped"
-    _run_fails(capsys, ["run", "-o", str(stopped), *common], "does not follow the scene's geometry at frames 0-",
-               "--on-break keep")
+    _run_fails(capsys, ["run", "-o", str(stopped), *common, "--on-break", "stop"],
+               "does not follow the scene's geometry at frames 0-", "without --on-break stop")
     assert not (stopped / "mesh.ply").exists() and not (stopped / "trajectory.txt").exists()
     kept = tmp_path / "kept"
-    assert main(["run", "-o", str(kept), *common, "--on-break", "keep"]) == 0
-    assert "does not follow the scene's geometry" in capsys.readouterr().err
-    verdict = json.loads((kept / "report.json").read_text())["poses"]["metric_scale"]
+    assert main(["run", "-o", str(kept), *common]) == 0
+    err = capsys.readouterr().err
+    assert err.count("does not follow the scene's geometry") == 1 and "not to be trusted" in err
+    report = json.loads((kept / "report.json").read_text())
+    verdict = report["poses"]["metric_scale"]
     assert verdict["judged"] and not verdict["trusted"] and verdict["median"] < verdict["min_correlation"]
     assert (kept / "mesh.ply").is_file()
 

@@ -277,3 +277,11 @@ def test_a_mesh_over_the_triangle_budget_is_decimated_in_place():
     assert colours.min() >= 0 and colours.max() <= 1
     np.testing.assert_allclose(colours, np.abs(np.asarray(small.vertices)), atol=0.05)
     assert within_budget(sphere, 0) is sphere and within_budget(sphere, 10**7) is sphere
+
+
+def test_the_voxel_follows_the_depth_alone_where_its_metres_are_not_trusted():
+    """A metric scene's voxel is held within 5 mm - 5 cm; where the prior cannot vouch for the
+    scale (a close-up 5x too far, a street 25x too near) it follows the depth alone."""
+    assert auto_voxel_size(0.3) == 0.005 and auto_voxel_size(0.3, metric=False) == pytest.approx(0.0015)
+    assert auto_voxel_size(40.0) == 0.05 and auto_voxel_size(40.0, metric=False) == pytest.approx(0.2)
+    assert auto_voxel_size(2.5, metric=False) == auto_voxel_size(2.5)

@@ -41,7 +41,8 @@ def test_a_prior_that_sees_another_scene_is_not_trusted():
     for prior in (mirrored, unrelated):
         verdict = pa.judge_agreement(range(6), *pa.log_depth_correlation(depth, prior, np.ones(depth.shape, bool)))
         assert verdict.judged and not verdict.trusted and verdict.median < 0.4, verdict.median
-    assert "several times" in verdict.refusal() and "--on-break keep" in verdict.refusal()
+    assert "several times" in verdict.refusal() and "--on-break stop" in verdict.refusal()
+    assert "not to be trusted" in verdict.said() and "--on-break stop refuses" in verdict.said()
 
 
 def test_only_measured_pixels_and_keyframes_that_can_tell_count():
@@ -87,12 +88,13 @@ def test_the_front_end_trusts_a_prior_that_follows_the_room_and_not_one_that_doe
 
 def test_the_gate_reports_by_video_frame_and_the_run_stops_unless_kept(caplog):
     """recon.core.stages.gate_estimate puts the verdict in report.json's poses.metric_scale,
-    keyframes named by video frame; recon.drivers.segments stops a run whose prior is not
-    trusted with one line naming the frames, and under --on-break keep warns instead."""
+    keyframes named by video frame; recon.drivers.segments warns once of a run whose prior is
+    not trusted (the result is written, marked), and stops it only under --on-break stop,
+    with one line naming the frames."""
     from types import SimpleNamespace
 
     from recon.core.stages import gate_estimate
-    from recon.drivers.segments import settle_breaks
+    from recon.drivers.segments import settle_breaks, untrusted_scale
     from recon.errors import ReconInputError
 
     n = 8
@@ -112,13 +114,14 @@ def test_the_gate_reports_by_video_frame_and_the_run_stops_unless_kept(caplog):
             config = SimpleNamespace(on_break=on_break, join_segments=True)
             caplog.clear()
             with caplog.at_level(logging.WARNING, logger="recon"):
-                if corr < 0 and on_break != "keep":
+                if corr < 0 and on_break == "stop":
                     with pytest.raises(ReconInputError, match="does not follow the scene's geometry at frames 10-22"):
                         settle_breaks(config, stretch, poses, np.arange(n), None, None, info)
                     continue
                 settle_breaks(config, stretch, poses, np.arange(n), None, None, info)
             said = [r.getMessage() for r in caplog.records if "does not follow the scene" in r.getMessage()]
             assert len(said) == int(corr < 0) and (not said or "poses.metric_scale" in said[0])
+            assert untrusted_scale(info) is (corr < 0)
 
 
 def test_pieces_are_judged_together_by_their_keyframes():

@@ -151,9 +151,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "poses.scale_watch): segments (tracking starts again where the camera was lost; each "
                         "stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
                         "frames, exit 2) or keep (one trajectory, warned); keep also returns a trajectory the "
-                        "front end's motion checks distrust (poses.motion_checks), and one whose metric scale the "
-                        "depth prior cannot vouch for because its depth does not follow the scene's (a close-up, "
-                        "an outdoor view: poses.metric_scale), which the others stop at. Default %(default)s")
+                        "front end's motion checks distrust (poses.motion_checks). A metric scale the depth prior "
+                        "cannot vouch for because its depth does not follow the scene's (a close-up, an outdoor "
+                        "view: poses.metric_scale) is written and marked, except under stop, which refuses it. "
+                        "Default %(default)s")
     g.add_argument("--no-join", dest="join_segments", action="store_false",
                    help="do not try to join the stretches on either side of a scale break (by ORB matches and "
                         "PnP across it) before --on-break applies")

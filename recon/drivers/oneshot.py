@@ -46,7 +46,7 @@ from ..io.source import FrameSource
 from ..memory import release_memory
 from .recording import open_recording
 from .result import RunResult
-from .segments import estimator_options, settle_breaks, trajectory_stretches
+from .segments import estimator_options, settle_breaks, trajectory_stretches, untrusted_scale
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,8 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
         timer.seconds["refine"] = 0.0
 
     say("TSDF fusion")
-    fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress})
+    fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress,
+                                      "metric": not untrusted_scale(pose_stage.info)})
     with timer.stage("fusion"):
         confidence = None if refined is None else fusion_confidence(refined)
         if refined is not None:

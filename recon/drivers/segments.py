@@ -104,17 +104,23 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
 
 def check_metric_scale(config, info: dict) -> None:
     """The depth prior's verdict on an estimate's metric scale (``recon.poses.prior_agreement``,
-    report.json's poses.metric_scale): where the prior does not follow the scene, a stop
-    naming the frames, or under "keep" a warning."""
+    report.json's poses.metric_scale): where the prior does not follow the scene, a warning
+    that the result is written at that scale and its size is not to be trusted (report.json
+    marks it, and the fusion's voxel follows the scene's depth alone:
+    :func:`untrusted_scale`), or under "stop" a stop naming the frames."""
     from ..poses.prior_agreement import PriorAgreement
 
-    if info.get("metric_scale", {}).get("trusted", True):
+    if not untrusted_scale(info):
         return
     verdict = PriorAgreement.from_dict(info["metric_scale"])
-    if config.on_break == "keep":
-        log.warning("%s (report.json: poses.metric_scale)", verdict.said())
-    else:
+    if config.on_break == "stop":
         raise ReconInputError(verdict.refusal())
+    log.warning("%s (report.json: poses.metric_scale)", verdict.said())
+
+
+def untrusted_scale(info: dict) -> bool:
+    """Whether a pose report ``info`` says the depth prior cannot vouch for its metres."""
+    return not info.get("metric_scale", {}).get("trusted", True)
 
 
 def say_joins(joins: list[dict]) -> None:
@@ -138,4 +144,4 @@ def stop_at_breaks(info: dict) -> None:
 
 
 __all__ = ["check_metric_scale", "estimator_options", "join_breaks", "say_joins", "settle_breaks", "stop_at_breaks",
-           "trajectory_stretches"]
+           "trajectory_stretches", "untrusted_scale"]

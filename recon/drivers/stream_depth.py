@@ -29,6 +29,7 @@ from ..errors import ReconInputError
 from ..geometry.lens import worth_undistorting
 from ..io.frame_store import FrameStore
 from ..io.output_folder import OutputFolder
+from .segments import untrusted_scale
 from .stream_plan import anchor_factor, anchor_pixels, plan_windows
 from .stream_track import TrackedVideo
 
@@ -93,7 +94,8 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         with clock.stage("logging"):
             _log_final_cameras(logger, video)
     windows = plan_windows(len(positions), window_frames(config, video.size), int(config.window_overlap))
-    options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": False})
+    options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": False,
+                               "metric": not untrusted_scale(video.pose_info)})
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)

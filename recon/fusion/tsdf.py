@@ -11,7 +11,10 @@ Automatic parameters (each can be overridden in :class:`FusionOptions`):
   blocks for little surface, while never cutting more than ~1 % of the pixels.
 * ``voxel_size`` = clamp(median valid depth / 200, 5 mm, 5 cm): about 2.5 pixels of a
   640-pixel-wide image at 525 px focal length, so the grid follows the depth resolution of
-  the frames (12.5 mm for a room seen from 2.5 m).
+  the frames (12.5 mm for a room seen from 2.5 m). Where the depth's metres are not to be
+  trusted (``metric=False``: an estimated scale the depth prior cannot vouch for, off by
+  x1.5 to several times) the bounds go: the voxel follows the depth alone, so that a
+  close-up 5x too far or a street 25x too near still gets ~2.5 pixels a voxel.
 * ``trunc`` = ``trunc_voxels`` (8) x voxel size, ~4 % of the median depth. Wider than the
   3-4 voxels usual for sensor depth because monocular depth, even after MEDeA, still
   disagrees between frames by 1-3 % of the depth: on the demo's 90-frame synthetic room
@@ -85,7 +88,9 @@ class FusionOptions:
     "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
     confidence map, pixels below it are not integrated (None: the caller's choice, else
     DEFAULT_MIN_CONFIDENCE). max_triangles: the mesh's triangle budget (``volume.within_budget``:
-    quadric decimation; 0 = no limit, the full mesh).
+    quadric decimation; 0 = no limit, the full mesh). metric: the depth is in metres to be
+    trusted (False: its scale is not, and the voxel follows the depth without the absolute
+    bounds; the pipeline sets it from report.json's poses.metric_scale).
     """
 
     voxel_size: float | None = None
@@ -102,6 +107,7 @@ class FusionOptions:
     progress: bool = True
     min_confidence: float | None = None
     max_triangles: int = 1_000_000
+    metric: bool = True
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
@@ -214,9 +220,11 @@ def auto_max_depth(values: np.ndarray) -> float:
     return float(MAX_DEPTH_MARGIN * np.percentile(values, MAX_DEPTH_PERCENTILE))
 
 
-def auto_voxel_size(median_depth: float) -> float:
-    """clamp(median depth / 200, 5 mm, 5 cm)."""
-    return float(np.clip(median_depth * VOXEL_PER_DEPTH, MIN_VOXEL, MAX_VOXEL))
+def auto_voxel_size(median_depth: float, metric: bool = True) -> float:
+    """clamp(median depth / 200, 5 mm, 5 cm); without the bounds where the depth's metres
+    are not to be trusted (``metric`` False)."""
+    voxel = median_depth * VOXEL_PER_DEPTH
+    return float(np.clip(voxel, MIN_VOXEL, MAX_VOXEL) if metric else voxel)
 
 
 # --------------------------------------------------------------------------- memory budget
@@ -349,7 +357,8 @@ def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, floa
     values (M,) of the frames (module docstring)."""
     max_depth = options.max_depth or auto_max_depth(values)
     in_range = values[values <= max_depth]
-    voxel = options.voxel_size or auto_voxel_size(float(np.median(in_range if in_range.size else values)))
+    median = float(np.median(in_range if in_range.size else values))
+    voxel = options.voxel_size or auto_voxel_size(median, options.metric)
     return float(voxel), float(options.trunc or options.trunc_voxels * voxel), float(max_depth)
 
 

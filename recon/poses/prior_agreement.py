@@ -21,10 +21,10 @@ adjustment's own is held near the prior where the flow says little), and
 :func:`log_depth_correlation` compares it with the prior's where it is precise;
 :func:`point_log_correlation` does the same for SfM's triangulated points;
 :func:`judge_agreement` turns the keyframes' values into the verdict that report.json
-carries and the run acts on (``recon.drivers.segments.check_metric_scale``: a stop, or a
-warning under ``--on-break keep``). A keyframe whose measured depth barely varies (a wall
-seen face on) cannot tell a prior that follows the scene from one that does not, and is not
-counted.
+carries and the run acts on (``recon.drivers.segments.check_metric_scale``: a warning and a
+mark by default, a stop under ``--on-break stop``). A keyframe whose measured depth barely
+varies (a wall seen face on) cannot tell a prior that follows the scene from one that does
+not, and is not counted.
 """
 
 from __future__ import annotations
@@ -88,18 +88,26 @@ class PriorAgreement:
                               self.judged, self.trusted, self.min_correlation)
 
     def said(self) -> str:
-        """What is wrong, in one sentence without its end (the caller says what follows)."""
+        """What is wrong and what the run does about it, in one sentence without its end."""
         first, last = (min(self.frames), max(self.frames)) if self.frames else (0, 0)
         return (f"the depth prior does not follow the scene's geometry at frames {first}-{last}: its log depth "
                 f"correlates {self.median:+.2f} with the depth the frames' parallax measures (the median over "
                 f"{len(self.frames)} keyframes; {self.min_correlation:g} is needed, and a prior that sees the scene "
                 f"reaches 0.7-0.95): the scene is outside what the depth model knows (a close-up, an outdoor "
-                f"view) or the camera moves too little to measure it, and the metric scale of the trajectory, "
-                f"depth and mesh may be off by x1.5 to several times")
+                f"view) or the camera moves too little to measure it, so the result is written at a size that "
+                f"is not to be trusted (the trajectory, depth and mesh may be x1.5 to several times off in "
+                f"scale; their shape is not affected); a depth model made for such scenes (--prior hf) or the "
+                f"scene's depth maps (--prior folder) give the metres, --on-break stop refuses such a result")
 
     def refusal(self) -> str:
-        return (f"{self.said()}. Give a depth model made for such scenes (--prior hf) or the scene's depth maps "
-                f"(--prior folder), or take the result at that scale with --on-break keep")
+        """The stop of ``--on-break stop``, in one sentence."""
+        first, last = (min(self.frames), max(self.frames)) if self.frames else (0, 0)
+        return (f"stopped (--on-break stop): the depth prior does not follow the scene's geometry at frames "
+                f"{first}-{last}: its log depth correlates {self.median:+.2f} with the depth the frames' parallax "
+                f"measures (the median over {len(self.frames)} keyframes; {self.min_correlation:g} is needed), so "
+                f"the metric scale of the trajectory, depth and mesh may be off by x1.5 to several times. Give a "
+                f"depth model made for such scenes (--prior hf) or the scene's depth maps (--prior folder), or "
+                f"run without --on-break stop to take the result marked as of untrusted scale")
 
 
 def _pearson(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
