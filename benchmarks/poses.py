@@ -6,10 +6,10 @@ Cases: ``7scenes`` (../shared/data/7scenes-redkitchen, 400 frames, the reader's 
 intrinsics fx = 525, FastDepth prior), ``tum`` (../shared/data/tum-fr1-rpy, 100 frames,
 near-pure rotation, FastDepth prior), ``synthetic`` (the synthetic room, 120 frames
 640x480, simulated prior), ``synthetic-nok`` (the same with intrinsics withheld:
-focal-length error), ``7scenes-nok`` (7-Scenes with the focal length estimated),
-``synthetic-fast`` (60 frames of the room walked at 6x speed with motion blur). A case
-may add a frame stride and a first frame: ``7scenes/12``, ``tum/3@1`` (issue 20's fast
-motion made from the recordings).
+focal-length error), ``7scenes-nok`` and ``tum-nok`` (the recordings with the focal length
+estimated), ``synthetic-fast`` (60 frames of the room walked at 6x speed with motion blur).
+A case may add a frame stride and a first frame: ``7scenes/12``, ``tum/3@1`` (issue 20's
+fast motion made from the recordings).
 ``--k1`` (diagnostic): undistort the 7-Scenes frames with a radial coefficient first.
 For each case and
 method: Sim(3)-aligned ATE RMSE, metric (SE(3)-aligned) ATE RMSE, scale error, RPE (1
@@ -33,12 +33,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine, ping_pong, table, write_json  # noqa: E402
 
 from recon.errors import ReconInputError  # noqa: E402
-from recon.eval.trajectory import ate_rmse, path_length, rpe, scale_error  # noqa: E402
+from recon.eval.trajectory import ate_rmse, path_length, rotation_error, rpe, scale_error  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
 from recon.poses import estimate_poses  # noqa: E402
 from recon.poses.options import parse_pose_option  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+# Cases read from ../shared/data ("-nok": the focal length estimated, nothing given).
+DATASET_CASES = ("7scenes", "7scenes-nok", "tum", "tum-nok")
 
 
 def fastdepth(rgb: np.ndarray, intrinsics) -> tuple[np.ndarray, float]:
@@ -79,8 +81,8 @@ def load_case(name: str, k1: float = 0.0):
 
 def _load_frames(name: str, k1: float):
     base, stride, start, _ = parse_case(name)
-    if base in ("7scenes", "7scenes-nok", "tum"):
-        ds = open_dataset(DATA / ("tum-fr1-rpy" if base == "tum" else "7scenes-redkitchen"))
+    if base in DATASET_CASES:
+        ds = open_dataset(DATA / ("tum-fr1-rpy" if base.startswith("tum") else "7scenes-redkitchen"))
         if stride > 1 or start:
             ds = ds.subset(np.arange(start, len(ds), stride))
         rgb = ds.load_rgb_batch()
@@ -121,6 +123,7 @@ def evaluate(res, gt: np.ndarray, true_intr) -> dict:
         "scale_error": scale_error(res.poses, gt),
         "rpe_trans_m": rel["trans_rmse"],
         "rpe_rot_deg": rel["rot_rmse_deg"],
+        "orientation_median_deg": rotation_error(res.poses, gt)["median_deg"],
         "path_m": length,
         "seconds": res.seconds,
         "s_per_frame": res.seconds / len(res.poses),
@@ -158,16 +161,19 @@ def main() -> None:
     tag = "".join(f" [{k}={v}]" for k, v in settings.items())
     results, rows = [], []
     for case in args.cases:
-        if parse_case(case)[0] in ("7scenes", "7scenes-nok", "tum") and not DATA.is_dir():
+        if parse_case(case)[0] in DATASET_CASES and not DATA.is_dir():
             print(f"skipping {case}: {DATA} not found")
             continue
         rgb, prior, intr, gt, prior_s = load_case(case, args.k1)
         label = (f"{case}-k1={args.k1:g}" if args.k1 and case.startswith("7scenes") else case) + tag
-        true_intr = None
+        true_intr = intr
         if case == "synthetic-nok":
             from recon.synthetic import intrinsics_for
 
             true_intr = intrinsics_for(rgb.shape[2], rgb.shape[1])
+        elif parse_case(case)[0] in ("7scenes-nok", "tum-nok"):
+            true_intr = open_dataset(DATA / ("tum-fr1-rpy" if case.startswith("tum") else "7scenes-redkitchen")
+                                     ).intrinsics
         for method in args.methods:
             if parse_case(case)[0].endswith("-nok") and method == "sfm":
                 continue
@@ -185,15 +191,17 @@ def main() -> None:
             results.append(entry)
             print(entry, flush=True)
             if "error" in entry:
-                rows.append([label, method, len(rgb), "failed: " + entry["error"][:60], "", "", "", "", "", ""])
+                rows.append([label, method, len(rgb), "failed: " + entry["error"][:60], "", "", "", "", "", "", ""])
                 continue
             rows.append([
                 label, method, len(rgb), f"{100 * entry['ate_sim3_m']:.2f}", f"{100 * entry['ate_metric_m']:.2f}",
-                f"{100 * entry['scale_error']:.1f}", f"{entry['s_per_frame']:.3f}", entry["keyframes"],
+                f"{100 * entry['scale_error']:.1f}", f"{entry['orientation_median_deg']:.2f}",
+                f"{entry['s_per_frame']:.3f}", entry["keyframes"],
                 entry["lost_frames"],
                 f"{entry.get('focal_error_pct', float('nan')):+.2f}",
             ])
-    print(table(["case", "method", "frames", "ATE Sim(3) cm", "ATE metric cm", "scale err %", "s/frame", "keyframes",
+    print(table(["case", "method", "frames", "ATE Sim(3) cm", "ATE metric cm", "scale err %", "orientation deg",
+                 "s/frame", "keyframes",
                  "lost",
                  "focal err %"], rows))
     # Merge with earlier runs of other cases/methods (one JSON for the whole table).

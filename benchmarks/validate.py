@@ -262,6 +262,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
         row.update(ate_se3=t["ate_se3"]["rmse"] if rec.metric else None, ate_sim3=t["ate_sim3"]["rmse"],
                    path_m=path, ate_sim3_pct=100.0 * t["ate_sim3"]["rmse"] / path if path > 0 else None,
                    scale_error=t["scale_error"] if rec.metric else None,
+                   rot_err_deg=t["rotation_error"]["median_deg"] if "rotation_error" in t else None,
                    **(moved(estimated, given) if estimated.shape == given.shape else {}))
         if estimated.shape == given.shape:
             row.update(by_reference_piece(estimated, given, np.asarray(report["frames"]["indices"])))

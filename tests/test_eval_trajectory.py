@@ -212,3 +212,25 @@ def test_a_scale_the_camera_centres_do_not_determine_is_not_used_on_a_mesh():
     assert fit["scale_from"] == "trajectory" and fit["scale"] == pytest.approx(1 / 0.9, rel=0.02)
     assert fit["explained"] > 0.9 and fit["fitted_scale"] == fit["scale"]
 
+
+
+def test_the_orientation_error_ignores_the_world_frame_and_the_scale():
+    """Each camera's orientation against the truth after the one best rotation: an estimate
+    in another world frame, scaled, scores 0; one camera turned by 3 degrees scores 3 there."""
+    from scipy.spatial.transform import Rotation
+
+    from recon.eval.trajectory import rotation_error
+
+    turns = Rotation.from_rotvec(np.outer(np.linspace(0, 1.2, 30), [0.3, 1.0, 0.2])).as_matrix()
+    gt = np.tile(np.eye(4), (30, 1, 1))
+    gt[:, :3, :3] = turns
+    gt[:, :3, 3] = np.linspace(0, 0.1, 30)[:, None]
+    world = np.eye(4)
+    world[:3, :3] = Rotation.from_rotvec([0.4, -0.2, 0.9]).as_matrix()
+    est = world @ gt
+    est[:, :3, 3] *= 3.0
+    assert rotation_error(est, gt)["median_deg"] < 1e-6
+    bent = est.copy()
+    bent[7, :3, :3] = bent[7, :3, :3] @ Rotation.from_rotvec([0, np.radians(3.0), 0]).as_matrix()
+    errors = rotation_error(bent, gt)["errors_deg"]
+    assert errors[7] == pytest.approx(3.0, abs=0.2) and np.median(errors) < 0.2

@@ -7,6 +7,7 @@ import pytest
 from recon.poses.calib import FocalSearch
 from recon.poses.focal_choice import DISAGREEMENT, VANISHING_ACCURACY, choose_focal, flat_range
 from recon.poses.frontend_config import FrontendConfig
+from recon.poses.rotation_focal import RotationFocal
 from recon.poses.vanishing import VanishingFocal
 
 CFG = FrontendConfig()
@@ -90,3 +91,19 @@ def test_a_focal_length_the_search_did_not_bracket_is_not_found():
     assert "--fov" in choose_focal(edge, None, CFG).not_found()
     assert choose_focal(edge, _vp(992.0, 0.8), CFG).found
     assert choose_focal(_search(524.0, 0.02), None, CFG).found
+
+
+def test_the_rotation_estimate_is_taken_where_trusted_and_no_vanishing_points_are_agreed_on():
+    """TUM fr1/rpy 50-99, a camera turning on the spot: the search's minimum lay at the end of
+    its sweep (300 px) and the vanishing points were not agreed on; the homographies of its
+    turns gave 515 px for a 517 px camera. They are taken, with their own range; untrusted
+    they change nothing, and vanishing points most frames agree on still come first."""
+    unbracketed = FocalSearch(300.0, [(300.0, 1.0), (400.0, 1.1)], bracketed=False)
+    turning = RotationFocal(515.0, 482.0, 554.0, 86, 70, 0.81, True)
+    choice = choose_focal(unbracketed, _vp(492.0, 0.3, trusted=False), CFG, turning)
+    assert choice.source == "rotation" and choice.focal == 515.0 and choice.found
+    assert choice.low == pytest.approx(min(482.0, 492.0 / VANISHING_ACCURACY)) and choice.high == 554.0
+    assert choice.candidates["rotation"] == 515.0 and "(rotation)" in choice.warning(640)
+    loose = RotationFocal(580.0, 436.0, 767.0, 95, 75, 0.79, False)
+    assert choose_focal(unbracketed, None, CFG, loose) == choose_focal(unbracketed, None, CFG)
+    assert choose_focal(_search(530.0, 0.02), _vp(528.0, 0.68), CFG, turning).source == "vanishing points"

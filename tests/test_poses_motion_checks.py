@@ -51,9 +51,10 @@ def test_a_camera_turned_on_the_spot_is_rotation_only_and_a_walk_is_not():
 
 
 def test_check_motion_names_what_makes_a_trajectory_untrusted():
-    """A lens fit on its bound, a rotation-only run and (the camera unknown) a run whose
-    frames lie over 10 % of the width apart are each said; with the camera known, the last
-    two are only marked; a slow walk with a free lens says nothing."""
+    """A lens fit on its bound and (the camera unknown) a run whose frames lie over 10 % of
+    the width apart are each said; with the camera known, the last is only marked; a
+    rotation-only run is marked and said, never distrusted (its rotations are measured); a
+    slow walk with a free lens says nothing."""
     n = 40
     slow = _poses(0.2 * np.ones(n), 0.01 * np.ones(n))
     depth = np.full((n, 2, 2), 2.0)
@@ -70,13 +71,15 @@ def test_check_motion_names_what_makes_a_trajectory_untrusted():
     spin = _poses(2.0 * np.ones(n), 0.0005 * np.ones(n))
     turned = check_motion(spin, depth, np.arange(n), spin, F, WIDTH)
     assert turned.rotation_only == [[0, n - 1]] and turned.translation_share < 0.05 and turned.turns_on_the_spot
-    assert "turns on the spot" in turned.untrusted()[0]
-    assert turned.untrusted(focal_estimated=False) == []  # a known camera turning is tracked (TUM fr1/rpy)
+    assert turned.untrusted() == [] and turned.untrusted(focal_estimated=False) == []
+    assert "turns on the spot (its translation makes 1 % of" in turned.turning_said()
+    assert "its path and the map's scale there are not" in turned.turning_said()
     # A walk that stops to look around for a quarter of its frames: marked, not judged.
     pause = _poses(np.r_[0.5 * np.ones(15), 3.0 * np.ones(10), 0.5 * np.ones(15)],
                    np.r_[0.03 * np.ones(15), 0.0005 * np.ones(10), 0.03 * np.ones(15)])
     looked = check_motion(pause, depth, np.arange(n), pause, F, WIDTH)
     assert len(looked.rotation_only) == 1 and not looked.turns_on_the_spot and looked.untrusted() == []
+    assert looked.turning_said().startswith("frames 14-24: the camera turns on the spot: its rotations")
     assert "rotation only" in looked.frame_verdicts(n)[15:25]
     again = MotionChecks.from_dict(turned.to_dict()).renumbered(list(range(100, 100 + n)))
     assert again.rotation_only == [[100, 100 + n - 1]]
@@ -88,4 +91,4 @@ def test_stretches_are_named_as_every_other_frame_range():
     said = checks.short_said()
     assert said.startswith("frames 3, 10-14, 20-21, 30 and 2 more: the dense flow made the camera's steps short")
     turned = MotionChecks(rotation_only=[[7, 7]], turns_on_the_spot=True, translation_share=0.05)
-    assert "(frames 7)" in turned.untrusted()[0]
+    assert turned.turning_said().startswith("frames 7: the camera turns on the spot (its translation makes 5 %")

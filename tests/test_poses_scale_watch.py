@@ -183,3 +183,19 @@ def test_stretch_factors_are_the_stretches_medians():
     frames = np.arange(30) * 2
     breaks = [ScaleBreak(18, 20, 0.5, 9.0), ScaleBreak(38, 40, 4.0, 9.0)]
     assert stretch_factors(log_ratio, frames, breaks) == pytest.approx([2.0, 0.25])
+
+
+def test_a_step_where_the_camera_turns_on_the_spot_is_not_a_break():
+    """Inside a rotation-only stretch the map has no scale to break: the step is kept apart
+    (``turning``) with its correction, and said by frame as the breaks are; a step outside
+    stays a break."""
+    from recon.poses.scale_watch import ScaleBreak, ScaleWatch
+
+    watch = ScaleWatch(list(range(0, 60, 3)), [1.0] * 20, 0.05,
+                       [ScaleBreak(9, 12, 1.6, 8.0), ScaleBreak(42, 45, 0.7, 7.0)], corrections=[0.6, 1.4])
+    kept = watch.without_turns([[0, 30]])
+    assert [b.before for b in kept.breaks] == [42] and kept.corrections == [1.4]
+    assert [b.before for b in kept.turning] == [9]
+    again = ScaleWatch.from_dict(kept.renumbered(list(range(100, 160))).to_dict())
+    assert again.turning[0].before == 109 and again.breaks[0].after == 145
+    assert watch.without_turns([]).breaks == watch.breaks

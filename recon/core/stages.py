@@ -364,8 +364,9 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         checks = MotionChecks.from_dict(result.diagnostics["motion_checks"])
         named_checks = checks.renumbered(names)
         info["motion_checks"] = {**named_checks.to_dict(), "frame_verdicts": checks.frame_verdicts(len(names))}
-        if checks.short_flow:
-            log.warning("%s (report.json: poses.motion_checks)", named_checks.short_said())
+        for mark in (named_checks.turning_said(), named_checks.short_said()):
+            if mark:
+                log.warning("%s (report.json: poses.motion_checks)", mark)
     if "prior_agreement" in result.diagnostics:
         agreement = PriorAgreement.from_dict(result.diagnostics["prior_agreement"]).renumbered(names)
         # Acted on with the scale breaks (recon.drivers.segments.check_metric_scale).

@@ -37,7 +37,7 @@ import open3d as o3d
 from recon.errors import ReconInputError
 from recon.eval.depth import depth_metrics
 from recon.eval.mesh import DEFAULT_THRESHOLD, icp_registered, mesh_metrics
-from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rpe, scale_error
+from recon.eval.trajectory import ate_rmse, move_points, pose_alignment, rotation_error, rpe, scale_error
 from recon.io.datasets import open_dataset
 from recon.io.output_folder import load_output
 
@@ -81,11 +81,13 @@ def evaluate_depth(depth: np.ndarray, gt_depth: np.ndarray, options: EvalOptions
 
 
 def evaluate_trajectory(poses: np.ndarray, gt_poses: np.ndarray) -> dict:
-    """ATE (SE(3), Sim(3)), RPE and scale error of camera-to-world poses against gt."""
+    """ATE (SE(3), Sim(3)), RPE, orientation error and scale error of camera-to-world poses
+    against gt."""
     keep = ("rmse", "mean", "median", "max", "scale", "n")
     out = {f"ate_{mode}": {k: v for k, v in ate_rmse(poses, gt_poses, mode).items() if k in keep}
            for mode in ("se3", "sim3")}
     out["rpe"] = {k: v for k, v in rpe(poses, gt_poses).items() if not isinstance(v, np.ndarray)}
+    out["rotation_error"] = {k: v for k, v in rotation_error(poses, gt_poses).items() if k != "errors_deg"}
     out["scale_error"] = scale_error(poses, gt_poses)
     return out
 
@@ -209,11 +211,12 @@ def format_evaluation(result: dict) -> str:
             lines.append(f"| {setting} | " + " | ".join(f"{metrics[n]:.4f}" for n in names) + " |")
     if "trajectory" in result:
         t = result["trajectory"]
+        rot = f"{t['rotation_error']['median_deg']:.3f}" if "rotation_error" in t else "-"
         lines += ["", "| trajectory | ATE SE(3) rmse [m] | ATE Sim(3) rmse [m] | Sim(3) scale | RPE trans rmse [m] "
-                      "| RPE rot rmse [deg] |",
-                  "|---|---|---|---|---|---|",
+                      "| RPE rot rmse [deg] | orientation median [deg] |",
+                  "|---|---|---|---|---|---|---|",
                   f"| | {t['ate_se3']['rmse']:.4f} | {t['ate_sim3']['rmse']:.4f} | {t['ate_sim3']['scale']:.4f} | "
-                  f"{t['rpe']['trans_rmse']:.4f} | {t['rpe']['rot_rmse_deg']:.3f} |"]
+                  f"{t['rpe']['trans_rmse']:.4f} | {t['rpe']['rot_rmse_deg']:.3f} | {rot} |"]
     if "mesh" in result:
         m = result["mesh"]
         lines += ["", f"| mesh (align {result.get('mesh_align', 'none')}) | accuracy [m] | completeness [m] "

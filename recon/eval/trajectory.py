@@ -225,6 +225,25 @@ def rpe(est, gt, delta: int = 1, scale: float = 1.0) -> dict:
     }
 
 
+def rotation_error(est, gt) -> dict:
+    """Orientation error of each camera after the one rotation that best takes est's
+    orientations onto gt's (the orientation fit of :func:`pose_alignment`): the angle of
+    R_gt_i^T R R_est_i. For a camera that turns on the spot this is the score (its centres
+    say little); for any camera it is independent of the trajectory's scale.
+
+    est, gt: (N, 4, 4) camera-to-world, frame-matched. Returns median_deg, rmse_deg, max_deg,
+    errors_deg (N,) (NaN for left-out frames) and n.
+    """
+    est, gt, valid = _matched(est, gt)
+    rot = pose_alignment(est, gt, "se3")["rotation"]
+    aligned = rot @ est[:, :3, :3]
+    errors = np.full(len(est), np.nan)
+    errors[valid] = np.degrees(_rotation_angles(np.swapaxes(gt[valid, :3, :3], 1, 2) @ aligned[valid]))
+    e = errors[valid]
+    return {"median_deg": float(np.median(e)), "rmse_deg": float(np.sqrt(np.mean(e ** 2))),
+            "max_deg": float(e.max()), "errors_deg": errors, "n": int(valid.sum())}
+
+
 def scale_error(est, gt) -> float:
     """|s - 1| for the Sim(3) scale s that best maps est's camera centres onto gt's.
 

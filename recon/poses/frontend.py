@@ -9,7 +9,8 @@ calibration, metric scale; its ``droid_backend``) and ``filler`` (the non-keyfra
 ``trajectory_filler``). Their pieces: ``flow`` (DIS + confidence), ``graph`` (keyframes,
 edges, proximity), ``ba`` (Schur-complement LM, motion-only alignment), ``calib`` (focal
 search), ``plumb_line`` (the lens from straight edges, before the search), ``vanishing``
-(the focal length from vanishing points, checked against the search), ``lie``,
+(the focal length from vanishing points, checked against the search), ``rotation_focal``
+(the focal length of a camera that turns, from its homographies), ``lie``,
 ``projective``; the settings are ``frontend_config``'s.
 
 Resolutions: frames come at working resolution (H, W); flow runs at 1/4 and BA at 1/8
@@ -41,6 +42,7 @@ from recon.poses import (
     plumb_line,
     prior_agreement,
     quality,
+    rotation_focal,
     scale_watch,
     vanishing,
 )
@@ -255,7 +257,11 @@ class StreamingFrontend:
         if self.cfg.vanishing_points:
             vp = vanishing.estimate_focal_vp(frames, lens)
             self.diagnostics["vanishing_points"] = vp.to_dict()
-        choice = self._focal_choice = choose_focal(search, vp, self.cfg)
+        rotation = None
+        if self.cfg.rotation_focal:
+            rotation = rotation_focal.estimate_focal_rotation(frames)
+            self.diagnostics["rotation_focal"] = rotation.to_dict()
+        choice = self._focal_choice = choose_focal(search, vp, self.cfg, rotation)
         focal = choice.focal
         self.intrinsics = (focal, focal, (width - 1) / 2.0, (height - 1) / 2.0)
         self.diagnostics["focal"] = choice.to_dict()
@@ -317,14 +323,12 @@ class StreamingFrontend:
             lens_k1=s.k1 if self.cfg.calibrate_lens else None, k1_bound=ba.MAX_K1)
         if self.cfg.check_short_flow:
             motion = self._short_flow(motion)
+        watch = watch.without_turns(motion.rotation_only)
         focal_estimated = self._focal_choice is not None
         why = motion.renumbered([self.number(i) for i in range(n)]).untrusted(focal_estimated=focal_estimated)
         if focal_estimated and not self._focal_choice.found:
             why.insert(0, self._focal_choice.not_found())
         if why and self.cfg.stop_untrusted:
-            # SfM triangulates from parallax as the front end does: a camera turning on the spot
-            # gives it none either (TUM fr1/rpy: 10 % of its path, exit 0, when it was tried).
-            turning = motion.turns_on_the_spot and focal_estimated
             # Frames far apart are SfM's usual input, but on the one recording that moves so
             # (the phone's images) SfM came back 20 % off its path within the reference's
             # pieces: the user may choose it, the run does not fall back to it.
@@ -334,12 +338,9 @@ class StreamingFrontend:
                 + (f" (frames {frame_spans([(n, given - 1)], self.number)} left out: tracking was failing there)"
                    if n < given else "")
                 + f" cannot be trusted: {'; '.join(why)}"
-                + ("; give the camera's intrinsics (--intrinsics or --fov) to track a turning camera, or "
-                   "--on-break keep to take the trajectory anyway" if turning else "")
                 + ("; give the camera's intrinsics (--intrinsics or --fov), try --pose-method sfm, or "
-                   "--on-break keep to take the trajectory anyway" if jumping and not turning else ""),
-                frame=motion.rotation_only[0][0] if motion.rotation_only else 0,
-                sfm_may_help=not (turning or jumping))
+                   "--on-break keep to take the trajectory anyway" if jumping else ""),
+                frame=0, sfm_may_help=not jumping)
         return PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),

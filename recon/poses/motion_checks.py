@@ -6,7 +6,9 @@
   and keyframes, but almost no parallax, so the bundle adjustment's translations and the
   map's scale rest on noise. ORB-SLAM refuses to initialise on such pairs (a homography
   explains them as well as a fundamental matrix: Torr's model selection); here the test
-  is the share of the keyframes' flow that their translation makes, over a stretch.
+  is the share of the keyframes' flow that their translation makes, over a stretch. Such
+  a stretch is marked, not refused: its rotations are measured (and so is the focal
+  length, from them: ``rotation_focal``), its path is not.
 * **Large motion.** Dense flow follows a few tens of pixels between neighbouring frames;
   frames farther apart than ``large_motion_share`` of the image width (images taken one
   every few steps) are marked. With the camera's intrinsics given that is all: the front
@@ -126,20 +128,29 @@ class MotionChecks:
                 "edges), so the trajectory there is shorter than the camera's path and the mesh fused from it is "
                 "squeezed along it")
 
+    def turning_said(self) -> str:
+        """One sentence on the stretches where the camera turns on the spot (empty: none).
+        A mark, not a refusal: their rotations are measured (and with the focal length
+        estimated, the focal length is, from the same rotations: ``rotation_focal``), their
+        path and the map's scale are not."""
+        if not self.rotation_only:
+            return ""
+        spans = frame_spans(self.rotation_only, shown=4)  # already frame numbers
+        # The run's share speaks for the stretches only where they are most of it.
+        share = "" if not (self.turns_on_the_spot and np.isfinite(self.translation_share)) else (
+            f" (its translation makes {100 * self.translation_share:.0f} % of the keyframes' flow)")
+        return (f"frames {spans}: the camera turns on the spot{share}: its rotations are measured, its path and "
+                "the map's scale there are not (the positions are what the solver found, the depth there is the "
+                "prior's as MEDeA adjusts it)")
+
     def untrusted(self, focal_estimated: bool = True) -> list[str]:
         """Why the trajectory as a whole is not to be trusted, one clause each (empty: nothing).
-        A camera turned on the spot counts only with the focal length estimated: with TUM
-        fr1/rpy's intrinsics given the front end tracks it within 1.6 cm
-        (benchmarks/poses.py), without them it came back at 16 % of its path, abs rel 0.75."""
+        A camera turned on the spot is not among them (:meth:`turning_said` marks it): its
+        rotations are measured whether or not its focal length was given."""
         why = []
         if self.lens_at_bound:
             why.append(f"the lens term the trajectory was fitted with ended on its bound (k1 = {self.lens_k1:+.2f}): "
                        "the camera model does not explain the frames' flow")
-        if self.turns_on_the_spot and focal_estimated:
-            spans = frame_spans(self.rotation_only, shown=4)
-            why.append(f"the camera turns on the spot (frames {spans}): its translation makes "
-                       f"{100 * self.translation_share:.0f} % of the keyframes' flow, too little parallax to measure "
-                       "its path or the map's scale")
         if self.moves_too_fast and focal_estimated:
             frames = self.large_motion
             why.append(f"neighbouring frames lie a median {100 * self.median_step_share:.0f} % of the image's width "

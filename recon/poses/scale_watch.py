@@ -78,7 +78,9 @@ class ScaleWatch:
     from keyframe to keyframe (standard deviation of the log ratio); ``breaks``; ``judged``:
     whether there were enough keyframes to judge; ``corrections``: per break, the factor that
     brings the stretch after it to the scale of the one before (``stretch_factors``);
-    ``applied``: whether the front end applied them (``FrontendConfig.join_scale_breaks``)."""
+    ``applied``: whether the front end applied them (``FrontendConfig.join_scale_breaks``);
+    ``turning``: steps inside stretches where the camera turns on the spot, not counted as
+    breaks (:meth:`without_turns`)."""
 
     frames: list[int]
     ratio: list[float]
@@ -87,23 +89,42 @@ class ScaleWatch:
     judged: bool = True
     corrections: list[float] = field(default_factory=list)
     applied: bool = False
+    turning: list[ScaleBreak] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "ratio": [round(r, 4) for r in self.ratio], "noise": self.noise,
                 "breaks": [asdict(b) for b in self.breaks], "judged": self.judged, "corrections": self.corrections,
-                "applied": self.applied}
+                "applied": self.applied, "turning": [asdict(b) for b in self.turning]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ScaleWatch":
         return cls(list(d["frames"]), list(d["ratio"]), d["noise"], [ScaleBreak(**b) for b in d["breaks"]],
-                   d["judged"], list(d.get("corrections", [])), bool(d.get("applied", False)))
+                   d["judged"], list(d.get("corrections", [])), bool(d.get("applied", False)),
+                   [ScaleBreak(**b) for b in d.get("turning", [])])
 
     def renumbered(self, names) -> "ScaleWatch":
         """The same with frame positions (0..N-1 of the frames tracked) replaced by names[i]
         (the video's frame numbers)."""
+        def named(b: ScaleBreak) -> ScaleBreak:
+            return replace(b, before=int(names[b.before]), after=int(names[b.after]))
+
         return ScaleWatch([int(names[i]) for i in self.frames], self.ratio, self.noise,
-                          [replace(b, before=int(names[b.before]), after=int(names[b.after])) for b in self.breaks],
-                          self.judged, self.corrections, self.applied)
+                          [named(b) for b in self.breaks], self.judged, self.corrections, self.applied,
+                          [named(b) for b in self.turning])
+
+    def without_turns(self, rotation_only: list[list[int]]) -> "ScaleWatch":
+        """The same with the breaks that lie inside a stretch where the camera turns on the
+        spot (``motion_checks``: [first, last] frames) moved to ``turning``: there the map has
+        no scale to break (no parallax measures its depth; on TUM fr1/rpy, turning on the
+        spot, its ratio to the prior stepped x3.6 and x0.76, and joining the stretches on
+        either side turned the later ones by 0.5-0.7 degrees for nothing). Breaks already
+        applied (``corrections``) are kept as they are."""
+        if self.applied or not self.breaks:
+            return self
+        inside = [any(a <= b.before and b.after <= z for a, z in rotation_only) for b in self.breaks]
+        kept = [b for b, turn in zip(self.breaks, inside) if not turn]
+        return replace(self, breaks=kept, turning=self.turning + [b for b, turn in zip(self.breaks, inside) if turn],
+                       corrections=[c for c, turn in zip(self.corrections, inside) if not turn])
 
     def joined(self, later: "ScaleWatch", restart: ScaleBreak) -> "ScaleWatch":
         """The watch of a run followed by that of a later piece of it, `restart` the break
@@ -111,7 +132,7 @@ class ScaleWatch:
         return ScaleWatch(self.frames + later.frames, self.ratio + later.ratio,
                           float(np.nanmax([self.noise, later.noise])), self.breaks + [restart] + later.breaks,
                           self.judged or later.judged, self.corrections + [1.0] + later.corrections,
-                          self.applied and later.applied)
+                          self.applied and later.applied, self.turning + later.turning)
 
     def frame_verdicts(self, count: int) -> list[str]:
         """Per frame of a run of `count` frames: "ok", or "after break N" from the first frame
