@@ -4,6 +4,8 @@ the lens' radial term, keyframes by motion, and the check that refuses a partial
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -44,18 +46,36 @@ def test_sfm_synthetic_accuracy_and_metric_scale(sfm_room):
     assert agreement["judged"] and agreement["trusted"] and agreement["median"] > 0.7, agreement
 
 
-def test_a_model_whose_scale_the_prior_contradicts_is_refused(sfm_room):
+def test_a_model_whose_scale_the_prior_contradicts_is_marked(sfm_room, caplog):
     """The prior of the room's frames 15-29 twice too far: SfM's map and the prior then
-    disagree in scale from frame to frame beyond the prior's noise, and the model is refused;
-    with the check off (--on-break keep) it is returned."""
+    disagree in scale from frame to frame beyond the prior's noise, and the model is marked
+    (poses.scale_spread): the run warns once, and stops only under --on-break stop; with the
+    check off (--on-break keep) it is not judged."""
+    from types import SimpleNamespace
+
+    from recon.core.stages import gate_estimate
+    from recon.drivers.segments import check_scale_spread
+    from recon.errors import ReconInputError
+
     seq, prior = sfm_room
     split = prior.copy()
     split[15:] *= 2.0
-    with pytest.raises(TrackingLostError, match="disagree in scale"):
-        estimate_poses(seq.rgb, split, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3, num_threads=1)
+    marked = estimate_poses(seq.rgb, split, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
+                            num_threads=1)
+    spread = marked.diagnostics["scale_spread"]
+    assert not spread["consistent"] and spread["log_std"] > 0.25 and spread["factor"] == pytest.approx(
+        np.exp(spread["log_std"]))
+    _, info, _ = gate_estimate(marked, np.arange(len(seq.rgb)))
+    assert info["scale_spread"] == spread
+    with pytest.raises(ReconInputError, match="stopped .--on-break stop.: SfM's map and the depth prior disagree"):
+        check_scale_spread(SimpleNamespace(on_break="stop"), info)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="recon"):
+        check_scale_spread(SimpleNamespace(on_break="segments"), info)
+    assert sum("may be at different scales" in r.getMessage() for r in caplog.records) == 1
     kept = estimate_poses(seq.rgb, split, seq.intrinsics, method="sfm", progress=False, keyframe_stride=3,
                           num_threads=1, max_scale_spread=0.0)
-    assert kept.diagnostics["scale_spread_log_std"] > 0.25
+    assert kept.diagnostics["scale_spread"]["consistent"] and kept.diagnostics["scale_spread_log_std"] > 0.25
 
 
 def test_sfm_estimates_the_lens_radial_term(sfm_room):

@@ -333,12 +333,14 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     from ..poses.quality import gate_trajectory, runs
     from ..poses.result import frame_spans
     from ..poses.scale_watch import ScaleWatch
+    from ..poses.second_opinion import SecondOpinion
 
     names = [int(i) for i in frame_indices]
     gate = gate_trajectory(result, frame_numbers=names)
     # Said once each, below, by video frame.
     diagnostics = {k: v for k, v in result.diagnostics.items()
-                   if k not in ("scale_watch", "motion_checks", "prior_agreement", "frame_status")}
+                   if k not in ("scale_watch", "motion_checks", "prior_agreement", "frame_status", "scale_spread",
+                                "second_opinion")}
     if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.pieces): named by video frame
         diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
@@ -367,6 +369,12 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
         for mark in (named_checks.turning_said(), named_checks.short_said()):
             if mark:
                 log.warning("%s (report.json: poses.motion_checks)", mark)
+    if "second_opinion" in result.diagnostics:  # the front end and SfM compared (recon.poses.second_opinion)
+        opinion = SecondOpinion.from_dict(result.diagnostics["second_opinion"])
+        info["second_opinion"] = opinion.to_dict()
+        (log.info if opinion.trusted else log.warning)("%s (report.json: poses.second_opinion)", opinion.said())
+    if "scale_spread" in result.diagnostics:  # SfM's (recon.drivers.segments.check_scale_spread)
+        info["scale_spread"] = result.diagnostics["scale_spread"]
     if "prior_agreement" in result.diagnostics:
         agreement = PriorAgreement.from_dict(result.diagnostics["prior_agreement"]).renumbered(names)
         # Acted on with the scale breaks (recon.drivers.segments.check_metric_scale).

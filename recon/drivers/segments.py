@@ -91,6 +91,7 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
     every stretch 0 where the run goes on as one trajectory ("keep", no break, or every break
     joined); the driver writes what stays apart as segments."""
     check_metric_scale(config, info)
+    check_scale_spread(config, info)
     if config.on_break == "keep" or stretch.max() == 0:
         return np.zeros_like(stretch), poses, info
     if config.join_segments:
@@ -118,6 +119,21 @@ def check_metric_scale(config, info: dict) -> None:
     log.warning("%s (report.json: poses.metric_scale)", verdict.said())
 
 
+def check_scale_spread(config, info: dict) -> None:
+    """SfM's verdict on how its map's scale varies against the depth prior's from frame to
+    frame (``recon.poses.sfm.scale_spread``, report.json's poses.scale_spread): beyond the
+    prior's noise a warning that the map's parts may be at different scales, or under "stop"
+    a stop."""
+    spread = info.get("scale_spread")
+    if not spread or spread["consistent"]:
+        return
+    said = (f"SfM's map and the depth prior disagree in scale by x{spread['factor']:.2f} (one standard deviation) "
+            "from frame to frame, more than the prior's noise explains: the map's parts may be at different scales")
+    if config.on_break == "stop":
+        raise ReconInputError(f"stopped (--on-break stop): {said}")
+    log.warning("%s (report.json: poses.scale_spread)", said)
+
+
 def untrusted_scale(info: dict) -> bool:
     """Whether a pose report ``info`` says the depth prior cannot vouch for its metres."""
     return not info.get("metric_scale", {}).get("trusted", True)
@@ -143,5 +159,5 @@ def stop_at_breaks(info: dict) -> None:
                               f"{ScaleWatch.from_dict(watch).describe()}")
 
 
-__all__ = ["check_metric_scale", "estimator_options", "join_breaks", "say_joins", "settle_breaks", "stop_at_breaks",
-           "trajectory_stretches", "untrusted_scale"]
+__all__ = ["check_metric_scale", "check_scale_spread", "estimator_options", "join_breaks", "say_joins",
+           "settle_breaks", "stop_at_breaks", "trajectory_stretches", "untrusted_scale"]

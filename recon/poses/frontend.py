@@ -328,20 +328,7 @@ class StreamingFrontend:
         why = motion.renumbered([self.number(i) for i in range(n)]).untrusted(focal_estimated=focal_estimated)
         if focal_estimated and not self._focal_choice.found:
             why.insert(0, self._focal_choice.not_found())
-        if why and self.cfg.stop_untrusted:
-            # Frames far apart are SfM's usual input, but on the one recording that moves so
-            # (the phone's images) SfM came back 20 % off its path within the reference's
-            # pieces: the user may choose it, the run does not fall back to it.
-            jumping = motion.moves_too_fast and focal_estimated
-            raise TrackingLostError(
-                f"the trajectory of frames {frame_spans([(0, n - 1)], self.number)}"
-                + (f" (frames {frame_spans([(n, given - 1)], self.number)} left out: tracking was failing there)"
-                   if n < given else "")
-                + f" cannot be trusted: {'; '.join(why)}"
-                + ("; give the camera's intrinsics (--intrinsics or --fov), try --pose-method sfm, or "
-                   "--on-break keep to take the trajectory anyway" if jumping else ""),
-                frame=0, sfm_may_help=not jumping)
-        return PoseResult(
+        result = PoseResult(
             poses=invert_poses(T_cw),
             intrinsics=tuple(float(v) for v in self.intrinsics),
             keyframes=np.array(g.frames, dtype=np.int64),
@@ -350,6 +337,23 @@ class StreamingFrontend:
                          "motion_checks": motion.to_dict()},
             keyframe_depth=keyframe_depth,
         )
+        if why and self.cfg.stop_untrusted:
+            # Frames far apart are SfM's usual input, but on the one recording that moves so
+            # (the phone's images) SfM came back 20 % off its path within the reference's
+            # pieces: the user may choose it, the run does not fall back to it unless it is
+            # asked for a second opinion (recon.poses.second_opinion), which compares the two.
+            jumping = motion.moves_too_fast and focal_estimated
+            err = TrackingLostError(
+                f"the trajectory of frames {frame_spans([(0, n - 1)], self.number)}"
+                + (f" (frames {frame_spans([(n, given - 1)], self.number)} left out: tracking was failing there)"
+                   if n < given else "")
+                + f" cannot be trusted: {'; '.join(why)}"
+                + ("; give the camera's intrinsics (--intrinsics or --fov), try --pose-method sfm, or "
+                   "--on-break keep to take the trajectory anyway" if jumping else ""),
+                frame=0, sfm_may_help=not jumping)
+            err.untrusted_result = result
+            raise err
+        return result
 
     def _forget_failing(self, frame_lookup: Callable[[int], np.ndarray], share: float, lookback: int) -> None:
         """Forget the last frames whose tracking was failing before the loss that ends the

@@ -202,8 +202,11 @@ class StreamingPieces:
                 if first:
                     if self._loss is not None and not err.lost:
                         # The frames before the first loss, refused (their motion): said with the loss.
-                        raise TrackingLostError(f"{self._loss}; the frames before it: {err}", frame=self._loss.frame,
-                                                lost=True, sfm_may_help=self._loss.sfm_may_help) from None
+                        refused = TrackingLostError(f"{self._loss}; the frames before it: {err}",
+                                                    frame=self._loss.frame, lost=True,
+                                                    sfm_may_help=self._loss.sfm_may_help)
+                        refused.untrusted_result = err.untrusted_result
+                        raise refused from None
                     raise
                 pieces.append(Piece(p.first, stop, None, f"no trajectory ({err})"))
                 continue

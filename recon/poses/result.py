@@ -66,6 +66,9 @@ class TrackingLostError(ReconInputError):
         # The front end's focal-length estimates (recon.poses.focal_choice.FocalChoice) when it
         # searched one before it failed: the range a fallback's own estimate is said within.
         self.focal_choice = None
+        # The trajectory the estimator refused as a whole (a PoseResult of the frames before
+        # any loss), for a second estimator to be compared with (recon.poses.second_opinion).
+        self.untrusted_result = None
 
     @classmethod
     def at_the_end(cls, frame: int, number: FrameNumbers = by_position) -> "TrackingLostError":

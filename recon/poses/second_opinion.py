@@ -1,0 +1,160 @@
+"""A second opinion on an estimated trajectory: the dense front end and SfM, two independent
+estimators, compared where the front end's own checks doubt its result.
+
+The front end (dense DIS flow, a flow bundle adjustment) and SfM (SIFT matched across any
+baseline, COLMAP's incremental mapper) fail differently: flow follows small steps and
+slides along plain surfaces, SIFT needs texture and parallax but no small steps. Neither
+says which of its parts to believe. Where the front end refuses its trajectory (frames
+farther apart than flow follows, the lens fitted on its bound, a focal length it did not
+fix) or marks part of it (steps the flow made short, the map's scale breaking), SfM
+estimates the same frames and the two are compared under the similarity that best takes
+one onto the other (:func:`trajectory_agreement`: the camera centres' RMSE after a
+Sim(3), as a share of the path, as the trajectories are judged against the truth).
+
+:func:`second_opinion` gives the verdict report.json carries (``poses.second_opinion``):
+within ``max_disagreement`` the two agree and the stretch is trusted; otherwise it is marked,
+and the estimator kept is the one with less evidence against it: SfM where the front end
+refused its own result, or marked part of it while SfM's own checks hold nothing against
+its map (``sfm.scale_spread``); else the front end. Measured on the validation table
+(docs/validation.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from recon.geometry.rigid import umeyama
+
+# Two trajectories whose centres differ by at most this share of the path after a Sim(3)
+# agree: the bar a right trajectory meets against the truth (issue 62's acceptance).
+MAX_DISAGREEMENT = 0.02
+
+
+@dataclass
+class SecondOpinion:
+    """What report.json says (``poses.second_opinion``): why it was asked (the front end's
+    doubt), the frames both estimators posed, their disagreement (centres' RMSE after a
+    Sim(3), as a share of SfM's path; NaN where not compared), the verdict
+    ("agree", "disagree", or "one only" where SfM gave nothing), which estimator is kept, and
+    why."""
+
+    asked: str
+    compared: int
+    disagreement: float
+    verdict: str
+    kept: str
+    why: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SecondOpinion":
+        return cls(**d)
+
+    @property
+    def trusted(self) -> bool:
+        return self.verdict == "agree"
+
+    def said(self) -> str:
+        """One sentence for the run's warning."""
+        if self.verdict == "agree":
+            return (f"the front end and SfM agree within {100 * self.disagreement:.1f} % of the path on "
+                    f"{self.compared} frames ({self.asked}); the {self.kept} trajectory is kept")
+        if self.verdict == "one only":
+            return f"{self.asked}; SfM gave no second opinion ({self.why}): the {self.kept} trajectory is kept, marked"
+        return (f"the front end and SfM disagree by {100 * self.disagreement:.1f} % of the path on {self.compared} "
+                f"frames ({self.asked}): the {self.kept} trajectory is kept ({self.why}), and is not to be trusted "
+                f"to better than that")
+
+
+def path_length(centres: np.ndarray) -> float:
+    """Length of the polyline through camera centres (M, 3)."""
+    return float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) if len(centres) > 1 else 0.0
+
+
+def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.ndarray | None = None
+                         ) -> tuple[int, float]:
+    """How far two estimates of the same frames differ, whatever their world frame and scale.
+
+    reference, other: (N, 4, 4) camera-to-world poses (non-finite: no pose); stretch: (N,)
+    int, the stretch of `other` each frame belongs to (pieces of a trajectory in worlds of
+    their own: each compared on its own; None: one). Returns (frames both posed, the largest
+    over stretches of the RMSE of the reference's centres against the other's after the
+    Sim(3) that best takes the other onto the reference (Umeyama), as a share of the
+    reference's path over those frames; NaN where no stretch has 3 frames and a path)."""
+    both = np.isfinite(reference).all(axis=(1, 2)) & np.isfinite(other).all(axis=(1, 2))
+    stretch = np.zeros(len(reference), np.int64) if stretch is None else np.asarray(stretch)
+    worst = float("nan")
+    for label in np.unique(stretch[both]):
+        mine = both & (stretch == label)
+        a, b = reference[mine, :3, 3], other[mine, :3, 3]
+        path = path_length(a)
+        if len(a) < 3 or path <= 0 or np.ptp(b, axis=0).max() <= 0:
+            continue
+        rot, trans, scale = umeyama(b, a, with_scale=True)
+        moved = scale * b @ rot.T + trans
+        share = float(np.sqrt(np.mean(np.sum((moved - a) ** 2, axis=1))) / path)
+        worst = share if not np.isfinite(worst) else max(worst, share)
+    return int(both.sum()), worst
+
+
+def doubts(diagnostics: dict) -> str:
+    """What in a front end's result (its diagnostics) asks for a second opinion, in words
+    ("" for nothing): stretches whose steps the flow made short (``motion_checks``) and
+    breaks of the map's scale or of tracking (``scale_watch``). Frames by position."""
+    from recon.poses.scale_watch import ScaleWatch
+
+    said = []
+    short = diagnostics.get("motion_checks", {}).get("short_flow", [])
+    if short:
+        said.append("the dense flow made the camera's steps short at frames " + ", ".join(f"{a}-{b}" for a, b in short))
+    if "scale_watch" in diagnostics:
+        watch = ScaleWatch.from_dict(diagnostics["scale_watch"])
+        if watch.breaks:
+            said.append("the trajectory breaks at frames " + ", ".join(f"{b.before}-{b.after}" for b in watch.breaks))
+    return "; ".join(said)
+
+
+def stretches(diagnostics: dict, count: int) -> np.ndarray:
+    """(count,) int: the stretch of a front end's trajectory each frame belongs to (0 before
+    the first break of its scale watch, n after break n)."""
+    from recon.poses.scale_watch import ScaleWatch
+
+    if "scale_watch" not in diagnostics:
+        return np.zeros(count, np.int64)
+    verdicts = ScaleWatch.from_dict(diagnostics["scale_watch"]).frame_verdicts(count)
+    return np.array([0 if v == "ok" else int(v.rsplit(" ", 1)[-1]) for v in verdicts], dtype=np.int64)
+
+
+def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, frontend_refused: bool,
+                   stretch: np.ndarray | None = None, sfm_doubt: str = "", sfm_failure: str = "",
+                   max_disagreement: float = MAX_DISAGREEMENT) -> SecondOpinion:
+    """The verdict on the frames both estimators had (module docstring).
+
+    frontend, sfm: (N, 4, 4) camera-to-world poses of the same frames (sfm None: SfM gave
+    nothing, ``sfm_failure`` says why); asked: the front end's doubt, in words;
+    frontend_refused: whether the front end refused its result (else it only marked part
+    of it); stretch: (N,) the front end's stretches (:func:`stretches`); sfm_doubt: what
+    SfM's own checks hold against its map ("" for nothing)."""
+    if sfm is None:
+        return SecondOpinion(asked, 0, float("nan"), "one only", "front end", sfm_failure)
+    compared, disagreement = trajectory_agreement(sfm, frontend, stretch)
+    keep_sfm = frontend_refused or not sfm_doubt
+    kept = "SfM" if keep_sfm else "front end"
+    if np.isfinite(disagreement) and disagreement <= max_disagreement:
+        return SecondOpinion(asked, compared, disagreement, "agree", kept, "both estimators")
+    if frontend_refused:
+        why = "the front end refused its own" + (f", and SfM's own check doubts its map: {sfm_doubt}" if sfm_doubt
+                                                 else "; SfM's checks hold nothing against its map")
+    elif keep_sfm:
+        why = "SfM's checks hold nothing against its map, the front end's marked part of its own"
+    else:
+        why = f"SfM's own check doubts its map: {sfm_doubt}"
+    return SecondOpinion(asked, compared, disagreement, "disagree", kept, why)
+
+
+__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "path_length", "second_opinion", "stretches",
+           "trajectory_agreement"]
