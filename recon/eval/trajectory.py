@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.geometry.rigid import umeyama
+from recon.geometry.rigid import polyline_length, umeyama
 
 AlignMode = Literal["sim3", "se3", "none"]
 
@@ -261,7 +261,4 @@ def path_length(traj) -> float:
     traj: (N, 4, 4) poses or (N, 3) positions.
     """
     pos = _positions(traj)
-    pos = pos[np.isfinite(pos).all(axis=1)]
-    if len(pos) < 2:
-        return 0.0
-    return float(np.linalg.norm(np.diff(pos, axis=0), axis=1).sum())
+    return polyline_length(pos[np.isfinite(pos).all(axis=1)])

@@ -152,6 +152,12 @@ def interpolate_poses(
     return out, inside | near_ok
 
 
+def polyline_length(points) -> float:
+    """Length of the polyline through points (N, 3) in order (0 for fewer than two)."""
+    points = np.asarray(points, dtype=np.float64)
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
+
+
 def umeyama(src, dst, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
 

@@ -87,13 +87,17 @@ class PriorAgreement:
         return PriorAgreement([int(names[f]) for f in self.frames], list(self.correlation), self.median,
                               self.judged, self.trusted, self.min_correlation)
 
-    def said(self) -> str:
-        """What is wrong and what the run does about it, in one sentence without its end."""
+    def finding(self) -> str:
+        """What the check found, in one clause: the frames and the correlation."""
         first, last = (min(self.frames), max(self.frames)) if self.frames else (0, 0)
         return (f"the depth prior does not follow the scene's geometry at frames {first}-{last}: its log depth "
                 f"correlates {self.median:+.2f} with the depth the frames' parallax measures (the median over "
                 f"{len(self.frames)} keyframes; {self.min_correlation:g} is needed, and a prior that sees the scene "
-                f"reaches 0.7-0.95): the scene is outside what the depth model knows (a close-up, an outdoor "
+                f"reaches 0.7-0.95)")
+
+    def said(self) -> str:
+        """What is wrong and what the run does about it, in one sentence without its end."""
+        return (f"{self.finding()}: the scene is outside what the depth model knows (a close-up, an outdoor "
                 f"view) or the camera moves too little to measure it, so the result is written at a size that "
                 f"is not to be trusted (the trajectory, depth and mesh may be x1.5 to several times off in "
                 f"scale; their shape is not affected); a depth model made for such scenes (--prior hf) or the "
@@ -101,13 +105,10 @@ class PriorAgreement:
 
     def refusal(self) -> str:
         """The stop of ``--on-break stop``, in one sentence."""
-        first, last = (min(self.frames), max(self.frames)) if self.frames else (0, 0)
-        return (f"stopped (--on-break stop): the depth prior does not follow the scene's geometry at frames "
-                f"{first}-{last}: its log depth correlates {self.median:+.2f} with the depth the frames' parallax "
-                f"measures (the median over {len(self.frames)} keyframes; {self.min_correlation:g} is needed), so "
-                f"the metric scale of the trajectory, depth and mesh may be off by x1.5 to several times. Give a "
-                f"depth model made for such scenes (--prior hf) or the scene's depth maps (--prior folder), or "
-                f"run without --on-break stop to take the result marked as of untrusted scale")
+        return (f"stopped (--on-break stop): {self.finding()}, so the metric scale of the trajectory, depth and "
+                f"mesh may be off by x1.5 to several times. Give a depth model made for such scenes (--prior hf) "
+                f"or the scene's depth maps (--prior folder), or run without --on-break stop to take the result "
+                f"marked as of untrusted scale")
 
 
 def _pearson(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

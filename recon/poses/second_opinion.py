@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from recon.geometry.rigid import umeyama
+from recon.geometry.rigid import polyline_length, umeyama
 
 # Two trajectories whose centres differ by at most this share of the path after a Sim(3)
 # agree: the bar a right trajectory meets against the truth (issue 62's acceptance).
@@ -70,11 +70,6 @@ class SecondOpinion:
                 f"to better than that")
 
 
-def path_length(centres: np.ndarray) -> float:
-    """Length of the polyline through camera centres (M, 3)."""
-    return float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) if len(centres) > 1 else 0.0
-
-
 def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.ndarray | None = None
                          ) -> tuple[int, float]:
     """How far two estimates of the same frames differ, whatever their world frame and scale.
@@ -91,7 +86,7 @@ def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.n
     for label in np.unique(stretch[both]):
         mine = both & (stretch == label)
         a, b = reference[mine, :3, 3], other[mine, :3, 3]
-        path = path_length(a)
+        path = polyline_length(a)
         if len(a) < 3 or path <= 0 or np.ptp(b, axis=0).max() <= 0:
             continue
         rot, trans, scale = umeyama(b, a, with_scale=True)
@@ -156,5 +151,5 @@ def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, fro
     return SecondOpinion(asked, compared, disagreement, "disagree", kept, why)
 
 
-__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "path_length", "second_opinion", "stretches",
+__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "second_opinion", "stretches",
            "trajectory_agreement"]
