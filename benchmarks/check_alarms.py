@@ -12,6 +12,9 @@ trajectory's metric scale instead: ``SCALE_RIGHT``, ``SCALE_WRONG``) (refused: e
 trajectory written in segments; marked: written with its words as a warning). A check that
 fires on a right trajectory is a false alarm: one that refuses or cuts it is a bug.
 
+For each run that stops where ``--on-break keep`` returns a result, its time against that
+full run's (issue 62: a run that will stop says so within a fifth of a full run's time).
+
 Usage: python benchmarks/check_alarms.py RESULTS.json [--json check_alarms]
 Prints the table, writes benchmarks/results/<json>.json.
 """
@@ -98,7 +101,11 @@ def judge(rows: list[dict], baseline: str = "default", kept: str = "keep") -> tu
                 counts[name][judged].append(f"{recording} {segment}: {action}")
         per_row.append({"recording": recording, "segment": segment, "kept_error_pct": share, "truth": truth,
                         "kept_scale_error": variants[kept].get("scale_error") if share is not None else None,
-                        "exit": variants[baseline]["exit"], "fired": fired})
+                        "exit": variants[baseline]["exit"], "fired": fired,
+                        # A run that stops should say so early: its time against the full run's.
+                        "stop_time_share": (variants[baseline]["wall_s"] / variants[kept]["wall_s"]
+                                            if variants[baseline]["exit"] != 0 and variants[kept]["exit"] == 0
+                                            else None)})
     per_check = [{"check": name, **{k: v for k, v in c.items()}} for name, c in counts.items()]
     return per_check, per_row
 
@@ -111,9 +118,10 @@ def main() -> None:
     source = json.loads(args.results.read_text())
     per_check, per_row = judge(source["rows"])
     print(table(["recording", "frames", "keep's error % path", "truth", "keep's scale error", "default exit",
-                 "what fired (what it did)"],
+                 "stop's time / full run's", "what fired (what it did)"],
                 [[r["recording"], r["segment"], "-" if r["kept_error_pct"] is None else f"{r['kept_error_pct']:.1f}",
                   r["truth"], "-" if r["kept_scale_error"] is None else f"{r['kept_scale_error']:.2f}", r["exit"],
+                  "-" if r["stop_time_share"] is None else f"{r['stop_time_share']:.2f}",
                   "; ".join(r["fired"]) or "-"] for r in per_row]))
     print()
     print(table(["check", "fired on right", "fired on wrong", "fired, unscored"],

@@ -60,9 +60,10 @@ class RotationFocalConfig:
         ruled out (the range);
     min_rotation_share, min_pairs, max_range: trusted when at least this share of the
         counted pairs are rotations, at least this many, and the range's ends lie within
-        this factor: measured on every recording of ../shared/data (``benchmarks/focal.py``):
-        TUM fr1/rpy's turning camera 0.70-0.80 of its pairs, range x1.19-1.20; the hand-held
-        walks and orbits of 7-Scenes, Record3D and the phone 0.06-0.53, ranges x1.5-x3.7."""
+        this factor: measured on every recording of ../shared/data (``benchmarks/focal.py``
+        clips): TUM fr1/rpy's turning camera 0.76-0.81 of its pairs, ranges x1.15-x1.20; the
+        hand-held walks and orbits of 7-Scenes, Record3D, ScanNet, KITTI and the phone
+        0-0.80 (the 0.80 of 10 pairs), ranges x1.59-x5.5 where more than one pair turned."""
 
     scale: float = 0.5
     max_features: int = 1500
