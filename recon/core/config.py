@@ -98,6 +98,9 @@ class PipelineConfig:
     join_segments: before that, try to join the stretches on either side of each break
         (``recon.poses.join``: the frames after it posed by PnP in the stretch before it, a
         similarity between the two); joined stretches are one trajectory again.
+    join_through_map: where that finds nothing, join through one SfM model of views of
+        both stretches (``recon.poses.map_join``: COLMAP registers each by PnP on the
+        points of the others; needs pycolmap).
     prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
         depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
         depth model folder; recon.priors.hf). weights: FastDepth weights location.
@@ -151,6 +154,7 @@ class PipelineConfig:
     pose_options: dict[str, Any] = field(default_factory=dict)
     on_break: str = "segments"
     join_segments: bool = True
+    join_through_map: bool = True
     prior: str = "fastdepth"
     prior_path: Path | None = None
     prior_align: str = "fastdepth"

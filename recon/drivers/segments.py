@@ -43,7 +43,7 @@ def trajectory_stretches(info: dict, count: int) -> np.ndarray:
 
 
 def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
-                views: int = 4) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+                views: int = 4, through_map: bool = True) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """The stretches of a trajectory joined across its scale breaks where the frames allow
     (recon.poses.join): (stretch (N,) renumbered so that joined stretches share one number,
     poses (N, 4, 4) camera-to-world with each joined stretch moved into the frame of the one
@@ -55,7 +55,10 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
     on 7-Scenes 0-399 (a break at frames 189-196) the join took the Sim(3) ATE from 3.95 to
     3.57 cm, on TUM fr1/rpy 0-99 (three) it kept 1.58 cm; taking the map's own depth against
     the prior per stretch instead made them 5.7 and 2.0 cm, and bringing each stretch to its
-    prior's scale before the join (``join_scale_breaks``) 7.6 and 1.9 cm."""
+    prior's scale before the join (``join_scale_breaks``) 7.6 and 1.9 cm. through_map: where
+    the ORB join finds nothing, join through one SfM model of both stretches' views
+    (``recon.poses.map_join``; skipped without pycolmap). Each break's entry says ``how``
+    ("orb" or "map") it was joined."""
     from ..poses.join import JoinConfig, View, apply_similarity, join_stretches
 
     def view(p: int) -> View:
@@ -68,11 +71,14 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
         # Every other frame of the 2m nearest the break on each side: some baseline between views.
         before = [p for p in usable if stretch[p] == k - 1][-2 * cfg.views::2]
         after = [p for p in usable if stretch[p] == k][:2 * cfg.views:2]
-        join = None
+        join, how = None, "orb"
         if before and after:
             join = join_stretches([view(p) for p in before], [view(p) for p in after], intrinsics, cfg)
+        if join is None and through_map:
+            join, how = _join_through_map(stretch, k, usable, view, intrinsics), "map"
         entry = {"break": k, "joined": join is not None, "tried": [len(before), len(after)]}
         if join is not None:
+            entry["how"] = how
             mine = stretch == k
             poses[mine] = apply_similarity(poses[mine], join)
             label[mine] = label[np.flatnonzero(stretch == k - 1)[0]]
@@ -80,6 +86,26 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
         report.append(entry)
     _, label = np.unique(label, return_inverse=True)
     return label.astype(np.int64), poses, report
+
+
+def _join_through_map(stretch: np.ndarray, k: int, usable: list[int], view, intrinsics):
+    """Break k's join through an SfM model (``recon.poses.map_join``) of views spread over
+    the frames nearest it on each side, or None (also where pycolmap is not installed)."""
+    from ..poses.map_join import MapJoinConfig, map_join
+
+    cfg = MapJoinConfig()
+
+    def spread(near: list[int]) -> list[int]:  # `views` of the frames nearest the break, evenly apart
+        picked = np.linspace(0, len(near) - 1, min(cfg.views, len(near))).round().astype(int) if near else []
+        return [near[i] for i in picked]
+
+    before = spread([p for p in usable if stretch[p] == k - 1][-cfg.reach:])
+    after = spread([p for p in usable if stretch[p] == k][:cfg.reach])
+    try:
+        return map_join([view(p) for p in before], [view(p) for p in after], intrinsics, cfg)
+    except ReconInputError as err:  # no pycolmap: the ORB join is all there is
+        log.debug("no join through the map: %s", err)
+        return None
 
 
 def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
@@ -95,7 +121,8 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
     if config.on_break == "keep" or stretch.max() == 0:
         return np.zeros_like(stretch), poses, info
     if config.join_segments:
-        stretch, poses, joins = join_breaks(stretch, poses, positions, frame, intrinsics)
+        stretch, poses, joins = join_breaks(stretch, poses, positions, frame, intrinsics,
+                                            through_map=config.join_through_map)
         info = {**info, "joins": joins}
         say_joins(joins)
     if stretch.max() > 0 and config.on_break == "stop":
@@ -143,9 +170,10 @@ def say_joins(joins: list[dict]) -> None:
     """One line on the breaks :func:`join_breaks` joined (and those it could not)."""
     joined = [j for j in joins if j["joined"]]
     if joined:
-        scales = ", ".join(f"x{j['scale']:.2f}" for j in joined)
-        log.info("%d of %d scale breaks joined (the frames after each posed in the stretch before it; scale %s)",
-                 len(joined), len(joins), scales)
+        scales = ", ".join(f"x{j['scale']:.2f}" + (" through the map" if j.get("how") == "map" else "")
+                           for j in joined)
+        log.info("%d of %d scale breaks joined (the frames after each posed in the stretch before it, or both "
+                 "stretches in one SfM model; scale %s)", len(joined), len(joins), scales)
 
 
 def stop_at_breaks(info: dict) -> None:

@@ -153,6 +153,23 @@ def _run_colmap(frames: list[np.ndarray], kf_ids: list[int], intrinsics, cfg: Sf
         pycolmap.logging.minloglevel = level
 
 
+def views_model(frames: list[np.ndarray], intrinsics, cfg: SfMConfig | None = None) -> dict[int, np.ndarray]:
+    """COLMAP's model of a few views on their own, no frames registered around it (the
+    second opinion of a streamed run, a join through the map): {view index: camera-to-world
+    pose (4, 4) in the model's own frame and scale} for the views in the largest model,
+    empty without one. frames: (H, W, 3) uint8 RGB or (H, W) grey, one size; intrinsics
+    (fx, fy, cx, cy) held fixed (None: COLMAP estimates the focal length); cfg: matching
+    and mapping (default: ``SfMConfig`` with the lens term off)."""
+    cfg = cfg or SfMConfig(calibrate_lens=False)
+    rgb = [np.repeat(f[..., None], 3, axis=2) if f.ndim == 2 else f for f in frames]
+    with tempfile.TemporaryDirectory(prefix="recon-sfm-views-") as tmp:
+        rec, _ = _run_colmap(rgb, list(range(len(rgb))), intrinsics, cfg, Path(tmp))
+    if rec is None:
+        return {}
+    world_to_camera, _, _ = sm.model_poses(rec)
+    return {i: np.linalg.inv(T) for i, T in world_to_camera.items()}
+
+
 def _reader_options(pycolmap, intrinsics, lens: bool):
     """COLMAP's camera for the frames, and whether it has the radial term."""
     reader = pycolmap.ImageReaderOptions()
@@ -247,12 +264,16 @@ def _match_loop_pairs(pycolmap, db_path: Path, names: list[str], matching, verif
     db = pycolmap.Database.open(db_path)
     try:
         ids = {im.name: im.image_id for im in db.read_all_images()}
-        desc = [np.asarray(db.read_descriptors(ids[name]).data) for name in names]
+        # An image COLMAP could not read in (its size differs from the shared camera's) has
+        # no descriptors: it takes part in no pair.
+        desc = [np.asarray(db.read_descriptors(ids[name]).data) if name in ids else np.zeros((0, 128), np.uint8)
+                for name in names]
     finally:
         db.close()
     vectors = skf.bow_vectors(desc, cfg.loop_words)
     # COLMAP's sequential matching also pairs keyframes 2^j apart (its quadratic overlap).
-    pairs = skf.loop_pairs(vectors, skf.sequential_gaps(cfg.overlap), cfg.loop_candidates)
+    pairs = [(a, b) for a, b in skf.loop_pairs(vectors, skf.sequential_gaps(cfg.overlap), cfg.loop_candidates)
+             if names[a] in ids and names[b] in ids]
     if not pairs:
         return {"loop_pairs": 0, "loop_pairs_verified": 0}
     pair_file = workdir / "loop_pairs.txt"
