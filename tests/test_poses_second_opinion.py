@@ -88,3 +88,29 @@ def test_what_asks_for_a_second_opinion():
 def test_too_few_frames_are_not_compared(n):
     compared, share = trajectory_agreement(_walk(n), _walk(n))
     assert compared == n and np.isnan(share)
+
+
+def _shortened(poses: np.ndarray, first: int, factor: float) -> np.ndarray:
+    """The trajectory with every step from frame `first` on `factor` as long (short flow)."""
+    out = poses.copy()
+    steps = np.diff(poses[:, :3, 3], axis=0)
+    steps[first - 1:] *= factor
+    out[1:, :3, 3] = poses[0, :3, 3] + np.cumsum(steps, axis=0)
+    return out
+
+
+def test_sfm_on_some_frames_judges_a_streamed_trajectory(sfm_room):
+    """A streamed run's second opinion (on_views): COLMAP's model of some frames agrees
+    with the room's true poses; with the steps after frame 15 half as long (what the short
+    flow does) it disagrees by more than the bar, and the front end is kept either way."""
+    pytest.importorskip("pycolmap")
+    from recon.poses.second_opinion import MAX_DISAGREEMENT, on_views
+
+    seq, _ = sfm_room
+    keyframes = np.arange(0, 30, 2)
+    right = on_views(seq.poses, keyframes, lambda p: seq.rgb[p], seq.intrinsics, "asked")
+    assert right.verdict == "agree" and right.compared >= 12 and right.disagreement < 0.005
+    assert right.kept == "front end"
+    short = on_views(_shortened(seq.poses, 15, 0.5), keyframes, lambda p: seq.rgb[p], seq.intrinsics, "asked")
+    assert short.verdict == "disagree" and short.disagreement > MAX_DISAGREEMENT
+    assert short.kept == "front end" and "some frames only" in short.why

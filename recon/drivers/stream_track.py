@@ -281,7 +281,8 @@ class _Poser:
             # With --on-break segments (restart_after_loss) it starts again where it loses the
             # camera, as the one-shot run does, instead of stopping the streamed run.
             options = estimator_options(config, frontend_only=True)
-            self.frontend = streaming_frontend(intrinsics, self._prior, _frontend_config(options, config.device),
+            self.frontend_config = _frontend_config(options, config.device)
+            self.frontend = streaming_frontend(intrinsics, self._prior, self.frontend_config,
                                                self.frame_number.__getitem__)
 
     def _prior(self, position: int, frame) -> np.ndarray:
@@ -322,14 +323,38 @@ class _Poser:
         return self._close_estimate(store, indices), "poses (estimated)"
 
     def _close_estimate(self, store: FrameStore, indices) -> PoseStage:
-        result = self.frontend.finish(
-            lambda position: store.get(position, "rgb" if store.has(position, "rgb") else "grey"),
-            self.config.progress)
+        def frame(position: int) -> np.ndarray:
+            return store.get(position, "rgb" if store.has(position, "rgb") else "grey")
+
+        result = self.frontend.finish(frame, self.config.progress)
+        self._second_opinion(result)
         kept, info, note = gate_estimate(result, indices)
         poses = np.asarray(result.poses, np.float64).copy()
         poses[~kept] = np.nan
         return PoseStage(poses, tuple(result.intrinsics), "estimated (streamed front end)", info,
                          lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
+
+
+    def _second_opinion(self, result) -> None:
+        """SfM's opinion of the depth frames (those whose colour the store keeps) where the
+        front end doubts its trajectory, as ``recon.poses.estimate_poses`` asks it in a
+        one-shot run (with ``--pose-method auto``, not under ``--on-break keep``):
+        ``diagnostics["second_opinion"]``."""
+        from ..poses.second_opinion import doubts, on_views, stretches
+
+        asked = doubts(result.diagnostics)
+        if not asked or self.config.pose_method != "auto" or not self.frontend_config.stop_untrusted:
+            return
+        log.warning("the front end doubts part of its trajectory (%s); asking SfM (pycolmap) for a second opinion "
+                    "on its depth frames", asked)
+        views = [p for p in range(len(result.poses)) if self.store.has(p, "rgb")]
+        try:
+            opinion = on_views(result.poses, np.array(views, np.int64), lambda p: self.store.get(p, "rgb"),
+                               self.intrinsics, asked, stretches(result.diagnostics, len(result.poses)))
+        except ReconInputError as err:  # no pycolmap
+            log.warning("no second opinion: %s", err)
+            return
+        result.diagnostics["second_opinion"] = opinion.to_dict()
 
 
 def _frontend_config(options: dict, device: str = "cpu"):

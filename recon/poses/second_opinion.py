@@ -15,8 +15,9 @@ Sim(3), as a share of the path, as the trajectories are judged against the truth
 within ``max_disagreement`` the two agree and the stretch is trusted; otherwise it is marked,
 and the estimator kept is the one with less evidence against it: SfM where the front end
 refused its own result, or marked part of it while SfM's own checks hold nothing against
-its map (``sfm.scale_spread``); else the front end. Measured on the validation table
-(docs/validation.md).
+its map (``sfm.scale_spread``); else the front end. A streamed run asks SfM about its
+depth frames only (:func:`on_views`) and keeps the front end's trajectory, marked where the
+two disagree. Measured on the validation table (docs/validation.md).
 """
 
 from __future__ import annotations
@@ -126,22 +127,26 @@ def stretches(diagnostics: dict, count: int) -> np.ndarray:
 
 def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, frontend_refused: bool,
                    stretch: np.ndarray | None = None, sfm_doubt: str = "", sfm_failure: str = "",
-                   max_disagreement: float = MAX_DISAGREEMENT) -> SecondOpinion:
+                   max_disagreement: float = MAX_DISAGREEMENT, sfm_covers: bool = True) -> SecondOpinion:
     """The verdict on the frames both estimators had (module docstring).
 
     frontend, sfm: (N, 4, 4) camera-to-world poses of the same frames (sfm None: SfM gave
     nothing, ``sfm_failure`` says why); asked: the front end's doubt, in words;
     frontend_refused: whether the front end refused its result (else it only marked part
     of it); stretch: (N,) the front end's stretches (:func:`stretches`); sfm_doubt: what
-    SfM's own checks hold against its map ("" for nothing)."""
+    SfM's own checks hold against its map ("" for nothing); sfm_covers: whether SfM posed
+    every frame (False: only some of them, :func:`on_views`, so SfM can
+    judge the front end's trajectory but not replace it)."""
     if sfm is None:
         return SecondOpinion(asked, 0, float("nan"), "one only", "front end", sfm_failure)
     compared, disagreement = trajectory_agreement(sfm, frontend, stretch)
-    keep_sfm = frontend_refused or not sfm_doubt
+    keep_sfm = sfm_covers and (frontend_refused or not sfm_doubt)
     kept = "SfM" if keep_sfm else "front end"
     if np.isfinite(disagreement) and disagreement <= max_disagreement:
         return SecondOpinion(asked, compared, disagreement, "agree", kept, "both estimators")
-    if frontend_refused:
+    if not sfm_covers:
+        why = "SfM posed some frames only"
+    elif frontend_refused:
         why = "the front end refused its own" + (f", and SfM's own check doubts its map: {sfm_doubt}" if sfm_doubt
                                                  else "; SfM's checks hold nothing against its map")
     elif keep_sfm:
@@ -151,5 +156,32 @@ def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, fro
     return SecondOpinion(asked, compared, disagreement, "disagree", kept, why)
 
 
-__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "second_opinion", "stretches",
+def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str,
+             stretch: np.ndarray | None = None, max_views: int = 100) -> SecondOpinion:
+    """SfM's opinion of a front end's trajectory from some of its frames alone (a streamed
+    run, which keeps its memory bound and the colour of its depth frames only): COLMAP's
+    model of at most ``max_views`` of them, evenly apart (``sfm.views_model``), compared with
+    the front end's poses of the same frames; the front end is kept either way.
+
+    poses: (N, 4, 4) the front end's camera-to-world poses; views: (V,) positions of the
+    frames to use, in order; frame(position) -> (H, W, 3) uint8 RGB, one size; intrinsics:
+    (fx, fy, cx, cy) held fixed, or None for COLMAP to estimate the focal length; asked: the
+    doubt, in words; stretch: (N,) the front end's stretches (:func:`stretches`)."""
+    from recon.poses.sfm import views_model
+
+    views = np.asarray(views, np.int64)
+    views = views[np.isfinite(poses[views]).all(axis=(1, 2))]
+    views = views[np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(np.int64))]
+    in_model = views_model([frame(int(p)) for p in views], intrinsics) if len(views) >= 3 else {}
+    if len(in_model) < 3:
+        return second_opinion(poses[views], None, asked, False,
+                              sfm_failure=f"COLMAP registered {len(in_model)} of {len(views)} frames")
+    sfm = np.full((len(views), 4, 4), np.nan)
+    for i, pose in in_model.items():
+        sfm[i] = pose
+    labels = None if stretch is None else np.asarray(stretch)[views]
+    return second_opinion(poses[views], sfm, asked, False, labels, sfm_covers=False)
+
+
+__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "on_views", "second_opinion", "stretches",
            "trajectory_agreement"]
