@@ -47,6 +47,12 @@ def test_a_bent_trajectory_disagrees_by_its_error_as_a_share_of_the_path():
     moved[15:] = _similar(bent[15:], 2.0, [0.0, 0.0, 0.7], [1.0, 1.0, 1.0])
     _, per_piece = trajectory_agreement(walk, moved, pieces)
     assert per_piece < 1e-9
+    # Stretch by stretch, named by the rows' frames: only the bent one disagrees.
+    bent_twice = moved.copy()
+    bent_twice[22:, :3, 3] += [0.0, 0.5, 0.0]
+    each = second_opinion(walk, bent_twice, "asked", False, pieces, frames=np.arange(100, 130)).by_stretch
+    assert [s["frames"] for s in each] == [[100, 114], [115, 129]] and [s["compared"] for s in each] == [15, 15]
+    assert each[0]["disagreement"] < 1e-9 and each[1]["disagreement"] > 0.02
 
 
 def test_the_verdict_keeps_the_estimator_with_less_against_it():

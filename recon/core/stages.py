@@ -371,7 +371,9 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
                 log.warning("%s (report.json: poses.motion_checks)", mark)
     if "second_opinion" in result.diagnostics:  # the front end and SfM compared (recon.poses.second_opinion)
         opinion = SecondOpinion.from_dict(result.diagnostics["second_opinion"])
-        info["second_opinion"] = opinion.to_dict()
+        # Each stretch compared, named by video frame.
+        info["second_opinion"] = {**opinion.to_dict(), "by_stretch": [
+            {**s, "frames": [names[f] for f in s["frames"]]} for s in opinion.by_stretch]}
         (log.info if opinion.trusted else log.warning)("%s (report.json: poses.second_opinion)", opinion.said())
     if "scale_spread" in result.diagnostics:  # SfM's (recon.drivers.segments.check_scale_spread)
         info["scale_spread"] = result.diagnostics["scale_spread"]

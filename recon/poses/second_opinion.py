@@ -22,7 +22,7 @@ two disagree. Measured on the validation table (docs/validation.md).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -39,7 +39,8 @@ class SecondOpinion:
     doubt), the frames both estimators posed, their disagreement (centres' RMSE after a
     Sim(3), as a share of SfM's path; NaN where not compared), the verdict
     ("agree", "disagree", or "one only" where SfM gave nothing), which estimator is kept, and
-    why."""
+    why; by_stretch: per stretch of the front end's trajectory compared, its first and last
+    frame, the frames compared and their disagreement (:func:`stretch_agreement`)."""
 
     asked: str
     compared: int
@@ -47,6 +48,7 @@ class SecondOpinion:
     verdict: str
     kept: str
     why: str
+    by_stretch: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -71,19 +73,22 @@ class SecondOpinion:
                 f"to better than that")
 
 
-def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.ndarray | None = None
-                         ) -> tuple[int, float]:
-    """How far two estimates of the same frames differ, whatever their world frame and scale.
+def stretch_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.ndarray | None = None,
+                      frames: np.ndarray | None = None) -> list[dict]:
+    """How far two estimates of the same frames differ, stretch by stretch, whatever their
+    world frame and scale.
 
     reference, other: (N, 4, 4) camera-to-world poses (non-finite: no pose); stretch: (N,)
     int, the stretch of `other` each frame belongs to (pieces of a trajectory in worlds of
-    their own: each compared on its own; None: one). Returns (frames both posed, the largest
-    over stretches of the RMSE of the reference's centres against the other's after the
-    Sim(3) that best takes the other onto the reference (Umeyama), as a share of the
-    reference's path over those frames; NaN where no stretch has 3 frames and a path)."""
+    their own: each compared on its own; None: one); frames: (N,) how the rows are named
+    (default: positions). Returns per stretch with 3 frames both posed and a path: its
+    label, first and last frame, the frames compared and the RMSE of the reference's centres
+    against the other's after the Sim(3) that best takes the other onto the reference
+    (Umeyama), as a share of the reference's path over those frames."""
     both = np.isfinite(reference).all(axis=(1, 2)) & np.isfinite(other).all(axis=(1, 2))
     stretch = np.zeros(len(reference), np.int64) if stretch is None else np.asarray(stretch)
-    worst = float("nan")
+    frames = np.arange(len(reference)) if frames is None else np.asarray(frames)
+    out = []
     for label in np.unique(stretch[both]):
         mine = both & (stretch == label)
         a, b = reference[mine, :3, 3], other[mine, :3, 3]
@@ -93,8 +98,19 @@ def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.n
         rot, trans, scale = umeyama(b, a, with_scale=True)
         moved = scale * b @ rot.T + trans
         share = float(np.sqrt(np.mean(np.sum((moved - a) ** 2, axis=1))) / path)
-        worst = share if not np.isfinite(worst) else max(worst, share)
-    return int(both.sum()), worst
+        rows = np.flatnonzero(stretch == label)
+        out.append({"stretch": int(label), "frames": [int(frames[rows[0]]), int(frames[rows[-1]])],
+                    "compared": int(mine.sum()), "disagreement": share})
+    return out
+
+
+def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.ndarray | None = None
+                         ) -> tuple[int, float]:
+    """(frames both posed, the largest disagreement over stretches of
+    :func:`stretch_agreement`; NaN where no stretch has 3 frames and a path)."""
+    both = np.isfinite(reference).all(axis=(1, 2)) & np.isfinite(other).all(axis=(1, 2))
+    shares = [s["disagreement"] for s in stretch_agreement(reference, other, stretch)]
+    return int(both.sum()), (max(shares) if shares else float("nan"))
 
 
 def doubts(diagnostics: dict) -> str:
@@ -127,7 +143,8 @@ def stretches(diagnostics: dict, count: int) -> np.ndarray:
 
 def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, frontend_refused: bool,
                    stretch: np.ndarray | None = None, sfm_doubt: str = "", sfm_failure: str = "",
-                   max_disagreement: float = MAX_DISAGREEMENT, sfm_covers: bool = True) -> SecondOpinion:
+                   max_disagreement: float = MAX_DISAGREEMENT, sfm_covers: bool = True,
+                   frames: np.ndarray | None = None) -> SecondOpinion:
     """The verdict on the frames both estimators had (module docstring).
 
     frontend, sfm: (N, 4, 4) camera-to-world poses of the same frames (sfm None: SfM gave
@@ -136,14 +153,16 @@ def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, fro
     of it); stretch: (N,) the front end's stretches (:func:`stretches`); sfm_doubt: what
     SfM's own checks hold against its map ("" for nothing); sfm_covers: whether SfM posed
     every frame (False: only some of them, :func:`on_views`, so SfM can
-    judge the front end's trajectory but not replace it)."""
+    judge the front end's trajectory but not replace it); frames: (N,) the rows' positions
+    in the run, for ``by_stretch`` (default: 0 .. N-1)."""
     if sfm is None:
         return SecondOpinion(asked, 0, float("nan"), "one only", "front end", sfm_failure)
     compared, disagreement = trajectory_agreement(sfm, frontend, stretch)
+    by_stretch = stretch_agreement(sfm, frontend, stretch, frames)
     keep_sfm = sfm_covers and (frontend_refused or not sfm_doubt)
     kept = "SfM" if keep_sfm else "front end"
     if np.isfinite(disagreement) and disagreement <= max_disagreement:
-        return SecondOpinion(asked, compared, disagreement, "agree", kept, "both estimators")
+        return SecondOpinion(asked, compared, disagreement, "agree", kept, "both estimators", by_stretch)
     if not sfm_covers:
         why = "SfM posed some frames only"
     elif frontend_refused:
@@ -153,7 +172,7 @@ def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, fro
         why = "SfM's checks hold nothing against its map, the front end's marked part of its own"
     else:
         why = f"SfM's own check doubts its map: {sfm_doubt}"
-    return SecondOpinion(asked, compared, disagreement, "disagree", kept, why)
+    return SecondOpinion(asked, compared, disagreement, "disagree", kept, why, by_stretch)
 
 
 def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str,
@@ -180,8 +199,8 @@ def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str
     for i, pose in in_model.items():
         sfm[i] = pose
     labels = None if stretch is None else np.asarray(stretch)[views]
-    return second_opinion(poses[views], sfm, asked, False, labels, sfm_covers=False)
+    return second_opinion(poses[views], sfm, asked, False, labels, sfm_covers=False, frames=views)
 
 
-__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "on_views", "second_opinion", "stretches",
-           "trajectory_agreement"]
+__all__ = ["MAX_DISAGREEMENT", "SecondOpinion", "doubts", "on_views", "second_opinion", "stretch_agreement",
+           "stretches", "trajectory_agreement"]
