@@ -92,12 +92,12 @@ def _join_through_map(stretch: np.ndarray, k: int, usable: list[int], view, intr
     """Break k's join through an SfM model (``recon.poses.map_join``) of views spread over
     the frames nearest it on each side, or None (also where pycolmap is not installed)."""
     from ..poses.map_join import MapJoinConfig, map_join
+    from ..poses.sfm_keyframes import evenly_apart
 
     cfg = MapJoinConfig()
 
-    def spread(near: list[int]) -> list[int]:  # `views` of the frames nearest the break, evenly apart
-        picked = np.linspace(0, len(near) - 1, min(cfg.views, len(near))).round().astype(int) if near else []
-        return [near[i] for i in picked]
+    def spread(near: list[int]) -> list[int]:  # `views` of the frames nearest the break
+        return [near[i] for i in evenly_apart(len(near), cfg.views)]
 
     before = spread([p for p in usable if stretch[p] == k - 1][-cfg.reach:])
     after = spread([p for p in usable if stretch[p] == k][:cfg.reach])

@@ -334,7 +334,6 @@ class _Poser:
         return PoseStage(poses, tuple(result.intrinsics), "estimated (streamed front end)", info,
                          lens_k1=float(result.diagnostics.get("lens_k1", 0.0)), dropped_note=note)
 
-
     def _second_opinion(self, result) -> None:
         """SfM's opinion of the depth frames (those whose colour the store keeps) where the
         front end doubts its trajectory, as ``recon.poses.estimate_poses`` asks it in a

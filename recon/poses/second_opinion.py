@@ -108,8 +108,13 @@ def trajectory_agreement(reference: np.ndarray, other: np.ndarray, stretch: np.n
                          ) -> tuple[int, float]:
     """(frames both posed, the largest disagreement over stretches of
     :func:`stretch_agreement`; NaN where no stretch has 3 frames and a path)."""
+    return _overall(reference, other, stretch_agreement(reference, other, stretch))
+
+
+def _overall(reference: np.ndarray, other: np.ndarray, by_stretch: list[dict]) -> tuple[int, float]:
+    """:func:`trajectory_agreement` from the stretches :func:`stretch_agreement` compared."""
     both = np.isfinite(reference).all(axis=(1, 2)) & np.isfinite(other).all(axis=(1, 2))
-    shares = [s["disagreement"] for s in stretch_agreement(reference, other, stretch)]
+    shares = [s["disagreement"] for s in by_stretch]
     return int(both.sum()), (max(shares) if shares else float("nan"))
 
 
@@ -157,8 +162,8 @@ def second_opinion(frontend: np.ndarray, sfm: np.ndarray | None, asked: str, fro
     in the run, for ``by_stretch`` (default: 0 .. N-1)."""
     if sfm is None:
         return SecondOpinion(asked, 0, float("nan"), "one only", "front end", sfm_failure)
-    compared, disagreement = trajectory_agreement(sfm, frontend, stretch)
     by_stretch = stretch_agreement(sfm, frontend, stretch, frames)
+    compared, disagreement = _overall(sfm, frontend, by_stretch)
     keep_sfm = sfm_covers and (frontend_refused or not sfm_doubt)
     kept = "SfM" if keep_sfm else "front end"
     if np.isfinite(disagreement) and disagreement <= max_disagreement:
@@ -187,10 +192,11 @@ def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str
     (fx, fy, cx, cy) held fixed, or None for COLMAP to estimate the focal length; asked: the
     doubt, in words; stretch: (N,) the front end's stretches (:func:`stretches`)."""
     from recon.poses.sfm import views_model
+    from recon.poses.sfm_keyframes import evenly_apart
 
     views = np.asarray(views, np.int64)
     views = views[np.isfinite(poses[views]).all(axis=(1, 2))]
-    views = views[np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(np.int64))]
+    views = views[evenly_apart(len(views), max_views)]
     in_model = views_model([frame(int(p)) for p in views], intrinsics) if len(views) >= 3 else {}
     if len(in_model) < 3:
         return second_opinion(poses[views], None, asked, False,
