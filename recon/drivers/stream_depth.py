@@ -187,9 +187,10 @@ def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray
     surface. Otherwise, the previous window's finished depth on the shared frames `shared`.
     Rendering SURFACE_ANCHOR_VIEWS frames spread over the window (the first one included) at
     every SURFACE_ANCHOR_STEP-th pixel is enough for a median."""
+    from ..poses.sfm_keyframes import evenly_apart
+
     if volume is not None and volume.blocks_used:
-        views = np.unique(np.linspace(0, len(adjusted) - 1, min(len(adjusted), SURFACE_ANCHOR_VIEWS)).round()
-                          .astype(np.int64))
+        views = evenly_apart(len(adjusted), SURFACE_ANCHOR_VIEWS)
         step = SURFACE_ANCHOR_STEP
         current = adjusted[views, ::step, ::step]
         coarse = np.asarray(seq.intrinsics, np.float64) / step

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from recon.geometry import projective as pj
+from recon.poses.sfm_keyframes import evenly_apart
 
 
 @dataclass(frozen=True)
@@ -98,7 +99,7 @@ def sample_grays(frames, max_frames: int, max_width: int) -> tuple[list[np.ndarr
     height, width = frames[0].shape[:2]
     scale = min(1.0, max_width / width)
     size = (round(width * scale), round(height * scale))
-    chosen = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).round().astype(int))
+    chosen = evenly_apart(len(frames), max_frames)
     grays = [cv2.cvtColor(np.ascontiguousarray(frames[i]), cv2.COLOR_RGB2GRAY) for i in chosen]
     if scale < 1.0:
         grays = [cv2.resize(g, size, interpolation=cv2.INTER_AREA) for g in grays]
