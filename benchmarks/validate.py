@@ -217,6 +217,12 @@ def warnings_of(stderr: str) -> list[str]:
     return [line.removeprefix("recon: warning: ") for line in stderr.splitlines() if line.startswith("recon: warning:")]
 
 
+def mesh_before_icp(ev: dict) -> dict:
+    """The mesh scores of an eval.json under the trajectory's own alignment (the F@5cm
+    column; the ICP-refined scores are beside it)."""
+    return ev.get("mesh_before_icp", ev["mesh"])
+
+
 def scores(rec: Recording, mode: str, out: Path) -> dict:
     """recon eval's figures of one output folder (those the recording has truth for)."""
     report = json.loads((out / "report.json").read_text())
@@ -246,7 +252,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
     if "depth" in ev:
         row["abs_rel"] = ev["depth"]["metric"]["abs_rel"]
     if "mesh" in ev:
-        row["fscore"] = ev.get("mesh_before_icp", ev["mesh"])["fscore"]
+        row["fscore"] = mesh_before_icp(ev)["fscore"]
         row["fscore_icp"] = ev["mesh"]["fscore"] if ev.get("mesh_icp", {}).get("accepted") else None
     if "trajectory" in ev:
         from recon.eval.trajectory import path_length

@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.common import machine, table, write_json  # noqa: E402
+from benchmarks.validate import fmt, mesh_before_icp  # noqa: E402
 
 HEADERS = ["recording", "frames", "variant", "F@5cm", "precision", "recall", "abs rel", "depth frames",
            "windows' refined share", "voxel mm", "peak MB"]
@@ -34,7 +35,8 @@ def summarise(folder: Path, labels: list[str]) -> dict | None:
     name, mode, segment, variant = folder.name.rsplit("-", 3)
     report = json.loads(report_path.read_text())
     scores = json.loads(eval_path.read_text()) if eval_path.is_file() else {}
-    mesh, depth = scores.get("mesh", {}), scores.get("depth", {}).get("metric", {})
+    mesh = mesh_before_icp(scores) if "mesh" in scores else {}
+    depth = scores.get("depth", {}).get("metric", {})
     frames = report["frames"]
     windows = report.get("windows", {}).get("each", [])
     return {"recording": name, "mode": mode, "segment": int(segment),
@@ -46,10 +48,6 @@ def summarise(folder: Path, labels: list[str]) -> dict | None:
             "refined_share": [round(w["refined_share"], 3) for w in windows if w.get("refined_share") is not None],
             "voxel_mm": 1000.0 * report.get("fusion", {}).get("voxel_size", float("nan")),
             "peak_rss_mb": report.get("memory", {}).get("peak_rss_mb")}
-
-
-def _cell(value, spec: str) -> str:
-    return "-" if value is None else format(value, spec)
 
 
 def main() -> None:
@@ -66,10 +64,10 @@ def main() -> None:
             if row is not None:
                 rows.append(row)
     rows.sort(key=lambda r: (r["recording"], r["segment"], r["variant"]))
-    print(table(HEADERS, [[r["recording"], r["frames"], r["variant"], _cell(r["fscore"], ".3f"),
-                           _cell(r["precision"], ".3f"), _cell(r["recall"], ".3f"), _cell(r["abs_rel"], ".4f"),
+    print(table(HEADERS, [[r["recording"], r["frames"], r["variant"], fmt(r["fscore"], ".3f"),
+                           fmt(r["precision"], ".3f"), fmt(r["recall"], ".3f"), fmt(r["abs_rel"], ".4f"),
                            f"{r['depth_frames']} of {r['tracked']}", " ".join(f"{s:.2f}" for s in r["refined_share"]),
-                           _cell(r["voxel_mm"], ".1f"), _cell(r["peak_rss_mb"], ".0f")] for r in rows]))
+                           fmt(r["voxel_mm"], ".1f"), fmt(r["peak_rss_mb"], ".0f")] for r in rows]))
     if args.json:
         print(f"wrote {write_json(args.json, {'machine': machine(), 'rows': rows})}")
 
