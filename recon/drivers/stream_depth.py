@@ -84,7 +84,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     from ..core.refine import default_min_confidence, fusion_confidence
     from ..core.stages import adjust_with_medea, refine_depth
     from ..export import write_depth_frame
-    from ..fusion import FusionOptions
+    from ..fusion import FusionOptions, confidence_weight
 
     positions = np.flatnonzero(video.depth_frame)
     if len(positions) < 2:
@@ -136,9 +136,9 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
             with clock.stage("export"):
                 write_depth_frame(out, seq.names[k], depth_k, config.depth_npy)
             with clock.stage("fusion"):
-                d = depth_k if confidence is None else np.where(confidence[k - first] >= options.min_confidence,
-                                                                depth_k, 0)
-                fused += volume.integrate(d, seq.poses[k], seq.intrinsics, seq.rgb[k])
+                weight = None if confidence is None else confidence_weight(
+                    confidence[k - first], options.min_confidence, options.confidence_weights)
+                fused += volume.integrate(depth_k, seq.poses[k], seq.intrinsics, seq.rgb[k], weight=weight)
             if logger is not None:
                 with clock.stage("logging"):
                     logger.log_depth(int(seq.indices[k]), seq.prior_depth[k], adjusted[k],

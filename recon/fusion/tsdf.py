@@ -35,7 +35,9 @@ confirm is not fused, so it cannot pull the surface or leave floaters. Texturele
 refinement left to MEDeA then leave holes rather than wavy surfaces (see
 ``docs/benchmarks.md``: on 7-Scenes with given poses fusing them too lowered the mesh
 F-score). ``None`` leaves the threshold to the caller (the pipeline picks one by where the
-poses came from); ``fuse`` itself then uses DEFAULT_MIN_CONFIDENCE.
+poses came from); ``fuse`` itself then uses DEFAULT_MIN_CONFIDENCE. With
+``confidence_weights`` the pixels admitted also weigh by their confidence
+(``confidence_weight``), so that confirmed depth outweighs filled depth in the average.
 
 Fragment removal keeps a connected component only if it has at least
 ``min_fragment_triangles`` triangles and ``min_fragment_fraction`` of the largest one's.
@@ -87,7 +89,11 @@ class FusionOptions:
     keep everything). point_cloud: also extract a surface point cloud. device: "cpu",
     "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
     confidence map, pixels below it are not integrated (None: the caller's choice, else
-    DEFAULT_MIN_CONFIDENCE). max_triangles: the mesh's triangle budget (``volume.within_budget``:
+    DEFAULT_MIN_CONFIDENCE). confidence_weights: confidence levels that each add one
+    observation's weight to a pixel fused (min_confidence admits it with weight 1): with
+    (0.1,) and min_confidence 0.02 a reconstructed pixel counts twice, a filled one near
+    evidence once, so ``weight_threshold`` sums weights and not frames (() = every fused pixel
+    weighs 1; ``confidence_weight``). max_triangles: the mesh's triangle budget (``volume.within_budget``:
     quadric decimation; 0 = no limit, the full mesh). metric: the depth is in metres to be
     trusted (False: its scale is not, and the voxel follows the depth without the absolute
     bounds; the pipeline sets it from report.json's poses.metric_scale).
@@ -106,6 +112,7 @@ class FusionOptions:
     device: str = "cpu"
     progress: bool = True
     min_confidence: float | None = None
+    confidence_weights: tuple[float, ...] = ()
     max_triangles: int = 1_000_000
     metric: bool = True
 
@@ -125,6 +132,8 @@ class FusionOptions:
             raise ReconInputError(f"fusion option block_count must be >= 64, got {self.block_count}")
         if self.min_confidence is not None and not (0 <= self.min_confidence <= 1):
             raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
+        if not all(0 <= level <= 1 for level in self.confidence_weights):
+            raise ReconInputError(f"fusion option confidence_weights must be in [0, 1], got {self.confidence_weights}")
         if int(self.max_triangles) < 0:
             raise ReconInputError(f"fusion option max_triangles must be >= 0 (0: no limit), got {self.max_triangles}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
@@ -337,12 +346,14 @@ def _check_inputs(depth, rgb, poses) -> tuple[int, int, int]:
 
 class ConfidentDepth:
     """Depth maps (N, H, W) with the pixels of confidence below a threshold set to 0, read
-    one frame at a time (indexable and sized like the depth it wraps)."""
+    one frame at a time (indexable and sized like the depth it wraps); ``weight(i)`` the
+    observations each pixel of frame i counts for (``confidence_weight``)."""
 
-    def __init__(self, depth, confidence, threshold: float):
+    def __init__(self, depth, confidence, threshold: float, levels: Sequence[float] = ()):
         if len(confidence) != len(depth):
             raise ValueError(f"{len(confidence)} confidence maps for {len(depth)} depth maps")
         self.depth, self.confidence, self.threshold = depth, confidence, float(threshold)
+        self.levels = tuple(levels)
 
     def __len__(self) -> int:
         return len(self.depth)
@@ -350,6 +361,21 @@ class ConfidentDepth:
     def __getitem__(self, i: int) -> np.ndarray:
         d = np.asarray(self.depth[i], dtype=np.float32)
         return np.where(np.asarray(self.confidence[i]) >= self.threshold, d, np.float32(0.0))
+
+    def weight(self, i: int) -> np.ndarray | None:
+        """(H, W) observations of frame i's pixels, None when every fused pixel weighs 1."""
+        return confidence_weight(self.confidence[i], self.threshold, self.levels) if self.levels else None
+
+
+def confidence_weight(confidence, min_confidence: float, levels: Sequence[float] = ()) -> np.ndarray:
+    """Observations (H, W) uint8 each pixel counts for in the TSDF: 0 below min_confidence,
+    else 1 plus the number of ``levels`` its confidence (H, W) reaches. A weighted TSDF
+    average (Curless and Levoy 1996) in whole steps, the steps Open3D integrates."""
+    confidence = np.asarray(confidence)
+    weight = (confidence >= min_confidence).astype(np.uint8)
+    for level in levels:
+        weight += weight.astype(bool) & (confidence >= level)
+    return weight
 
 
 def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, float, float]:
@@ -407,7 +433,7 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     n, h, w = _check_inputs(depth, rgb, poses)
     if confidence is not None:
         threshold = DEFAULT_MIN_CONFIDENCE if options.min_confidence is None else options.min_confidence
-        depth = ConfidentDepth(depth, confidence, threshold)
+        depth = ConfidentDepth(depth, confidence, threshold, options.confidence_weights)
     poses = np.asarray(poses, dtype=np.float64)
     k_all = _frame_intrinsics(intrinsics, n)
     device = fusion_device(options.device)
@@ -433,7 +459,8 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     volume = TsdfVolume(voxel, trunc, max_depth, capacity, colored=rgb is not None,
                         block_resolution=options.block_resolution, device=device)
     for i in tqdm(frames, desc="TSDF fusion", unit="frame", disable=not options.progress, leave=False):
-        volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i])
+        volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i],
+                         weight=depth.weight(i) if confidence is not None else None)
     mesh, cloud, removed, full = finished_mesh(volume, options, confidence is not None)
     fused, blocks_used = volume.frames_fused, volume.blocks_used
     return FusionResult(

@@ -125,25 +125,37 @@ class TsdfVolume:
         )
         self.frames_fused = 0
 
-    def integrate(self, depth, pose, intrinsics, rgb=None) -> bool:
+    def integrate(self, depth, pose, intrinsics, rgb=None, weight=None) -> bool:
         """Fuse one frame: depth (H, W) metres (0 invalid), pose (4, 4) camera-to-world,
-        intrinsics (fx, fy, cx, cy) of the depth, rgb (H', W', 3) uint8 or None. False when
-        the frame has no valid depth within max_depth (nothing fused; Open3D raises on it)."""
+        intrinsics (fx, fy, cx, cy) of the depth, rgb (H', W', 3) uint8 or None, weight (H, W)
+        integer observations each pixel counts for (None: 1 each; 0 leaves a pixel out).
+        Open3D adds one observation per integration, so a pixel of weight w is integrated w
+        times, each time with the pixels of weight below that count left out. False when the
+        frame has no valid depth within max_depth (nothing fused; Open3D raises on it)."""
         d = clean_depth(depth)
+        if weight is not None:
+            weight = np.asarray(weight)
+            d = np.where(weight > 0, d, np.float32(0.0))
         if not ((d > 0) & (d <= self.max_depth)).any():
             return False
         fx, fy, cx, cy = (float(v) for v in intrinsics)
         K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
         # Open3D wants the extrinsic world-to-camera matrix.
         E = o3c.Tensor(np.linalg.inv(np.asarray(pose, np.float64)), o3c.float64)
-        d_img = o3d.t.geometry.Image(o3c.Tensor(d).to(self.device))
         trunc_mult = self.trunc / self.voxel
+        d_img = o3d.t.geometry.Image(o3c.Tensor(d).to(self.device))
         blocks = self.grid.compute_unique_block_coordinates(d_img, K, E, 1.0, self.max_depth, trunc_mult)
-        if self.colored and rgb is not None:
-            color = _color_image(rgb, *d.shape, self.device)
-            self.grid.integrate(blocks, d_img, color, K, K, E, 1.0, self.max_depth, trunc_mult)
-        else:
-            self.grid.integrate(blocks, d_img, K, E, 1.0, self.max_depth, trunc_mult)
+        color = _color_image(rgb, *d.shape, self.device) if self.colored and rgb is not None else None
+        for count in range(1, 2 if weight is None else int(weight.max()) + 1):
+            if count > 1:
+                d_count = np.where(weight >= count, d, np.float32(0.0))
+                if not ((d_count > 0) & (d_count <= self.max_depth)).any():
+                    break
+                d_img = o3d.t.geometry.Image(o3c.Tensor(d_count).to(self.device))
+            if color is not None:
+                self.grid.integrate(blocks, d_img, color, K, K, E, 1.0, self.max_depth, trunc_mult)
+            else:
+                self.grid.integrate(blocks, d_img, K, E, 1.0, self.max_depth, trunc_mult)
         self.frames_fused += 1
         return True
 
