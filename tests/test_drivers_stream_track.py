@@ -22,6 +22,8 @@ def _poser(pose_method: str, stop_untrusted: bool):
     poser.config = SimpleNamespace(pose_method=pose_method)
     poser.frontend_config = SimpleNamespace(stop_untrusted=stop_untrusted)
     poser.intrinsics = None
+    # Tracked under --start: position p is the video's frame 100 + p.
+    poser.frame_number = {p: 100 + p for p in range(12)}
     # The store keeps the colour of the depth frames 0, 3, 6, 9 only.
     poser.store = SimpleNamespace(has=lambda p, kind: kind == "rgb" and p % 3 == 0, get=lambda p, kind: None)
     return poser
@@ -49,5 +51,5 @@ def test_sfm_is_asked_where_the_front_end_doubts(monkeypatch, pose_method, stop_
     assert bool(calls) == asked
     assert ("second_opinion" in result.diagnostics) == asked
     if asked:
-        assert calls[0][0] == [0, 3, 6, 9] and "4-9" in calls[0][1]
+        assert calls[0][0] == [0, 3, 6, 9] and "frames 104-109" in calls[0][1]
         assert result.diagnostics["second_opinion"]["verdict"] == "disagree"

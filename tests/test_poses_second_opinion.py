@@ -86,6 +86,9 @@ def test_what_asks_for_a_second_opinion():
         "breaks": [{"before": 10, "after": 12, "factor": 1.5, "z": 6.0, "kind": "step"}]}}
     assert doubts(flagged) == "the dense flow made the camera's steps short at frames 3-9; the trajectory breaks " \
                               "at frames 10-12"
+    # Said as the video numbers its frames (a run under --start 350), as every other message.
+    assert doubts(flagged, lambda p: 350 + p) == "the dense flow made the camera's steps short at frames 353-359; " \
+                                                 "the trajectory breaks at frames 360-362"
     assert stretches(flagged, 15).tolist() == [0] * 12 + [1] * 3
     assert stretches({}, 4).tolist() == [0, 0, 0, 0]
 

@@ -341,7 +341,7 @@ class _Poser:
         ``diagnostics["second_opinion"]``."""
         from ..poses.second_opinion import doubts, on_views, stretches
 
-        asked = doubts(result.diagnostics)
+        asked = doubts(result.diagnostics, self.frame_number.__getitem__)
         if not asked or self.config.pose_method != "auto" or not self.frontend_config.stop_untrusted:
             return
         log.warning("the front end doubts part of its trajectory (%s); asking SfM (pycolmap) for a second opinion "

@@ -24,7 +24,7 @@ from recon.poses.options import (
     parse_pose_option,
     pose_option_table,
 )
-from recon.poses.result import PoseResult, TrackingLostError, parse_intrinsics
+from recon.poses.result import PoseResult, TrackingLostError, numbered, parse_intrinsics
 from recon.poses.second_opinion import doubts, second_opinion, stretches
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,7 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
                                      sfm_doubt=_sfm_doubt(result))
             result.diagnostics["second_opinion"] = opinion.to_dict()
         return result
-    asked = doubts(result.diagnostics) if method == "auto" and fe_cfg.stop_untrusted else ""
+    asked = doubts(result.diagnostics, numbered(frame_numbers)) if method == "auto" and fe_cfg.stop_untrusted else ""
     if not asked:
         return result
     try:

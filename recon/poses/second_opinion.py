@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from recon.geometry.rigid import polyline_length, umeyama
+from recon.poses.result import FrameNumbers, by_position, frame_spans
 
 # Two trajectories whose centres differ by at most this share of the path after a Sim(3)
 # agree: the bar a right trajectory meets against the truth (issue 62's acceptance).
@@ -118,20 +119,22 @@ def _overall(reference: np.ndarray, other: np.ndarray, by_stretch: list[dict]) -
     return int(both.sum()), (max(shares) if shares else float("nan"))
 
 
-def doubts(diagnostics: dict) -> str:
+def doubts(diagnostics: dict, number: FrameNumbers = by_position) -> str:
     """What in a front end's result (its diagnostics) asks for a second opinion, in words
     ("" for nothing): stretches whose steps the flow made short (``motion_checks``) and
-    breaks of the map's scale or of tracking (``scale_watch``). Frames by position."""
+    breaks of the map's scale or of tracking (``scale_watch``). number: position -> the
+    frame number said (recon.poses.result.FrameNumbers)."""
     from recon.poses.scale_watch import ScaleWatch
 
     said = []
     short = diagnostics.get("motion_checks", {}).get("short_flow", [])
     if short:
-        said.append("the dense flow made the camera's steps short at frames " + ", ".join(f"{a}-{b}" for a, b in short))
+        said.append("the dense flow made the camera's steps short at frames " + frame_spans(short, number))
     if "scale_watch" in diagnostics:
         watch = ScaleWatch.from_dict(diagnostics["scale_watch"])
         if watch.breaks:
-            said.append("the trajectory breaks at frames " + ", ".join(f"{b.before}-{b.after}" for b in watch.breaks))
+            said.append("the trajectory breaks at frames "
+                        + frame_spans(((b.before, b.after) for b in watch.breaks), number))
     return "; ".join(said)
 
 
