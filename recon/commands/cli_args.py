@@ -223,8 +223,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         "reconstructed pixels around them; 0 fuses all). Default: 0.1 (reconstructed pixels only) "
                         "with given poses, 0.01 (also filled pixels near evidence) with estimated poses")
     g.add_argument("--max-triangles", type=int, default=fd.max_triangles,
-                   help="the mesh's triangle budget: a larger mesh is decimated (quadric error, colours kept) "
-                        "to this many triangles (default %(default)s; 0 keeps the full mesh)")
+                   help="the mesh's triangle budget: a larger mesh is thinned (vertex clustering, colours "
+                        "kept) to 80-100 %% of this many triangles (default %(default)s; 0 keeps the full mesh)")
     g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
 
     g = parser.add_argument_group("output")

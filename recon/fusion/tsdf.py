@@ -94,7 +94,7 @@ class FusionOptions:
     (0.1,) and min_confidence 0.02 a reconstructed pixel counts twice, a filled one near
     evidence once, so ``weight_threshold`` sums weights and not frames (() = every fused pixel
     weighs 1; ``confidence_weight``). max_triangles: the mesh's triangle budget (``volume.within_budget``:
-    quadric decimation; 0 = no limit, the full mesh). metric: the depth is in metres to be
+    vertex clustering; 0 = no limit, the full mesh). metric: the depth is in metres to be
     trusted (False: its scale is not, and the voxel follows the depth without the absolute
     bounds; the pipeline sets it from report.json's poses.metric_scale).
     """

@@ -11,6 +11,7 @@ size, truncation and depth range is :mod:`recon.fusion.tsdf`'s.
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 import open3d as o3d
@@ -23,6 +24,10 @@ log = logging.getLogger(__name__)
 # the next (0 % at factors 1 and 2 over repeated calls); 1 costs ~30 % more on a call that
 # takes ~20 ms at 256x192.
 RANGE_MAP_DOWN_FACTOR = 1
+# The triangle budget (within_budget): a thinned mesh keeps at least this share of the
+# budget, found in at most BUDGET_TRIES clusterings (each ~2 s for 2.4 M triangles).
+BUDGET_FILL = 0.8
+BUDGET_TRIES = 3
 
 
 def clean_depth(d) -> np.ndarray:
@@ -241,20 +246,45 @@ def canonical_points(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
 
 
 def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.geometry.TriangleMesh:
-    """The mesh with at most `max_triangles` triangles (0: no limit), by quadric error
-    decimation (Garland and Heckbert, SIGGRAPH 1997, as Open3D implements it; vertex colours
-    are carried along), in canonical order. Web viewers and phone AR stall on meshes of
-    millions of triangles; a TSDF mesh at a 5 mm voxel is mostly flat patches that a quadric
-    decimation thins without moving the surface."""
+    """The mesh with at most `max_triangles` triangles (0: no limit), by vertex clustering
+    (Rossignac and Borrel 1993: the vertices in each cell of a grid merged into their mean,
+    vertex colours averaged with them), in canonical order. Web viewers and phone AR stall on
+    meshes of millions of triangles. A TSDF mesh is already a grid surface, so a coarser grid
+    thins it evenly; the cell size is chosen from the mesh's mean edge length so that the
+    triangles land between BUDGET_FILL and 1 of the budget (a triangle count falls with the
+    square of the cell). Quadric decimation gives the same surface (F@5cm within 0.001 on
+    7-Scenes) ten times slower: 24 s for 2.4 M -> 1 M triangles on a 2-core CPU."""
     if max_triangles <= 0 or len(mesh.triangles) <= max_triangles:
         return mesh
-    small = mesh.simplify_quadric_decimation(target_number_of_triangles=int(max_triangles))
-    log.info("mesh decimated from %d to %d triangles (--max-triangles; 0 keeps the full mesh)",
+    cell = mean_edge_length(mesh) * math.sqrt(len(mesh.triangles) / max_triangles)
+    small = mesh
+    for _ in range(BUDGET_TRIES):
+        small = mesh.simplify_vertex_clustering(voxel_size=cell,
+                                                contraction=o3d.geometry.SimplificationContraction.Average)
+        count = max(len(small.triangles), 1)
+        if BUDGET_FILL * max_triangles <= count <= max_triangles:
+            break
+        # Aim at the middle of the band: the count follows 1 / cell^2.
+        cell *= math.sqrt(count / (0.5 * (1.0 + BUDGET_FILL) * max_triangles))
+    if len(small.triangles) > max_triangles:  # the band missed on every try: thin until it fits
+        while len(small.triangles) > max_triangles:
+            cell *= math.sqrt(len(small.triangles) / max_triangles) * 1.05
+            small = mesh.simplify_vertex_clustering(voxel_size=cell,
+                                                    contraction=o3d.geometry.SimplificationContraction.Average)
+    log.info("mesh thinned from %d to %d triangles (--max-triangles; 0 keeps the full mesh)",
              len(mesh.triangles), len(small.triangles))
+    small.remove_degenerate_triangles()
     if mesh.has_vertex_colors():
         small.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(small.vertex_colors), 0, 1))
     small.compute_vertex_normals()
     return canonical_mesh(small)
+
+
+def mean_edge_length(mesh: o3d.geometry.TriangleMesh) -> float:
+    """Mean length of the mesh's triangle edges (each edge counted once per triangle)."""
+    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    corners = vertices[triangles]  # (T, 3, 3)
+    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
 
 
 def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
