@@ -117,7 +117,7 @@ def run_once(args: list[str], out: Path, code: Path | None) -> dict:
     row.update(frames=tracked, depth_frames=frames.get("depth_frames", frames["count"]),
                stages={k: v / tracked for k, v in report["seconds"].items()},
                wall_per_frame=wall / tracked, peak_rss_mb=report.get("memory", {}).get("peak_rss_mb"),
-               first_result_s=report.get("first_result_s"))
+               first_result_s=report.get("windows", {}).get("first_result_s"))
     return row
 
 

@@ -13,10 +13,17 @@ from ..memory import release_memory
 
 
 class StageClock:
-    """Wall seconds per stage name, summed over every block timed under it."""
+    """Wall seconds per stage name, summed over every block timed under it; ``marks``: the
+    seconds from ``started`` (the clock's creation, or a given start) to named moments."""
 
-    def __init__(self):
+    def __init__(self, started: float | None = None):
         self.seconds: dict[str, float] = {}
+        self.started = time.perf_counter() if started is None else started
+        self.marks: dict[str, float] = {}
+
+    def mark(self, name: str) -> None:
+        """Record the seconds since ``started`` under ``name``, the first time only."""
+        self.marks.setdefault(name, time.perf_counter() - self.started)
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:

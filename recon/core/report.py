@@ -171,11 +171,12 @@ def segments_warning(summary: dict) -> str:
 
 
 def stream_report(*, config, source, video, windows: list[dict], fusion, min_confidence, seconds: dict,
-                  store_bytes: int) -> dict:
+                  store_bytes: int, first_result_s: float | None = None) -> dict:
     """report.json of a streamed run (recon.drivers.streamed): the one-shot report's sections, with
     the tracked frames, the depth frames, per window MEDeA's epochs and seconds (or why its
     gate skipped it, with the given poses' fit), the scale anchor and the refinement's
-    share, and the bytes the frame store parked on disk (store_bytes)."""
+    share, the bytes the frame store parked on disk (store_bytes) and the seconds from the
+    run's start to its first window's fused surface (first_result_s)."""
     from .stages import window_frames
 
     kept = np.isfinite(video.poses).all(axis=(1, 2))
@@ -195,7 +196,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                     "overlap": config.window_overlap,
                     "anchor_factors": {"min": min(anchors, default=1.0), "max": max(anchors, default=1.0)},
                     "medea_skipped": sum(1 for w in windows if w.get("medea_skipped")),
-                    "each": windows},
+                    "each": windows, "first_result_s": first_result_s},
         "refine": {"method": config.refine},
         **_closing_sections(config, fusion, min_confidence, seconds, len(video.indices),
                             frame_store_mb=store_bytes / 1e6),

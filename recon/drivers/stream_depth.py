@@ -149,6 +149,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
             bar.update(1)
         if logger is not None and medea is not None and not records:
             logger.log_losses(medea.history)
+        clock.mark("first_result")  # the first window's surface is fused: what a live viewer shows first
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),

@@ -152,7 +152,7 @@ def _run_segments(config: PipelineConfig, source: FrameSource, out: OutputFolder
         part = replace(video, poses=np.where(mine[:, None, None], video.poses, np.nan),
                        depth_frame=video.depth_frame & mine)
         part_out = OutputFolder(out.path / name, overwrite=True)
-        part_clock = StageClock()
+        part_clock = StageClock(started=clock.started)
         volume, windows, _ = depth_windows(config, part, pose_plan, store, part_out, logger, part_clock)
         piece = _finish(config, source, part_out, part, volume, windows, part_clock, logger, store.bytes_written)
         piece.files["report"] = part_out.write_json(REPORT_JSON, _with_files(piece.report, piece.files, part_out))
@@ -215,7 +215,8 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
                                 np.asarray(mesh.vertex_colors), index=last)
     report = stream_report(config=config, source=source, video=video, windows=[asdict(w) for w in windows],
                            fusion=fusion, min_confidence=options.min_confidence if config.refine != "none" else None,
-                           seconds=clock.seconds, store_bytes=store_bytes)
+                           seconds=clock.seconds, store_bytes=store_bytes,
+                           first_result_s=clock.marks.get("first_result"))
     return StreamResult(output=out.path, frames_tracked=len(video.indices), depth_frames=int(video.depth_frame.sum()),
                         poses=video.poses, intrinsics=video.intrinsics, fusion=fusion, seconds=dict(clock.seconds),
                         files=files, report=report)
