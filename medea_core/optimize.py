@@ -117,9 +117,9 @@ def optimise_stage(
             counted += int(overlapping.sum())
             for key, value in terms.items():
                 sums[key] += float(value.detach()[overlapping].sum())
-        scheduler.step()
         if counted == 0:
             break
+        scheduler.step()  # after an epoch that stepped the optimiser (torch warns otherwise)
         epoch_losses = {key: value / counted for key, value in sums.items()}
         for key, value in epoch_losses.items():
             history.losses[key].append(value)
