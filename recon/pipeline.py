@@ -48,6 +48,7 @@ says so). Poses ``"auto"``: a dataset's ground truth when it has one, else estim
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -57,6 +58,7 @@ from .core.stages import budget_capacity, given_intrinsics, plan_poses, select_f
 from .drivers.oneshot import PipelineResult, run_oneshot
 from .drivers.result import RunResult
 from .drivers.streamed import StreamResult, run_streamed
+from .io.earlier_run import earlier_run_files, remove_earlier_run
 from .io.output_folder import UNFINISHED, OutputFolder, mark_finished, mark_unfinished, stale_results
 from .memory import release_memory
 from .poses import TrackingLostError
@@ -141,6 +143,9 @@ def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
     config.validate()
     say = on_stage or (lambda _: None)
     timer = StageClock()
+    # What an earlier run wrote there (its report.json's list), removed once this run has
+    # finished where it was not written again: --overwrite replaces recon's own results.
+    started, earlier = time.time(), earlier_run_files(config.output) if config.overwrite else []
     with timer.stage("decode"):
         source = select_frames(config.input, stride=config.stride, max_frames=config.max_frames,
                                start_time=config.start_time, end_time=config.end_time, width=config.width,
@@ -155,7 +160,8 @@ def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
     if why is not None:
         say(why)
         try:
-            return _said_stale(out, run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say))
+            return _said_stale(out, run_streamed(config, source, out, pose_plan, (intrinsics, intrinsics_from), say),
+                               earlier, started)
         except TrackingLostError as err:
             if not (_streamed_as_video(config, source, pose_plan) and config.pose_method == "auto"
                     and err.sfm_may_help):
@@ -167,11 +173,17 @@ def _run_stages(config: PipelineConfig, on_stage) -> RunResult:
         # reference cycles through the exception's frames: freed before the one-shot run
         # holds every frame (Record3D 0-79: 3.06 GB without this).
         release_memory(force=True)
-    return _said_stale(out, run_oneshot(config, source, out, pose_plan, (intrinsics, intrinsics_from), say, timer))
+    return _said_stale(out, run_oneshot(config, source, out, pose_plan, (intrinsics, intrinsics_from), say, timer),
+                       earlier, started)
 
 
-def _said_stale(out: OutputFolder, result: RunResult) -> RunResult:
-    """The result, after a warning naming what an earlier run left in the folder (``--overwrite``)."""
+def _said_stale(out: OutputFolder, result: RunResult, earlier: list[Path], started: float) -> RunResult:
+    """The result, once the files an earlier run wrote (``earlier``: its report's list) and
+    this one did not write again (since ``started``) are removed, after a warning naming
+    any other result left in the folder (``--overwrite``)."""
+    removed = remove_earlier_run(out.path, earlier, started)
+    if removed:
+        log.info("%s: removed %d files an earlier run wrote and this one did not", out.path, len(removed))
     stale = stale_results(out.path, [p.output.name for p in result.segments])
     if stale:
         log.warning("%s: %s left by an earlier run, not part of this one (report.json lists what this run "

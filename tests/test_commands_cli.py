@@ -243,7 +243,7 @@ def test_existing_output_folder_is_kept(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     (out / "mesh.ply").write_text("precious result")
-    _run_fails(capsys, ["run", str(video), "-o", str(out), "--quiet"], str(out), "not empty", "overwrite")
+    _run_fails(capsys, ["run", str(video), "-o", str(out), "--quiet"], str(out), "not empty", "--overwrite")
     assert (out / "mesh.ply").read_text() == "precious result" and len(list(out.iterdir())) == 1
     _run_fails(capsys, ["demo", "-o", str(out), "--quiet"], "not empty")
     assert (out / "mesh.ply").read_text() == "precious result" and len(list(out.iterdir())) == 1
@@ -746,6 +746,38 @@ def test_overwrite_names_what_an_earlier_run_left_and_keeps_it(demo, tmp_path, c
     err = capsys.readouterr().err
     assert "segment_03 left by an earlier run, not part of this one" in err
     assert (folder / "segment_03" / "report.json").is_file() and (folder / "mesh.ply").is_file()
+
+
+def test_overwrite_removes_what_an_earlier_run_wrote_and_nothing_else(demo, tmp_path, capsys):
+    """--overwrite into the folder of an earlier run written as two segments: the new single
+    reconstruction replaces them. What the earlier report.json listed and the new run did not
+    write again goes (segment_00 wholly, segment_01's mesh and depth); a file recon did not
+    write stays, in segment_01 and at the top, and the segment folder holding it is named."""
+    out, _ = demo
+    k = json.loads((out / "intrinsics.json").read_text())
+    folder = tmp_path / "run"
+    for name in ("segment_00", "segment_01"):
+        (folder / name / "depth").mkdir(parents=True)
+        (folder / name / "mesh.ply").write_text("old")
+        (folder / name / "depth" / "frame_000000.png").write_text("old")
+        (folder / name / "report.json").write_text(json.dumps(
+            {"files": {"mesh_ply": "mesh.ply", "depth": "depth"}, "frames": {"names": ["frame_000000"]}}))
+    (folder / "report.json").write_text(json.dumps({"files": {"segment_00": "segment_00",
+                                                              "segment_01": "segment_01"}}))
+    (folder / "segment_01" / "notes.txt").write_text("mine")
+    (folder / "mine.txt").write_text("mine")
+    args = ["run", str(out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
+            str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
+            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
+            "--refine", "none", "--quiet", "--rerun", "off", "--overwrite"]
+    capsys.readouterr()
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert not (folder / "segment_00").exists()
+    assert sorted(p.name for p in (folder / "segment_01").iterdir()) == ["notes.txt"]
+    assert (folder / "mine.txt").read_text() == "mine" and (folder / "mesh.ply").is_file()
+    assert "segment_01 left by an earlier run" in err and "segment_00" not in err
+    assert json.loads((folder / "report.json").read_text())["files"]["mesh_ply"] == "mesh.ply"
 
 
 @pytest.mark.parametrize("output", ["/proc/recon_out", "/proc/self/status/out"])

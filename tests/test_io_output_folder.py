@@ -95,3 +95,31 @@ def test_stale_results_name_what_this_run_did_not_write(tmp_path):
     assert stale_results(tmp_path, []) == ["segment_00", "segment_01", "segment_02"]
     # Two segments: the third, and the top-level mesh of an earlier single run.
     assert stale_results(tmp_path, ["segment_00", "segment_01"]) == ["mesh.ply", "segment_02"]
+
+
+def test_an_earlier_run_is_known_by_its_report(tmp_path):
+    """earlier_run_files: the report, what it lists, the depth maps of the frames it names,
+    a listed segment folder's own list; nothing without a readable report, nothing outside
+    the folder. remove_earlier_run leaves a file written again since the new run began."""
+    import os
+    import time
+
+    from recon.io.earlier_run import earlier_run_files, remove_earlier_run
+
+    assert earlier_run_files(tmp_path) == []
+    (tmp_path / "report.json").write_text("not json")
+    assert earlier_run_files(tmp_path) == []
+    (tmp_path / "depth").mkdir()
+    for name in ("mesh.ply", "depth/a.png", "depth/a.npy", "depth/b.png", "depth/user.png", "other.txt"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "report.json").write_text(json.dumps({
+        "files": {"mesh_ply": "mesh.ply", "depth": "depth", "recording": "/elsewhere/run.rrd"},
+        "frames": {"names": ["a", "b"]}}))
+    found = sorted(str(p.relative_to(tmp_path)) for p in earlier_run_files(tmp_path))
+    assert found == ["depth/a.npy", "depth/a.png", "depth/b.png", "mesh.ply", "report.json"]
+    files = earlier_run_files(tmp_path)
+    started = time.time()
+    os.utime(tmp_path / "mesh.ply", (started + 5, started + 5))  # written again by the new run
+    removed = remove_earlier_run(tmp_path, files, started)
+    assert sorted(p.name for p in removed) == ["a.npy", "a.png", "b.png", "report.json"]
+    assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["mesh.ply", "other.txt", "user.png"]

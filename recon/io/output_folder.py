@@ -11,9 +11,10 @@ written is lost:
   with it, files of the same name are replaced and other files are left alone;
 * :func:`atomic_path` and :func:`atomic_write_bytes` refuse to replace an existing file
   unless ``overwrite=True``;
-* what an earlier run left that this one did not write is named (:func:`stale_results`),
-  not deleted: a run written as segments beside an earlier single one, or fewer segments
-  than before, would otherwise look like one result.
+* with ``--overwrite``, what an earlier run wrote by its report.json and the new one did not
+  write again is removed at the end (:mod:`recon.io.earlier_run`); anything else left there
+  is named (:func:`stale_results`), not deleted: a run written as segments beside an earlier
+  single one, or fewer segments than before, would otherwise look like one result.
 
 Layout (written by :func:`recon.export.export_reconstruction` and the pipeline)::
 
@@ -99,7 +100,7 @@ def _temp_name(path: Path) -> Path:
 
 
 def _exists_error(path: Path) -> ReconInputError:
-    return ReconInputError(f"{path}: already exists (pass overwrite to replace it)")
+    return ReconInputError(f"{path}: already exists (--overwrite replaces it)")
 
 
 @contextmanager
@@ -190,7 +191,7 @@ class OutputFolder:
         if self.path.exists() and not self.path.is_dir():
             raise ReconInputError(f"{self.path}: output path exists and is not a folder")
         if self.path.is_dir() and any(self.path.iterdir()) and not overwrite:
-            raise ReconInputError(f"{self.path}: output folder is not empty (pass overwrite to write into it)")
+            raise ReconInputError(f"{self.path}: output folder is not empty (--overwrite writes into it)")
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             # Checked now, before any heavy work: a folder that cannot take a file fails at once.
