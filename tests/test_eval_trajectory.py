@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 from recon.errors import ReconInputError
 from recon.eval.trajectory import (
     align,
-    apply_similarity,
     ate_rmse,
     path_length,
     pose_alignment,
@@ -18,6 +17,7 @@ from recon.eval.trajectory import (
     scale_error,
     umeyama,
 )
+from recon.geometry.rigid import apply_similarity
 
 
 def _poses(rotations, positions):

@@ -17,3 +17,21 @@ def test_se3_exp_log_round_trip_and_adjoint():
     d = torch.randn(64, 6, generator=g, dtype=torch.float64) * 0.1
     assert torch.allclose(T @ lie.se3_exp(d) @ lie.inv(T), lie.se3_exp((lie.adjoint(T) @ d[..., None])[..., 0]),
                           atol=1e-10)
+
+
+def test_a_frame_between_keyframes_lies_on_their_geodesic():
+    """interpolated_pose: a quarter of the way from keyframe 4 to keyframe 8 (a turn of 40
+    degrees about z and 2 m along x), the keyframe itself on a keyframe, the nearest keyframe
+    before the first and after the last."""
+    import numpy as np
+
+    a, b = np.eye(4), np.eye(4)
+    angle = np.radians(40.0)
+    b[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    b[:3, 3] = [2.0, 0.0, 0.0]
+    kf_frames, T_kf = np.array([4, 8]), np.stack([a, b])
+    quarter = lie.interpolated_pose(5, kf_frames, T_kf)
+    assert np.isclose(np.degrees(np.arctan2(quarter[1, 0], quarter[0, 0])), 10.0)
+    assert np.allclose(lie.interpolated_pose(8, kf_frames, T_kf), b)
+    assert np.allclose(lie.interpolated_pose(0, kf_frames, T_kf), a)
+    assert np.allclose(lie.interpolated_pose(12, kf_frames, T_kf), b)

@@ -41,3 +41,16 @@ def test_interpolate_poses_snaps_to_rounded_timestamps():
     out, _ = interpolate_poses([0.001, 0.05], [0.0, 0.1], ref, snap=0.005)
     np.testing.assert_allclose(out[0], ref[0])
     np.testing.assert_allclose(out[1, :3, 3], [0.5, 0, 0])
+
+
+def test_a_similarity_moves_camera_centres_and_turns_rotations():
+    """apply_similarity: x -> s R x + t on the centres, R on the rotations; NaN stays NaN."""
+    from recon.geometry.rigid import apply_similarity
+
+    rot = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[0, :3, 3] = [1.0, 0.0, 0.0]
+    poses[1] = np.nan
+    moved = apply_similarity(poses, rot, np.array([0.0, 0.0, 1.0]), 2.0)
+    assert np.allclose(moved[0, :3, 3], [0.0, 2.0, 1.0]) and np.allclose(moved[0, :3, :3], rot)
+    assert np.isnan(moved[1]).all() and poses[0, 0, 3] == 1.0  # the input is left as it was

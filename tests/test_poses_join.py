@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from recon.poses.join import View, apply_similarity, join_stretches, mean_rotation
+from recon.geometry.rigid import apply_similarity
+from recon.poses.join import View, join_stretches, mean_rotation
 from recon.synthetic import render_sequence
 
 
@@ -34,7 +35,7 @@ def test_the_stretch_after_a_break_is_brought_back(room):
     join = join_stretches(before, after, room.intrinsics)
     assert join is not None and len(join.posed) == 4 and min(join.inliers) > 100
     assert join.scale == pytest.approx(1 / 1.6, rel=0.02)
-    back = apply_similarity(after_poses, join)
+    back = apply_similarity(after_poses, join.rotation, join.translation, join.scale)
     assert np.abs(back[:, :3, 3] - room.poses[12:, :3, 3]).max() < 0.01
     assert np.degrees(Rotation.from_matrix(back[:, :3, :3] @ np.transpose(room.poses[12:, :3, :3], (0, 2, 1)))
                       .magnitude()).max() < 0.3

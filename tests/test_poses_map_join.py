@@ -8,8 +8,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from recon.drivers.segments import join_breaks
+from recon.geometry.rigid import apply_similarity
 from recon.poses import join as orb_join
-from recon.poses.join import View, apply_similarity
+from recon.poses.join import View
 from recon.poses.map_join import compose_join, fit_stretch, map_join
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -59,7 +60,7 @@ def test_the_stretch_after_a_break_comes_back_through_the_map(sfm_room):
     join = map_join(before, after, seq.intrinsics)
     assert join is not None and len(join.posed) >= 6 and join.residual < 0.02
     assert join.scale == pytest.approx(1 / 1.7, rel=0.02)
-    back = apply_similarity(slipped, join)
+    back = apply_similarity(slipped, join.rotation, join.translation, join.scale)
     assert np.abs(back[:, :3, 3] - seq.poses[15:, :3, 3]).max() < 0.01
     assert _rotation_error_deg(back, seq.poses[15:]) < 0.5
 

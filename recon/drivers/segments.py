@@ -59,7 +59,8 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
     the ORB join finds nothing, join through one SfM model of both stretches' views
     (``recon.poses.map_join``; skipped without pycolmap). Each break's entry says ``how``
     ("orb" or "map") it was joined."""
-    from ..poses.join import JoinConfig, View, apply_similarity, join_stretches
+    from ..geometry.rigid import apply_similarity
+    from ..poses.join import JoinConfig, View, join_stretches
 
     def view(p: int) -> View:
         return View(*frame(p), poses[p])
@@ -80,7 +81,7 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
         if join is not None:
             entry["how"] = how
             mine = stretch == k
-            poses[mine] = apply_similarity(poses[mine], join)
+            poses[mine] = apply_similarity(poses[mine], join.rotation, join.translation, join.scale)
             label[mine] = label[np.flatnonzero(stretch == k - 1)[0]]
             entry.update(join.to_dict())
         report.append(entry)

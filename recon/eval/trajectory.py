@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.geometry.rigid import polyline_length, umeyama
+from recon.geometry.rigid import apply_similarity, polyline_length, umeyama
 
 AlignMode = Literal["sim3", "se3", "none"]
 
@@ -49,15 +49,6 @@ def _matched(est, gt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise ReconInputError(f"trajectories differ in length: estimate has {len(est)} poses, ground truth {len(gt)}")
     valid = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
     return est, gt, valid
-
-
-def apply_similarity(poses, rot: np.ndarray, trans: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """Poses (N, 4, 4) mapped by ``x -> s R x + t``: rotations R @ R_i, centres s R c_i + t."""
-    poses = _as_poses(poses)
-    out = poses.copy()
-    out[:, :3, :3] = rot @ poses[:, :3, :3]
-    out[:, :3, 3] = scale * poses[:, :3, 3] @ rot.T + trans
-    return out
 
 
 def align(est, gt, mode: AlignMode = "sim3") -> tuple[np.ndarray, np.ndarray, float]:

@@ -154,3 +154,20 @@ def interpolate(T_a: np.ndarray, T_b: np.ndarray, alpha: np.ndarray) -> np.ndarr
     alpha = torch.as_tensor(np.asarray(alpha, dtype=np.float64))
     delta = se3_log(inv(a) @ b)
     return (a @ se3_exp(delta * alpha[..., None])).numpy()
+
+
+def interpolated_pose(i: int, kf_frames: np.ndarray, T_kf: np.ndarray) -> np.ndarray:
+    """Pose (4, 4) of frame i on the geodesic between the keyframes before and after it.
+
+    Args:
+        i: the frame's index in the sequence.
+        kf_frames: (K,) sorted sequence indices of the keyframes.
+        T_kf: (K, 4, 4) float64 poses of the keyframes (either convention, as ``interpolate``).
+    Returns:
+        (4, 4) float64: the nearest keyframe's pose past either end of the keyframes.
+    """
+    nxt = int(np.searchsorted(kf_frames, i))
+    if nxt == 0 or nxt == len(kf_frames):
+        return np.array(T_kf[min(nxt, len(kf_frames) - 1)], dtype=np.float64)
+    a = (i - kf_frames[nxt - 1]) / max(kf_frames[nxt] - kf_frames[nxt - 1], 1)
+    return interpolate(T_kf[nxt - 1][None], T_kf[nxt][None], np.array([a]))[0]

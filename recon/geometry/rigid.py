@@ -152,6 +152,21 @@ def interpolate_poses(
     return out, inside | near_ok
 
 
+def apply_similarity(poses: np.ndarray, rot: np.ndarray, trans: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Camera-to-world poses moved by the similarity ``x -> s R x + t``.
+
+    Args:
+        poses: (N, 4, 4) camera-to-world poses (NaN poses stay NaN).
+        rot: (3, 3) rotation R; trans: (3,) translation t; scale: s.
+    Returns:
+        (N, 4, 4) float64: rotations R @ R_i, camera centres s R c_i + t.
+    """
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[:, :3, :3] = rot @ out[:, :3, :3]
+    out[:, :3, 3] = scale * out[:, :3, 3] @ np.asarray(rot).T + trans
+    return out
+
+
 def polyline_length(points) -> float:
     """Length of the polyline through points (N, 3) in order (0 for fewer than two)."""
     points = np.asarray(points, dtype=np.float64)

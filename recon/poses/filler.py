@@ -49,7 +49,7 @@ def realigned(state: TrackState, frames_lookup, num_frames: int, progress: bool 
     def init_of(i: int, prev: int, nxt: int) -> torch.Tensor:
         if i in state.rel:
             return state.rel[i] @ T_kf[state.refs[i][0]]
-        return interpolated_pose(i, prev, nxt, kf_frames, T_kf)
+        return _between(i, kf_frames, T_kf)
 
     prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
     return align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
@@ -57,13 +57,9 @@ def realigned(state: TrackState, frames_lookup, num_frames: int, progress: bool 
                               prior_of, progress, state.k1)
 
 
-def interpolated_pose(i: int, prev: int, nxt: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:
-    """Pose (4, 4) of frame i on the geodesic between keyframes prev and nxt (ids; -1 or K
-    when there is none on that side: then the nearest keyframe's pose)."""
-    if prev >= 0 and nxt < len(kf_frames):
-        a = (i - kf_frames[prev]) / max(kf_frames[nxt] - kf_frames[prev], 1)
-        return torch.from_numpy(lie.interpolate(T_kf[prev][None].numpy(), T_kf[nxt][None].numpy(), np.array([a]))[0])
-    return T_kf[prev] if prev >= 0 else T_kf[nxt]
+def _between(i: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:
+    """Frame i's pose (4, 4) on the geodesic between its keyframes (lie.interpolated_pose)."""
+    return torch.from_numpy(lie.interpolated_pose(i, kf_frames, np.asarray(T_kf, dtype=np.float64)))
 
 
 def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, cfg: FrontendConfig, init_of=None,
@@ -88,7 +84,7 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     ``cfg.min_match_correlation`` is left out), and T_cw is then the initial pose.
     """
     known = known or {}
-    init_of = init_of or (lambda i, p, n: interpolated_pose(i, p, n, kf_frames, T_kf))
+    init_of = init_of or (lambda i, p, n: _between(i, kf_frames, T_kf))
     results = {}
     K = len(kf_frames)
     # The keyframes' residual factors (flow.flow_whitening), made once each as needed.

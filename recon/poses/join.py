@@ -17,7 +17,7 @@ centres within ``max_residual`` of the similarity (relative to the scene's dista
 their rotations within ``max_turn_deg``. Otherwise the stretches stay apart.
 
 :func:`pose_in_before` poses one frame, :func:`join_stretches` makes and checks the join,
-:func:`apply_similarity` moves a stretch's camera-to-world poses by it.
+:func:`recon.geometry.rigid.apply_similarity` moves a stretch's camera-to-world poses by it.
 """
 
 from __future__ import annotations
@@ -183,14 +183,5 @@ def join_stretches(before: list[View], after: list[View], intrinsics, cfg: JoinC
     return Join(float(scale), rotation, translation, posed, inliers, residual, turn)
 
 
-def apply_similarity(poses: np.ndarray, join: Join) -> np.ndarray:
-    """Camera-to-world poses (N, 4, 4) of a stretch moved by the join into the frame of the
-    stretch before it (NaN poses stay NaN)."""
-    out = np.array(poses, dtype=np.float64, copy=True)
-    out[:, :3, :3] = join.rotation @ out[:, :3, :3]
-    out[:, :3, 3] = join.scale * out[:, :3, 3] @ join.rotation.T + join.translation
-    return out
-
-
-__all__ = ["Join", "JoinConfig", "View", "apply_similarity", "join_stretches", "mean_rotation", "pose_in_before",
+__all__ = ["Join", "JoinConfig", "View", "join_stretches", "mean_rotation", "pose_in_before",
            "rotation_disagreement", "similarity_scale"]

@@ -18,7 +18,7 @@ rotations within ``max_turn_deg``. Both fits are the front end's stretches check
 an independent estimate, so a model that placed one side wrongly is refused rather than used.
 
 :func:`map_join` makes and checks the join; it returns ``recon.poses.join.Join``, which
-:func:`recon.poses.join.apply_similarity` applies.
+:func:`recon.geometry.rigid.apply_similarity` applies.
 """
 
 from __future__ import annotations

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from recon.errors import ReconInputError
+from recon.geometry import lie
 from recon.poses import flow as fl
 from recon.poses import prior_agreement as pa
 from recon.poses import sfm_keyframes as skf
@@ -390,7 +391,7 @@ def estimate_poses_sfm(frames, prior_depth, intrinsics=None, progress: bool = Tr
     T_kf_np = T_kf.numpy()
     for i in range(n):
         if status[i] != "keyframe" and i not in aligned:
-            T_all[i] = skf.interpolated_pose(i, kf_frames, T_kf_np)
+            T_all[i] = lie.interpolated_pose(i, kf_frames, T_kf_np)
     for i, (T, ok, _, fraction) in aligned.items():
         T_all[i] = T.numpy()
         status[i] = "tracked" if ok else "interpolated"

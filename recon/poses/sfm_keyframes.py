@@ -13,7 +13,7 @@ by image motion, the extra image pairs that close loops, and the registration ch
   COLMAP to match and verify when the path comes back to a place.
 * ``dense_candidates`` / ``registration_error``: which frames may be registered densely
   (next to a keyframe in the model), and the one-line failure when too few are registered;
-  ``interpolated_pose``: the guess for the frames that are not.
+  ``recon.geometry.lie.interpolated_pose``: the guess for the frames that are not.
 
 Pure numpy / OpenCV: no COLMAP state here.
 """
@@ -25,7 +25,6 @@ from bisect import bisect_left, bisect_right
 import cv2
 import numpy as np
 
-from recon.geometry import lie
 from recon.poses import flow as fl
 from recon.poses.result import TRUSTED_STATES, FrameNumbers, TrackingLostError, by_position, frame_spans
 
@@ -218,13 +217,3 @@ def registration_error(status: list[str], num_keyframes: int, need: float,
         f"SfM registered only {int(trusted.sum())} of {n} frames ({model} of {num_keyframes} keyframes in COLMAP's "
         f"model, {int(trusted.sum()) - model} densely; need {need:.0%}): {where}{more} could not be registered",
         frame=first)
-
-
-def interpolated_pose(i: int, kf_frames: np.ndarray, T_kf: np.ndarray) -> np.ndarray:
-    """Pose (4, 4) of frame i on the geodesic between the keyframes (kf_frames (K,) sorted,
-    T_kf (K, 4, 4)) before and after it; the nearest keyframe's pose past either end."""
-    nxt = int(np.searchsorted(kf_frames, i))
-    if nxt == 0 or nxt == len(kf_frames):
-        return T_kf[min(nxt, len(kf_frames) - 1)]
-    a = (i - kf_frames[nxt - 1]) / max(kf_frames[nxt] - kf_frames[nxt - 1], 1)
-    return lie.interpolate(T_kf[nxt - 1][None], T_kf[nxt][None], np.array([a]))[0]
