@@ -728,19 +728,25 @@ def test_a_run_that_dies_leaves_a_folder_that_says_so(demo, tmp_path, capsys, mo
     assert not (folder / "UNFINISHED.txt").exists()
 
 
+def _six_frames_over(demo_out, folder) -> list[str]:
+    """`recon run` of six frames of the demo's inputs (poses, prior and camera given, no MEDeA
+    or refinement: fast) into `folder` with --overwrite."""
+    k = json.loads((demo_out / "intrinsics.json").read_text())
+    return ["run", str(demo_out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
+            str(demo_out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(demo_out / "input/prior"),
+            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
+            "--refine", "none", "--quiet", "--rerun", "off", "--overwrite"]
+
+
 def test_overwrite_names_what_an_earlier_run_left_and_keeps_it(demo, tmp_path, capsys):
     """A run with --overwrite into a folder that holds an earlier run's segment folder: the
     run writes its single reconstruction, says the segment folder is not part of it, and
     leaves it where it was (other files are never deleted)."""
     out, _ = demo
-    k = json.loads((out / "intrinsics.json").read_text())
     folder = tmp_path / "run"
     (folder / "segment_03").mkdir(parents=True)
     (folder / "segment_03" / "report.json").write_text("{}")
-    args = ["run", str(out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
-            str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
-            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
-            "--refine", "none", "--quiet", "--rerun", "off", "--overwrite"]
+    args = _six_frames_over(out, folder)
     capsys.readouterr()
     assert main(args) == 0
     err = capsys.readouterr().err
@@ -754,7 +760,6 @@ def test_overwrite_removes_what_an_earlier_run_wrote_and_nothing_else(demo, tmp_
     write again goes (segment_00 wholly, segment_01's mesh and depth); a file recon did not
     write stays, in segment_01 and at the top, and the segment folder holding it is named."""
     out, _ = demo
-    k = json.loads((out / "intrinsics.json").read_text())
     folder = tmp_path / "run"
     for name in ("segment_00", "segment_01"):
         (folder / name / "depth").mkdir(parents=True)
@@ -766,10 +771,7 @@ def test_overwrite_removes_what_an_earlier_run_wrote_and_nothing_else(demo, tmp_
                                                               "segment_01": "segment_01"}}))
     (folder / "segment_01" / "notes.txt").write_text("mine")
     (folder / "mine.txt").write_text("mine")
-    args = ["run", str(out / "input/synthetic.mp4"), "-o", str(folder), "--poses",
-            str(out / "input/poses_gt.txt"), "--prior", "folder", "--prior-path", str(out / "input/prior"),
-            "--intrinsics", f"{k['fx']},{k['fy']},{k['cx']},{k['cy']}", "--max-frames", "6", "--no-medea",
-            "--refine", "none", "--quiet", "--rerun", "off", "--overwrite"]
+    args = _six_frames_over(out, folder)
     capsys.readouterr()
     assert main(args) == 0
     err = capsys.readouterr().err
