@@ -141,9 +141,19 @@ def manhattan_support(lines: np.ndarray, centres: np.ndarray, lengths: np.ndarra
     """Support (C,) of the best orthogonal triad for each candidate focal length (C,): the
     summed length of the segments (S; see :func:`line_segments`) that point at one of its
     vanishing points, each weighted by how closely; the triads are proposed by `triples`
-    (T, 3), indices of segments."""
+    (T, 3), indices of segments.
+
+    A segment of direction (ux, uy) at centre c points at a vanishing point K d (centred
+    pixels) when the vector t = f (dx, dy) - c dz toward it is parallel to u: sin^2 of the
+    angle between them is (t x u)^2 / |t|^2. Both are bilinear in d and the segment, so for
+    all triads and segments at once they are two small matrix products per direction."""
     direction = np.stack([-lines[:, 1], lines[:, 0]], 1)
-    sin_tol = math.sin(math.radians(tolerance_deg))
+    cx, cy = centres[:, 0], centres[:, 1]
+    # t x u = [dx, dy, dz] . [f uy, -f ux, cy ux - cx uy]; |t|^2 = [f^2 (dx^2 + dy^2), -2 f dz dx,
+    # -2 f dz dy, dz^2] . [1, cx, cy, cx^2 + cy^2]. The segment halves, without f:
+    cross_rows = np.stack([direction[:, 1], -direction[:, 0], cy * direction[:, 0] - cx * direction[:, 1]])  # (3, S)
+    norm_rows = np.stack([np.ones_like(cx), cx, cy, cx**2 + cy**2])  # (4, S)
+    inv_tol2 = 1.0 / math.sin(math.radians(tolerance_deg)) ** 2
     support = np.zeros(len(focals))
     for k, f in enumerate(focals):
         # The plane through the camera centre and a segment has normal K^T l.
@@ -154,16 +164,17 @@ def manhattan_support(lines: np.ndarray, centres: np.ndarray, lengths: np.ndarra
         d3 = np.cross(d1, d2)
         # Segments on one line (or on one plane through the camera) propose no direction.
         proposes = ok1 & ok2
-        closeness = np.zeros((len(triples), len(lines)))
+        closeness = None
         for d in (d1, d2, d3):
-            # Vanishing point K d (homogeneous, centred pixels); toward it from each segment.
-            tx = f * d[:, :1] - centres[None, :, 0] * d[:, 2:]
-            ty = f * d[:, 1:2] - centres[None, :, 1] * d[:, 2:]
-            sin = np.abs(tx * direction[None, :, 1] - ty * direction[None, :, 0]) / (np.hypot(tx, ty) + 1e-12)
+            cross = (d * [f, f, 1.0]) @ cross_rows  # (T, S)
+            dz = d[:, 2]
+            norm2 = np.stack([f * f * (d[:, 0] ** 2 + d[:, 1] ** 2), -2.0 * f * dz * d[:, 0], -2.0 * f * dz * d[:, 1],
+                              dz * dz], 1) @ norm_rows
             # A soft vote (1 on the point, 0 at the tolerance): a hard one is flat over a range
             # of focal lengths, and its argmax would take the range's first end.
-            closeness = np.maximum(closeness, 1.0 - (sin / sin_tol) ** 2)
-        support[k] = ((closeness * lengths[None]).sum(1) * proposes).max()
+            vote = 1.0 - cross * cross / np.maximum(norm2, 1e-24) * inv_tol2
+            closeness = np.maximum(vote, 0.0) if closeness is None else np.maximum(closeness, vote)
+        support[k] = ((closeness @ lengths) * proposes).max()
     return support
 
 
