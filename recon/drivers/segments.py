@@ -93,7 +93,7 @@ def _join_through_map(stretch: np.ndarray, k: int, usable: list[int], view, intr
     """Break k's join through an SfM model (``recon.poses.map_join``) of views spread over
     the frames nearest it on each side, or None (also where pycolmap is not installed)."""
     from ..poses.map_join import MapJoinConfig, map_join
-    from ..poses.sfm_keyframes import evenly_apart
+    from ..poses.result import evenly_apart
 
     cfg = MapJoinConfig()
 

@@ -188,7 +188,7 @@ def _anchor(volume, seq: Sequence, adjusted: np.ndarray, shared: list[np.ndarray
     surface. Otherwise, the previous window's finished depth on the shared frames `shared`.
     Rendering SURFACE_ANCHOR_VIEWS frames spread over the window (the first one included) at
     every SURFACE_ANCHOR_STEP-th pixel is enough for a median."""
-    from ..poses.sfm_keyframes import evenly_apart
+    from ..poses.result import evenly_apart
 
     if volume is not None and volume.blocks_used:
         views = evenly_apart(len(adjusted), SURFACE_ANCHOR_VIEWS)

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from recon.geometry import projective as pj
-from recon.poses.sfm_keyframes import evenly_apart
+from recon.poses.result import evenly_apart
 
 
 @dataclass(frozen=True)

@@ -255,3 +255,11 @@ def invert_poses(T: np.ndarray) -> np.ndarray:
 
 
 Prior = np.ndarray | Callable[[int, np.ndarray], np.ndarray]
+
+
+def evenly_apart(count: int, most: int) -> np.ndarray:
+    """Indices (M,) int64 of at most `most` of `count` items in order, evenly apart, the
+    first and last among them (all of them when count <= most; none when count is 0)."""
+    if count <= 0:
+        return np.zeros(0, np.int64)
+    return np.unique(np.linspace(0, count - 1, min(most, count)).round().astype(np.int64))

@@ -195,7 +195,7 @@ def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str
     (fx, fy, cx, cy) held fixed, or None for COLMAP to estimate the focal length; asked: the
     doubt, in words; stretch: (N,) the front end's stretches (:func:`stretches`)."""
     from recon.poses.sfm import views_model
-    from recon.poses.sfm_keyframes import evenly_apart
+    from recon.poses.result import evenly_apart
 
     views = np.asarray(views, np.int64)
     views = views[np.isfinite(poses[views]).all(axis=(1, 2))]

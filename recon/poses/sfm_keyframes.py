@@ -107,14 +107,6 @@ def select_keyframes(motion: np.ndarray, ok: np.ndarray, spacing: float, max_key
     return best, hi
 
 
-def evenly_apart(count: int, most: int) -> np.ndarray:
-    """Indices (M,) int64 of at most `most` of `count` items in order, evenly apart, the
-    first and last among them (all of them when count <= most; none when count is 0)."""
-    if count <= 0:
-        return np.zeros(0, np.int64)
-    return np.unique(np.linspace(0, count - 1, min(most, count)).round().astype(np.int64))
-
-
 def bow_vectors(descriptors: list[np.ndarray], words: int, per_image: int = 1000, seed: int = 0) -> np.ndarray:
     """L2-normalised TF-IDF bag-of-words vectors (K, words') of K images' descriptors
     (each (n_k, 128), SIFT as COLMAP stores them, uint8).
