@@ -182,7 +182,7 @@ def pose_devices(folder: Path, devices: list[str], threads: int) -> dict:
 
     from recon.io.trajectories import read_poses
     from recon.poses import estimate_poses
-    from recon.poses.polish import polish_poses
+    from recon.poses.given.polish import polish_poses
     from recon.priors.fastdepth import FastDepthPrior
 
     camera = np.asarray(json.loads((folder / "camera.json").read_text())["intrinsics"])

@@ -3,10 +3,10 @@ intrinsics.
 
 For each clip (up to 80 frames from a start frame: what the front end buffers for its
 focal search, ``8 * calib_keyframes``; fewer where the recording or segment is shorter)
-this runs what ``recon.poses.frontend`` runs before tracking: the lens from straight edges
+this runs what ``recon.poses.frontend.streaming`` runs before tracking: the lens from straight edges
 (``plumb_line``), the flow-based focal search through it (``calib.estimate_focal``), the
 focal length from vanishing points (``vanishing.estimate_focal_vp``) and the front end's
-choice between them (``recon.poses.focal_choice``); each against the focal length the
+choice between them (``recon.poses.intrinsics.focal_choice``); each against the focal length the
 recording publishes (7-Scenes' colour camera ~525 px, TUM fr1's calibration, ScanNet's,
 Record3D's ARKit K, KITTI's P0, the phone model's median COLMAP camera), at the working
 width of 640 px the pipeline uses. The frames are the recordings' own images (the phone
@@ -66,10 +66,10 @@ def clip_frames(recording: str, start: int, count: int) -> tuple[list[np.ndarray
 
 
 def measure_clip(name: str, prior_model) -> dict:
-    from recon.poses import vanishing
-    from recon.poses.calib import estimate_focal
-    from recon.poses.frontend_config import FrontendConfig
-    from recon.poses.plumb_line import estimate_lens
+    from recon.poses.config import FrontendConfig
+    from recon.poses.intrinsics import vanishing
+    from recon.poses.intrinsics.calib import estimate_focal
+    from recon.poses.intrinsics.plumb_line import estimate_lens
     from recon.poses.result import PriorSource
 
     recording, _, span = name.partition("@")
@@ -92,10 +92,10 @@ def measure_clip(name: str, prior_model) -> dict:
 
 
 def judged(search, vp, true_f: float) -> dict:
-    """The two estimates, the front end's choice between them (recon.poses.focal_choice) and
+    """The two estimates, the front end's choice between them (recon.poses.intrinsics.focal_choice) and
     issue 44's verdict: within 10 %, or a warning whose range holds the true value."""
-    from recon.poses import focal_choice
-    from recon.poses.frontend_config import FrontendConfig
+    from recon.poses.config import FrontendConfig
+    from recon.poses.intrinsics import focal_choice
 
     choice = focal_choice.choose_focal(search, vp, FrontendConfig())
 
@@ -111,9 +111,9 @@ def judged(search, vp, true_f: float) -> dict:
 
 
 def swept_to_a_minimum(evaluations: list[tuple[float, float]]) -> bool:
-    """Whether the search's sweep (its first evaluations, recon.poses.calib.candidate_focals
+    """Whether the search's sweep (its first evaluations, recon.poses.intrinsics.calib.candidate_focals
     in order) had its best score inside, not at an end; True where fewer were recorded."""
-    from recon.poses.calib import candidate_focals
+    from recon.poses.intrinsics.calib import candidate_focals
 
     sweep = len(candidate_focals(640, 480))
     if len(evaluations) < sweep:
@@ -126,8 +126,8 @@ def rechosen(paths: list[Path]) -> list[dict]:
     """The rows of earlier runs' JSON with the current rule applied again to their estimates
     (the search's evaluations taken from whichever file has them): a rule change costs
     seconds, not the 40 minutes of measuring every clip again."""
-    from recon.poses.calib import FocalSearch
-    from recon.poses.vanishing import VanishingFocal
+    from recon.poses.intrinsics.calib import FocalSearch
+    from recon.poses.intrinsics.vanishing import VanishingFocal
 
     rows: dict[str, dict] = {}
     for path in paths:

@@ -34,7 +34,7 @@ from report_runs import refined_run  # noqa: E402
 from recon.core.medea import adjust_sequence  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
-from recon.poses.polish import polish_poses  # noqa: E402
+from recon.poses.given.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
 
 OUT = ROOT / "docs" / "images" / "mesh_slice_7scenes.png"

@@ -104,7 +104,7 @@ def motion_verdicts(diagnostics: dict) -> list[str]:
     """Why the front end's motion checks distrust its trajectory, and its translation share."""
     if "motion_checks" not in diagnostics:
         return []
-    from recon.poses.motion_checks import MotionChecks
+    from recon.poses.checks.motion_checks import MotionChecks
 
     checks = MotionChecks.from_dict(diagnostics["motion_checks"])
     return [f"translation share {checks.translation_share:.2f}, median step {checks.median_step_share:.3f} of the "
@@ -132,7 +132,7 @@ def evaluate(res, gt: np.ndarray, true_intr) -> dict:
         "lost_frames": len(res.diagnostics.get("lost_frames", [])),
         "focal": res.intrinsics[0],
         "lens_k1": res.diagnostics.get("lens_k1"),
-        # The front end's verdicts on its own trajectory (recon.poses.scale_watch, motion_checks).
+        # The front end's verdicts on its own trajectory (recon.poses.checks.scale_watch, motion_checks).
         "scale_breaks": len(res.diagnostics.get("scale_watch", {}).get("breaks", [])),
         "untrusted": motion_verdicts(res.diagnostics),
     }

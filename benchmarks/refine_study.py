@@ -2,7 +2,7 @@
 
 For each recording and frame selection (7-Scenes every 4th / every 8th / the second half,
 TUM every frame / every 2nd, the synthetic room with a simulated prior), the poses are
-taken as given (raw), polished (``recon.poses.polish``: defaults, with the lens, other tie
+taken as given (raw), polished (``recon.poses.given.polish``: defaults, with the lens, other tie
 strengths, without the gate) or estimated (``recon.poses.estimate_poses``); MEDeA (fast preset, FastDepth
 features) runs on them, then the refinement (``mvs_core``) with each settings variant.
 Scores: metric abs rel of the full-coverage depth against the sensor, the reconstructed
@@ -52,7 +52,7 @@ from recon.eval.trajectory import move_points, pose_alignment  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.geometry.lens import undistort_features, undistort_images, worth_undistorting  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
-from recon.poses.polish import PolishConfig, polish_poses  # noqa: E402
+from recon.poses.given.polish import PolishConfig, polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"

@@ -43,7 +43,7 @@ from recon.eval.evaluate import reference_tsdf_mesh  # noqa: E402
 from recon.eval.trajectory import ate_rmse, path_length, pose_alignment, scale_error  # noqa: E402
 from recon.fusion import FusionOptions, auto_voxel_size, fuse  # noqa: E402
 from recon.io.datasets import open_dataset  # noqa: E402
-from recon.poses.polish import polish_poses  # noqa: E402
+from recon.poses.given.polish import polish_poses  # noqa: E402
 from recon.priors import make_prior  # noqa: E402
 
 # MEDeA rows of tables A and B: key -> (label, priors.VARIANTS key). Stride-8 features are

@@ -58,8 +58,8 @@ GOALS = {"abs_rel_ratio": 0.64, "fscore": 0.8, "seconds_per_frame": 0.5}
 REFINE_GOALS = {"7scenes": {"abs_rel": 0.08, "fscore": 0.55, "fscore_est": 0.45},
                 "tum": {"abs_rel": None, "fscore": 0.30, "fscore_est": None}}
 REFINE_NOTE = ("MVS refinement (mvs_core) after MEDeA-S, as `recon run` (default): given poses polished against the "
-               "frames (recon.poses.polish), frames undistorted with the lens it estimates, depth and sensor depth "
-               "compared in that pinhole image")
+               "frames (recon.poses.given.polish), frames undistorted with the lens it estimates, depth and sensor "
+               "depth compared in that pinhole image")
 
 
 

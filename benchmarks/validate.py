@@ -312,7 +312,7 @@ def mesh_sizes(report: dict, out: Path) -> dict:
 
 
 def focal_range(report: dict, truth: float) -> dict:
-    """The range an estimated focal length's warning gives (recon.poses.focal_choice), and
+    """The range an estimated focal length's warning gives (recon.poses.intrinsics.focal_choice), and
     whether it holds the true value: the acceptance of a focal length off by more than 10 %."""
     choice = report.get("poses", {}).get("diagnostics", {}).get("focal")
     if not choice:

@@ -158,7 +158,7 @@ def report_pieces(run: dict) -> None:
     print(table(["frames", "posed", "marked short", "path m", "Sim(3) ATE %", "scale", "stretches"],
                 [[f"{s['first']}-{s['stop'] - 1}", s["posed"], s["marked_short"], f"{s['path_m']:.2f}",
                   f"{s['ate_pct']:.1f}", f"{s['scale']:.3f}", s["stretches"]] for s in run["segments"]]))
-    print(f"\nFrames the short-flow check marked (recon.poses.normal_flow): {run['short_flow'] or 'none'}")
+    print(f"\nFrames the short-flow check marked (recon.poses.checks.normal_flow): {run['short_flow'] or 'none'}")
 
 
 def run(args) -> dict:

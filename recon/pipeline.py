@@ -24,8 +24,8 @@ Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
                with a rolling-shutter readout given, the frames are resampled to one instant
                each with the poses' turn rate (:mod:`recon.geometry.rolling_shutter`) and estimated
                poses estimated again on them; given poses are polished against the frames
-               only with ``polish`` (:mod:`recon.poses.polish`), and checked against them
-               (:mod:`recon.poses.pose_check`: a warning when the frames contradict them);
+               only with ``polish`` (:mod:`recon.poses.given.polish`), and checked against them
+               (:mod:`recon.poses.given.pose_check`: a warning when the frames contradict them);
 ``undistort``  frames, prior and features resampled into the pinhole camera when the poses
                came with a lens term (:mod:`recon.geometry.lens`);
 ``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``, and with

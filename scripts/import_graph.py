@@ -37,7 +37,7 @@ LAYERS = (
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
-    """recon/poses/ba.py -> recon.poses.ba; recon/poses/__init__.py -> recon.poses."""
+    """recon/poses/ba/bundle.py -> recon.poses.ba.bundle; recon/poses/__init__.py -> recon.poses."""
     parts = list(path.relative_to(root).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
@@ -121,7 +121,7 @@ def upward_imports(root: Path = ROOT) -> dict[str, list[str]]:
 
 
 def room_of(path: str) -> str:
-    """recon/poses/ba.py -> recon/poses/; recon/pipeline.py -> itself; viewer/x.py -> viewer/."""
+    """recon/poses/ba/bundle.py -> recon/poses/; recon/pipeline.py -> itself; viewer/x.py -> viewer/."""
     parts = path.split("/")
     if parts[0] != "recon":
         return parts[0] + "/"

@@ -61,7 +61,7 @@ def test_demo_writes_every_output(demo):
     assert report["frames"]["count"] == FRAMES and report["input"]["kind"] == "video"
     assert set(report["seconds"]) == {"decode", "prior", "poses", "undistort", "medea", "refine", "fusion", "export",
                                      "logging"}
-    # ... and checked against the frames, which they fit (recon.poses.pose_check); not polished.
+    # ... and checked against the frames, which they fit (recon.poses.given.pose_check); not polished.
     check = report["poses"]["check"]
     assert "polish" not in report["poses"] and check["disagreement"] is None and check["median_px"] < 0.3
     # Given intrinsics are used as given: no lens is fitted on top of them, no frame resampled.
@@ -299,7 +299,7 @@ def test_pose_options_reach_the_estimator(demo, tmp_path, capsys, stream):
 
 
 def test_pose_option_errors_and_list(tmp_path, capsys):
-    from recon.poses.frontend import FrontendConfig
+    from recon.poses.frontend.streaming import FrontendConfig
 
     video = _video(tmp_path / "clip.mp4", 4)
     out = str(tmp_path / "out")
@@ -529,11 +529,11 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
 @pytest.mark.parametrize("mode", ["one-shot", "stream"])
 def test_given_poses_the_frames_contradict_are_said_and_gated_on_request(demo, tmp_path, capsys, monkeypatch,
                                                                          mode):
-    """The epipolar check's verdict on the given poses (recon.poses.pose_check, tested on TUM
+    """The epipolar check's verdict on the given poses (recon.poses.given.pose_check, tested on TUM
     and 7-Scenes in test_pose_check) is said in one warning and recorded; MEDeA still runs,
     unless --medea-gate skips it, in a one-shot run and in every window of a streamed run
     (which judges the first frames as they come)."""
-    import recon.poses.pose_check as pose_check
+    import recon.poses.given.pose_check as pose_check
 
     real = pose_check.check_given_poses
 
@@ -605,7 +605,7 @@ def test_a_scale_the_prior_cannot_vouch_for_is_written_and_marked_unless_stopped
     """FastDepth does not see the rendered room (2.4x too near, its depth uncorrelated with
     the room's): with the poses estimated, whose metres come from it, the run writes the
     result, says once that its size is not to be trusted, and marks it in report.json
-    (recon.poses.prior_agreement), the fusion's voxel following the depth alone; under
+    (recon.poses.checks.prior_agreement), the fusion's voxel following the depth alone; under
     --on-break stop it stops with one line naming the frames and writes nothing."""
     out, _ = demo
     k = json.loads((out / "intrinsics.json").read_text())

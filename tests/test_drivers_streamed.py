@@ -263,7 +263,7 @@ def test_a_trajectory_whose_scale_breaks_is_written_as_segments(room_video, tmp_
     from recon.errors import ReconInputError
     from recon.eval.trajectory import ate_rmse
     from recon.io.output_folder import frame_name, npy_bytes
-    from recon.poses import scale_watch
+    from recon.poses.checks import scale_watch
 
     seq, inputs = room_video
     prior = OutputFolder(tmp_path / "prior")

@@ -21,7 +21,7 @@ def room(tmp_path_factory):
     seq = render_sequence(24, 256, 192, seed=0)
     # The simulated prior: FastDepth does not see the rendered room (2.4x too near, its depth
     # uncorrelated with the room's), so a run that takes its scale from it stops
-    # (recon.poses.prior_agreement); given poses carry their own scale.
+    # (recon.poses.checks.prior_agreement); given poses carry their own scale.
     return seq, write_demo_inputs(OutputFolder(tmp_path_factory.mktemp("room")), seq, simulate_prior(seq.depth, seed=1))
 
 

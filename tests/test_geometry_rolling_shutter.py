@@ -12,7 +12,7 @@ from recon.core.stages import unrolled_frames
 from recon.errors import ReconInputError
 from recon.eval.trajectory import ate_rmse
 from recon.geometry import rolling_shutter as rs
-from recon.poses.frontend import estimate_poses_frontend
+from recon.poses.frontend.streaming import estimate_poses_frontend
 from recon.synthetic import render_sequence, simulate_prior
 
 INTRINSICS = (300.0, 300.0, 159.5, 119.5)

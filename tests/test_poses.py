@@ -11,14 +11,14 @@ import pytest
 from recon.errors import ReconInputError
 from recon.geometry.camera import intrinsics_from_fov
 from recon.poses import TrackingLostError, estimate_poses
-from recon.poses.frontend import FrontendConfig
-from recon.poses.sfm import SfMConfig
+from recon.poses.frontend.streaming import FrontendConfig
+from recon.poses.sfm.mapper import SfMConfig
 
 
 def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, capsys, caplog):
     seq, prior = pose_room
-    import recon.poses.frontend as fe
-    import recon.poses.sfm as sfm
+    import recon.poses.frontend.streaming as fe
+    import recon.poses.sfm.mapper as sfm
 
     def lost(*args, **kwargs):
         raise TrackingLostError("tracking lost at frame 7: test", frame=7)
@@ -51,7 +51,7 @@ def test_auto_falls_back_to_sfm_when_tracking_is_lost(pose_room, monkeypatch, ca
         estimate_poses(seq.rgb, prior, seq.intrinsics, method="frontend", progress=False)
 
     # Without intrinsics, SfM's focal length is said with the range the front end's estimates left.
-    from recon.poses.focal_choice import FocalChoice
+    from recon.poses.intrinsics.focal_choice import FocalChoice
 
     def unsure(*args, **kwargs):
         err = TrackingLostError("the focal length was not found", frame=0)
@@ -84,9 +84,9 @@ def test_the_sfm_fallback_is_refused_where_the_vanishing_points_contradict_its_f
     now refused when the vanishing points' lies over x1.25 from it (Record3D 0-79: 634 and
     681 px, taken); ``--on-break keep`` (stop_untrusted off) takes it anyway."""
     seq, prior = pose_room
-    import recon.poses.frontend as fe
-    import recon.poses.sfm as sfm
-    from recon.poses.focal_choice import FocalChoice
+    import recon.poses.frontend.streaming as fe
+    import recon.poses.sfm.mapper as sfm
+    from recon.poses.intrinsics.focal_choice import FocalChoice
 
     f_sfm = float(seq.intrinsics[0])
     sentinel = fe.PoseResult(np.tile(np.eye(4), (36, 1, 1)), seq.intrinsics, np.arange(36), 0.0, {"method": "sfm"})

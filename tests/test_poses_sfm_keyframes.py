@@ -1,4 +1,4 @@
-"""What the SfM fallback gives COLMAP and checks in what comes back (recon.poses.sfm_keyframes):
+"""What the SfM fallback gives COLMAP and checks in what comes back (recon.poses.sfm.keyframes):
 loop pairs by image similarity, which frames dense registration may reach, and the error
 naming the frames that could not be registered."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from recon.poses import sfm_keyframes as skf
 from recon.poses.result import TRUSTED_STATES, TrackingLostError
+from recon.poses.sfm import keyframes as skf
 
 
 def test_loop_pairs_find_where_the_path_comes_back(sfm_room):

@@ -190,12 +190,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     polish = g.add_mutually_exclusive_group()
     polish.add_argument("--polish", action="store_true",
                         help="polish given poses (dataset, pose file) against the frames before MEDeA when refining "
-                             "(recon.poses.polish; one-shot runs); off by default: given poses are used as given")
+                             "(recon.poses.given.polish; one-shot runs); off by default: given poses are used as given")
     polish.add_argument("--no-polish", action="store_true",
                         help="use given poses as they are (the default; kept for scripts that say so)")
     g.add_argument("--polish-option", action=_PolishOptionAction, default=[], metavar="KEY=VALUE",
-                   help="change a setting of the polish (recon.poses.polish.PolishConfig), e.g. calibrate_lens=true "
-                        "(repeatable); `--polish-option list` prints every setting with its default")
+                   help="change a setting of the polish (recon.poses.given.polish.PolishConfig), "
+                        "e.g. calibrate_lens=true (repeatable); `--polish-option list` prints every setting with its "
+                        "default")
     gate = g.add_mutually_exclusive_group()
     gate.add_argument("--medea-gate", action="store_true",
                       help="skip MEDeA, and refine from the prior's depth, when the given poses contradict the "
@@ -254,7 +255,7 @@ class _ListableAction(argparse.Action):
 
 class _PoseOptionAction(_ListableAction):
     heading = ("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
-               "docstrings of recon.poses.frontend.FrontendConfig and recon.poses.sfm.SfMConfig")
+               "docstrings of recon.poses.frontend.streaming.FrontendConfig and recon.poses.sfm.mapper.SfMConfig")
 
     def table(self, parser: argparse.ArgumentParser) -> str:
         from ..poses.options import pose_option_table
@@ -297,11 +298,11 @@ class _RefineOptionAction(_FieldOptionAction):
 
 class _PolishOptionAction(_FieldOptionAction):
     heading = ("pose polish options (--polish-option KEY=VALUE, with --polish): name, type, default; their meaning "
-               "is in the docstring of recon.poses.polish.PolishConfig")
+               "is in the docstring of recon.poses.given.polish.PolishConfig")
 
     @staticmethod
     def config():
-        from ..poses.polish import PolishConfig
+        from ..poses.given.polish import PolishConfig
 
         return PolishConfig
 

@@ -105,7 +105,7 @@ def polish_config_from_args(args: argparse.Namespace):
     from dataclasses import replace
 
     from ..options import parse_field_option
-    from ..poses.polish import PolishConfig
+    from ..poses.given.polish import PolishConfig
 
     values = dict(parse_field_option(text, PolishConfig, "polish option") for text in args.polish_option)
     return replace(PolishConfig(), **values)

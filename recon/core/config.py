@@ -30,7 +30,7 @@ from ..choices import (
 from ..errors import ReconInputError
 from ..fusion import FusionOptions
 from ..geometry.camera import check_distortion
-from ..poses.polish import PolishConfig
+from ..poses.given.polish import PolishConfig
 
 # A readout longer than a frame at 10 fps is not a rolling shutter but a typo.
 MAX_READOUT_MS = 100.0
@@ -85,21 +85,21 @@ class PipelineConfig:
         recon.geometry.rolling_shutter. A streamed run resamples its depth frames with given poses
         and leaves the frames as recorded with estimated ones (it tracks only once).
     pose_method: estimator, "auto" | "frontend" | "sfm".
-    pose_options: fields of the estimators' configs (``recon.poses.frontend_config.FrontendConfig``,
-        ``recon.poses.sfm.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
+    pose_options: fields of the estimators' configs (``recon.poses.config.FrontendConfig``,
+        ``recon.poses.sfm.mapper.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
     on_break: what an estimated trajectory becomes where its scale breaks (the front end's
-        map against the depth prior, ``recon.poses.scale_watch``): "segments" (each stretch
+        map against the depth prior, ``recon.poses.checks.scale_watch``): "segments" (each stretch
         reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run
         stops with one line naming the frames) or "keep" (one trajectory, with a warning).
         Whatever it is, a trajectory the front end's motion checks distrust as a whole
-        (``recon.poses.motion_checks``) is not returned, except under "keep"; nor is one whose
+        (``recon.poses.checks.motion_checks``) is not returned, except under "keep"; nor is one whose
         metric scale the depth prior cannot vouch for (its depth does not follow the scene's,
-        ``recon.poses.prior_agreement``), which "keep" returns with a warning.
+        ``recon.poses.checks.prior_agreement``), which "keep" returns with a warning.
     join_segments: before that, try to join the stretches on either side of each break
-        (``recon.poses.join``: the frames after it posed by PnP in the stretch before it, a
+        (``recon.poses.checks.join``: the frames after it posed by PnP in the stretch before it, a
         similarity between the two); joined stretches are one trajectory again.
     join_through_map: where that finds nothing, join through one SfM model of views of
-        both stretches (``recon.poses.map_join``: COLMAP registers each by PnP on the
+        both stretches (``recon.poses.sfm.map_join``: COLMAP registers each by PnP on the
         points of the others; needs pycolmap).
     prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
         depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
@@ -111,14 +111,14 @@ class PipelineConfig:
     features: give MEDeA FastDepth's encoder features (the feature-metric loss).
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
     medea_gate: skip MEDeA, and give the refinement the prior's depth, when given poses
-        contradict the frames (recon.poses.pose_check, run on every run with given poses:
+        contradict the frames (recon.poses.given.pose_check, run on every run with given poses:
         one warning either way). Off by default: on TUM fr1/rpy's motion capture, skipping
         it raised the mesh's F@5cm (0.05 -> 0.10) but lowered the depth's accuracy (abs rel
         0.33 -> 0.36), docs/benchmarks.md, "The gate on given poses".
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
     polish: polish given poses against the frames before MEDeA when refining (one-shot
-        runs; recon.poses.polish); off: given poses are used as given. On held-out
+        runs; recon.poses.given.polish); off: given poses are used as given. On held-out
         recordings the polish made good poses worse (7-Scenes F@5cm 0.55 -> 0.15, issue 44);
         the validation table is in docs/benchmarks.md. polish_config: its settings.
     fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).

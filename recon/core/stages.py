@@ -326,13 +326,13 @@ def ground_truth_kept(source: FrameSource) -> tuple[np.ndarray, str]:
 
 def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     """An estimate (a recon.poses PoseResult of the frames `frame_indices`, their video frame
-    numbers) through the quality gate (recon.poses.quality): (N,) bool frames kept, what
+    numbers) through the quality gate (recon.poses.checks.quality): (N,) bool frames kept, what
     report.json says of it, and the note naming the frames left out ("" when none)."""
-    from ..poses.motion_checks import MotionChecks
-    from ..poses.prior_agreement import PriorAgreement
-    from ..poses.quality import gate_trajectory, runs
+    from ..poses.checks.motion_checks import MotionChecks
+    from ..poses.checks.prior_agreement import PriorAgreement
+    from ..poses.checks.quality import gate_trajectory, runs
+    from ..poses.checks.scale_watch import ScaleWatch
     from ..poses.result import frame_spans
-    from ..poses.scale_watch import ScaleWatch
     from ..poses.second_opinion import SecondOpinion
 
     names = [int(i) for i in frame_indices]
@@ -341,7 +341,7 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
     diagnostics = {k: v for k, v in result.diagnostics.items()
                    if k not in ("scale_watch", "motion_checks", "prior_agreement", "frame_status", "scale_spread",
                                 "second_opinion")}
-    if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.pieces): named by video frame
+    if "pieces" in diagnostics:  # tracked in pieces after a loss (recon.poses.frontend.pieces): named by video frame
         diagnostics["pieces"] = [{**p, "frames": [names[i] for i in p["frames"]]} for p in diagnostics["pieces"]]
     info = {"keyframes": len(result.keyframes), "seconds": result.seconds,
             "diagnostics": {k: v for k, v in diagnostics.items() if np.ndim(v) == 0 or len(v) < 50},
@@ -391,7 +391,7 @@ def gate_estimate(result, frame_indices) -> tuple[np.ndarray, dict, str]:
 
 
 def estimated_poses(seq: Sequence, *, method: str, options: dict, device: str, progress: bool) -> PoseStage:
-    """Poses estimated from the frames, through the quality gate (recon.poses.quality):
+    """Poses estimated from the frames, through the quality gate (recon.poses.checks.quality):
     frames whose pose the images do not back are left out, named in report.json."""
     result = _pose_estimator()(seq.rgb, seq.prior_depth, intrinsics=seq.intrinsics, method=method, device=device,
                                progress=progress, frame_numbers=seq.indices, **options)
@@ -409,7 +409,7 @@ def tracking_states(stage: PoseStage, seq: Sequence) -> list[tuple[int, str, np.
         return None
     why = {d["frame"]: d["reason"] for d in stage.info.get("quality", {}).get("dropped_frames", [])}
     # The scale check's verdict rides along, so that the timeline shows which stretch a
-    # frame's pose belongs to when the trajectory's scale breaks (recon.poses.scale_watch).
+    # frame's pose belongs to when the trajectory's scale breaks (recon.poses.checks.scale_watch).
     scale = stage.info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * len(status)
     motion = stage.info.get("motion_checks", {}).get("frame_verdicts") or ["ok"] * len(status)
     # Kept under --on-break keep though the prior cannot vouch for its metres (prior_agreement).
@@ -443,14 +443,14 @@ MEDEA_SKIPPED_BECAUSE = ("its consistency terms would bend the depth to fit them
 
 
 def judge_given_poses(rgb: np.ndarray, poses: np.ndarray, intrinsics, gate: bool) -> tuple[dict, str | None]:
-    """The epipolar check of given poses against their frames (recon.poses.pose_check; rgb
+    """The epipolar check of given poses against their frames (recon.poses.given.pose_check; rgb
     (N, H, W, 3) and poses (N, 4, 4) of neighbouring frames in order, intrinsics of a pinhole
     camera): (what report.json says of it, why MEDeA is skipped or None). Poses the frames
     contradict are said in one warning; MEDeA is skipped for them only with `gate`
     (--medea-gate): on TUM fr1/rpy's motion capture, MEDeA's depth scored better than the
     prior's (abs rel 0.33 against 0.36) and its mesh worse (F@5cm 0.05 against 0.10), so
     neither choice is right for every user (docs/benchmarks.md, "The gate on given poses")."""
-    from ..poses.pose_check import check_given_poses
+    from ..poses.given.pose_check import check_given_poses
 
     check = check_given_poses(rgb, poses, intrinsics)
     if check.disagreement is None:
@@ -467,9 +467,9 @@ def judge_given_poses(rgb: np.ndarray, poses: np.ndarray, intrinsics, gate: bool
 
 
 def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = True, device: str = "cpu") -> PoseStage:
-    """The given poses polished against the frames (recon.poses.polish, ``config`` its
+    """The given poses polished against the frames (recon.poses.given.polish, ``config`` its
     PolishConfig; its bundle adjustment on ``device``), the lens with them."""
-    from ..poses.polish import polish_poses
+    from ..poses.given.polish import polish_poses
 
     result = polish_poses(seq.rgb, seq.prior_depth, stage.poses, seq.intrinsics, config, progress, device)
     info = {**stage.info, "polish": result.info}

@@ -1,7 +1,7 @@
 """What an estimated trajectory becomes where its scale breaks (``--on-break``): the
-stretches between the scale watch's breaks (``recon.poses.scale_watch``), their joins
-(``recon.poses.join``), the stop, and the estimator options each choice implies; and, with
-the same choice, a metric scale the depth prior cannot vouch for (``recon.poses.prior_agreement``). Both
+stretches between the scale watch's breaks (``recon.poses.checks.scale_watch``), their joins
+(``recon.poses.checks.join``), the stop, and the estimator options each choice implies; and, with
+the same choice, a metric scale the depth prior cannot vouch for (``recon.poses.checks.prior_agreement``). Both
 drivers (``recon.drivers.oneshot``, ``recon.drivers.streamed``) call :func:`settle_breaks` after the
 poses and before depth; each writes the segments that stay apart its own way.
 """
@@ -21,14 +21,14 @@ def estimator_options(config, frontend_only: bool = False) -> dict:
     """The pose estimator's options of a run (``config`` its PipelineConfig): the user's
     ``pose_options`` over what ``on_break`` implies for the front end: "segments" tracks again
     from where the camera was lost, a new piece of the trajectory (``restart_after_loss``,
-    recon.poses.pieces), where the others fall back to SfM; "keep" returns a trajectory
+    recon.poses.frontend.pieces), where the others fall back to SfM; "keep" returns a trajectory
     whatever the front end's motion checks or SfM's scale spread say (``stop_untrusted`` off,
     ``max_scale_spread`` 0). frontend_only: for a run that only has the front end (streamed),
     which SfM's implied settings do not concern."""
     implied = {"segments": {"restart_after_loss": True}, "stop": {},
                "keep": {"stop_untrusted": False, "max_scale_spread": 0.0}}[config.on_break]
     if frontend_only:
-        from ..poses.frontend_config import FrontendConfig
+        from ..poses.config import FrontendConfig
 
         implied = {k: v for k, v in implied.items() if k in FrontendConfig.__dataclass_fields__}
     return {**implied, **config.pose_options}
@@ -36,7 +36,7 @@ def estimator_options(config, frontend_only: bool = False) -> dict:
 
 def trajectory_stretches(info: dict, count: int) -> np.ndarray:
     """(count,) int: per frame of an estimate, the stretch of its trajectory it belongs to
-    (0 before the first scale break, n after break n; recon.poses.scale_watch's
+    (0 before the first scale break, n after break n; recon.poses.checks.scale_watch's
     ``frame_verdicts`` in the pose report ``info``); all 0 without a scale watch."""
     verdicts = info.get("scale_watch", {}).get("frame_verdicts") or ["ok"] * count
     return np.array([0 if v == "ok" else int(v.rsplit(" ", 1)[-1]) for v in verdicts], dtype=np.int64)
@@ -45,7 +45,7 @@ def trajectory_stretches(info: dict, count: int) -> np.ndarray:
 def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, frame, intrinsics,
                 views: int = 4, through_map: bool = True) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """The stretches of a trajectory joined across its scale breaks where the frames allow
-    (recon.poses.join): (stretch (N,) renumbered so that joined stretches share one number,
+    (recon.poses.checks.join): (stretch (N,) renumbered so that joined stretches share one number,
     poses (N, 4, 4) camera-to-world with each joined stretch moved into the frame of the one
     before, what report.json says of each break). stretch: (N,) as from
     :func:`trajectory_stretches`; positions: the frames that can serve as views (colour and
@@ -57,10 +57,10 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
     the prior per stretch instead made them 5.7 and 2.0 cm, and bringing each stretch to its
     prior's scale before the join (``join_scale_breaks``) 7.6 and 1.9 cm. through_map: where
     the ORB join finds nothing, join through one SfM model of both stretches' views
-    (``recon.poses.map_join``; skipped without pycolmap). Each break's entry says ``how``
+    (``recon.poses.sfm.map_join``; skipped without pycolmap). Each break's entry says ``how``
     ("orb" or "map") it was joined."""
     from ..geometry.rigid import apply_similarity
-    from ..poses.join import JoinConfig, View, join_stretches
+    from ..poses.checks.join import JoinConfig, View, join_stretches
 
     def view(p: int) -> View:
         return View(*frame(p), poses[p])
@@ -90,10 +90,10 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
 
 
 def _join_through_map(stretch: np.ndarray, k: int, usable: list[int], view, intrinsics):
-    """Break k's join through an SfM model (``recon.poses.map_join``) of views spread over
+    """Break k's join through an SfM model (``recon.poses.sfm.map_join``) of views spread over
     the frames nearest it on each side, or None (also where pycolmap is not installed)."""
-    from ..poses.map_join import MapJoinConfig, map_join
     from ..poses.result import evenly_apart
+    from ..poses.sfm.map_join import MapJoinConfig, map_join
 
     cfg = MapJoinConfig()
 
@@ -132,12 +132,12 @@ def settle_breaks(config, stretch: np.ndarray, poses: np.ndarray, positions: np.
 
 
 def check_metric_scale(config, info: dict) -> None:
-    """The depth prior's verdict on an estimate's metric scale (``recon.poses.prior_agreement``,
+    """The depth prior's verdict on an estimate's metric scale (``recon.poses.checks.prior_agreement``,
     report.json's poses.metric_scale): where the prior does not follow the scene, a warning
     that the result is written at that scale and its size is not to be trusted (report.json
     marks it, and the fusion's voxel follows the scene's depth alone:
     :func:`untrusted_scale`), or under "stop" a stop naming the frames."""
-    from ..poses.prior_agreement import PriorAgreement
+    from ..poses.checks.prior_agreement import PriorAgreement
 
     if not untrusted_scale(info):
         return
@@ -149,7 +149,7 @@ def check_metric_scale(config, info: dict) -> None:
 
 def check_scale_spread(config, info: dict) -> None:
     """SfM's verdict on how its map's scale varies against the depth prior's from frame to
-    frame (``recon.poses.sfm.scale_spread``, report.json's poses.scale_spread): beyond the
+    frame (``recon.poses.sfm.mapper.scale_spread``, report.json's poses.scale_spread): beyond the
     prior's noise a warning that the map's parts may be at different scales, or under "stop"
     a stop."""
     spread = info.get("scale_spread")
@@ -180,7 +180,7 @@ def say_joins(joins: list[dict]) -> None:
 def stop_at_breaks(info: dict) -> None:
     """ReconInputError naming the scale breaks of an estimate's pose report ``info``, if it
     has any (``--on-break stop``; not a TrackingLostError, which the SfM fallback would answer)."""
-    from ..poses.scale_watch import ScaleWatch
+    from ..poses.checks.scale_watch import ScaleWatch
 
     watch = info.get("scale_watch")
     if watch and watch["breaks"]:

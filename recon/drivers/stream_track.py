@@ -1,7 +1,7 @@
 """The streamed pipeline's first pass (:mod:`recon.drivers.streamed`): decode, prior, track.
 
 Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at a
-time (the streaming front end, :class:`recon.poses.frontend.StreamingFrontend`, or the given
+time (the streaming front end, :class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given
 poses). Each frame goes to a :class:`~recon.io.frame_store.FrameStore` on disk, and the
 frames that will get depth, chosen by motion as they come
 (:class:`recon.drivers.stream_plan.MotionSelector`), with their prior and features. The viewer
@@ -104,7 +104,7 @@ class _TrackLoop:
         if plan.polishes(config):
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
                         "once); MEDeA and the refinement use the poses as given")
-        # Given poses are checked against the first frames, as they come (recon.poses.pose_check).
+        # Given poses are checked against the first frames, as they come (recon.poses.given.pose_check).
         self.to_check: list[tuple[np.ndarray, np.ndarray]] | None = None if plan.estimated else []
         self.pose_check: dict | None = None
         self.medea_skipped: str | None = None
@@ -162,7 +162,7 @@ class _TrackLoop:
     def _check(self, batch: Sequence | None, poses: np.ndarray | None) -> None:
         """Collect the first frames with given poses; judge them once there are enough (or,
         with batch None, at the end of a shorter video)."""
-        from ..poses.pose_check import PoseCheckConfig
+        from ..poses.given.pose_check import PoseCheckConfig
 
         if self.to_check is None:
             return
@@ -274,7 +274,7 @@ class _Poser:
         # Position -> the video's frame number, for what tracking says (recon.poses.result.FrameNumbers).
         self.frame_number: dict[int, int] = {}
         if self.estimating:
-            from ..poses.frontend import streaming_frontend
+            from ..poses.frontend.streaming import streaming_frontend
 
             if config.pose_method == "sfm":
                 raise ReconInputError("--pose-method sfm needs every frame at once: run it with --stream off")
@@ -357,7 +357,7 @@ class _Poser:
 
 
 def _frontend_config(options: dict, device: str = "cpu"):
-    from ..poses.frontend import FrontendConfig
+    from ..poses.frontend.streaming import FrontendConfig
     from ..poses.options import configure_frontend
 
     unknown = sorted(set(options) - set(FrontendConfig.__dataclass_fields__))

@@ -1,10 +1,12 @@
-"""Camera poses from video: the DROID-SLAM-style dense front end (``frontend``), the pycolmap
-SfM fallback (``sfm``), pose files (``formats``) and the pieces they share.
+"""Camera poses from video. Entry point: :func:`estimate_poses`.
 
-Entry point: :func:`estimate_poses`. Conventions as everywhere in recon: camera-to-world
-4x4 poses, OpenCV camera axes, metres; intrinsics (fx, fy, cx, cy) in pixels of the frames.
-The settings the command line can change (``--pose-option``) and their checks are in
-:mod:`recon.poses.options`.
+The packages, by role (lower ones never import higher ones; tests/test_layers.py):
+``result`` (what every estimator returns) < ``ba``, ``matching`` < ``checks`` < ``config``
+(the front end's settings) < ``intrinsics``, ``given`` < ``frontend`` (the DROID-SLAM-style
+dense front end) < ``sfm`` (pycolmap, the second estimator) < ``second_opinion`` (the two
+compared), ``options`` (``--pose-option``) and this entry point. Conventions as everywhere
+in recon: camera-to-world 4x4 poses, OpenCV camera axes, metres; intrinsics (fx, fy, cx, cy)
+in pixels of the frames.
 """
 
 from __future__ import annotations
@@ -57,8 +59,8 @@ def estimate_poses(frames, prior_depth, intrinsics=None, method: str = "auto", d
 
     Raises TrackingLostError (front end, or auto when SfM also fails) or ReconInputError.
     """
-    from recon.poses.frontend import estimate_poses_frontend
-    from recon.poses.sfm import SfMConfig, estimate_poses_sfm
+    from recon.poses.frontend.streaming import estimate_poses_frontend
+    from recon.poses.sfm.mapper import SfMConfig, estimate_poses_sfm
 
     if method not in POSE_METHODS:
         raise ReconInputError(f"pose method must be one of {', '.join(POSE_METHODS)}, got {method!r}")

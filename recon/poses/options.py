@@ -22,8 +22,8 @@ from recon.options import scalar_fields, split_option, type_name, typed_value
 def _option_fields() -> dict[str, tuple[str, object, object]]:
     """{name: (owner, type, default)} of the scalar fields of FrontendConfig and SfMConfig
     (a name both have, such as calibrate_lens, sets both)."""
-    from recon.poses.frontend_config import FrontendConfig
-    from recon.poses.sfm import SfMConfig
+    from recon.poses.config import FrontendConfig
+    from recon.poses.sfm.mapper import SfMConfig
 
     table: dict[str, tuple[str, object, object]] = {}
     for cls in (FrontendConfig, SfMConfig):
@@ -51,7 +51,7 @@ def _ranges() -> dict[str, tuple[str, object]]:
     estimator. Settings not listed take any finite value. None is not checked here: the
     command line gives None only to fields that may be None (``parse_pose_option``), Python
     callers are trusted with it."""
-    from recon.poses.sfm import LOOP_MATCHING, MAPPERS
+    from recon.poses.sfm.mapper import LOOP_MATCHING, MAPPERS
 
     return {
         **dict.fromkeys(("ba_stride", "temporal_radius", "window", "calib_stride", "calib_flow_stride", "calib_iters",
@@ -90,7 +90,7 @@ def _check_value(name: str, value) -> None:
 def check_pose_config(config) -> None:
     """ReconInputError naming the first setting of a FrontendConfig or SfMConfig (and the
     FrontendConfig inside an SfMConfig) outside its range."""
-    from recon.poses.frontend_config import FrontendConfig
+    from recon.poses.config import FrontendConfig
 
     for f in fields(config):
         value = getattr(config, f.name)
@@ -103,7 +103,7 @@ def check_pose_config(config) -> None:
 def configure_frontend(options: dict, device: str = "cpu", base=None):
     """The FrontendConfig of `base` (the defaults when None) with those of `options` that are
     its fields (others are SfM's), checked, and with its bundle adjustment on `device`."""
-    from recon.poses.frontend_config import FrontendConfig
+    from recon.poses.config import FrontendConfig
 
     own = {k: v for k, v in options.items() if k in FrontendConfig.__dataclass_fields__}
     config = replace(base or FrontendConfig(), **own)
@@ -114,8 +114,8 @@ def configure_frontend(options: dict, device: str = "cpu", base=None):
 def check_pose_options(options: dict) -> None:
     """ReconInputError naming the keys of `options` that are no field of FrontendConfig or
     SfMConfig (nested configs such as ``flow`` included; the command line sets scalars only)."""
-    from recon.poses.frontend_config import FrontendConfig
-    from recon.poses.sfm import SfMConfig
+    from recon.poses.config import FrontendConfig
+    from recon.poses.sfm.mapper import SfMConfig
 
     unknown = set(options) - set(FrontendConfig.__dataclass_fields__) - set(SfMConfig.__dataclass_fields__)
     if unknown:

@@ -1,6 +1,6 @@
 """What pose estimators return and accept: :class:`PoseResult`, :class:`TrackingLostError`, and
 the validation of user inputs (frames, depth prior, intrinsics) shared by the DROID-style
-front end (``recon.poses.frontend``) and the SfM fallback (``recon.poses.sfm``).
+front end (``recon.poses.frontend.streaming``) and the SfM fallback (``recon.poses.sfm.mapper``).
 
 Conventions: poses camera-to-world (N, 4, 4) float64, OpenCV axes, metres; intrinsics
 ``(fx, fy, cx, cy)`` in pixels of the input frames; depth z in metres, 0 = invalid.
@@ -51,19 +51,19 @@ class TrackingLostError(ReconInputError):
     """The video could not be tracked: names the frame where it failed and why.
 
     A subclass of ReconInputError (the CLI prints it on one line) so that callers can catch
-    it specifically and fall back to SfM (``recon.poses.sfm.estimate_poses_sfm``).
+    it specifically and fall back to SfM (``recon.poses.sfm.mapper.estimate_poses_sfm``).
     """
 
     def __init__(self, message: str, frame: int | None = None, sfm_may_help: bool = True, lost: bool = False):
         super().__init__(message)
         self.frame = frame  # by position; the message names its frame number (FrameNumbers)
         # True where the camera was lost at `frame` (frames before it tracked), rather than a
-        # trajectory refused as a whole: tracking may start again there (recon.poses.pieces).
+        # trajectory refused as a whole: tracking may start again there (recon.poses.frontend.pieces).
         self.lost = lost
         # False where SfM has nothing more to go on (a camera that turns on the spot: no
         # parallax for either method), so that no fallback is tried.
         self.sfm_may_help = sfm_may_help
-        # The front end's focal-length estimates (recon.poses.focal_choice.FocalChoice) when it
+        # The front end's focal-length estimates (recon.poses.intrinsics.focal_choice.FocalChoice) when it
         # searched one before it failed: the range a fallback's own estimate is said within.
         self.focal_choice = None
         # The trajectory the estimator refused as a whole (a PoseResult of the frames before
@@ -78,7 +78,7 @@ class TrackingLostError(ReconInputError):
 
 
 # Per-frame tracking states (``PoseResult.diagnostics["frame_status"]``), shared by every
-# estimator so that one quality gate (``recon.poses.quality``) reads them all:
+# estimator so that one quality gate (``recon.poses.checks.quality``) reads them all:
 #   keyframe     optimised in the map (front end BA; SfM: registered in COLMAP's model)
 #   tracked      aligned to keyframes by its own flow (SfM: registered densely)
 #   relocalised  tracked after a loss, against an older keyframe

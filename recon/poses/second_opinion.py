@@ -124,7 +124,7 @@ def doubts(diagnostics: dict, number: FrameNumbers = by_position) -> str:
     ("" for nothing): stretches whose steps the flow made short (``motion_checks``) and
     breaks of the map's scale or of tracking (``scale_watch``). number: position -> the
     frame number said (recon.poses.result.FrameNumbers)."""
-    from recon.poses.scale_watch import ScaleWatch
+    from recon.poses.checks.scale_watch import ScaleWatch
 
     said = []
     short = diagnostics.get("motion_checks", {}).get("short_flow", [])
@@ -141,7 +141,7 @@ def doubts(diagnostics: dict, number: FrameNumbers = by_position) -> str:
 def stretches(diagnostics: dict, count: int) -> np.ndarray:
     """(count,) int: the stretch of a front end's trajectory each frame belongs to (0 before
     the first break of its scale watch, n after break n)."""
-    from recon.poses.scale_watch import ScaleWatch
+    from recon.poses.checks.scale_watch import ScaleWatch
 
     if "scale_watch" not in diagnostics:
         return np.zeros(count, np.int64)
@@ -194,8 +194,8 @@ def on_views(poses: np.ndarray, views: np.ndarray, frame, intrinsics, asked: str
     frames to use, in order; frame(position) -> (H, W, 3) uint8 RGB, one size; intrinsics:
     (fx, fy, cx, cy) held fixed, or None for COLMAP to estimate the focal length; asked: the
     doubt, in words; stretch: (N,) the front end's stretches (:func:`stretches`)."""
-    from recon.poses.sfm import views_model
     from recon.poses.result import evenly_apart
+    from recon.poses.sfm.mapper import views_model
 
     views = np.asarray(views, np.int64)
     views = views[np.isfinite(poses[views]).all(axis=(1, 2))]
