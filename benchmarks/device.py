@@ -68,7 +68,7 @@ def make_inputs(folder: Path, frames: int) -> None:
 
     from recon.commands.demo import write_demo_inputs
     from recon.io.output_folder import OutputFolder
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.synthetic import render_sequence
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -180,7 +180,7 @@ def pose_devices(folder: Path, devices: list[str], threads: int) -> dict:
     device's (the rest, DIS flow and bookkeeping, runs on the CPU either way)."""
     import cv2
 
-    from recon.io.trajectories import read_poses
+    from recon.io.pose_formats.trajectories import read_poses
     from recon.poses import estimate_poses
     from recon.poses.given.polish import polish_poses
     from recon.priors.fastdepth import FastDepthPrior
@@ -365,7 +365,7 @@ def main() -> None:
                 save()
                 print(stage_table(runs, fused), flush=True)
             else:
-                from recon.io.trajectories import read_poses
+                from recon.io.pose_formats.trajectories import read_poses
 
                 video = args.inputs / "synthetic" / "input" / "synthetic.mp4"
                 poses_file = args.inputs / "synthetic" / "input" / "poses_gt.txt"

@@ -50,7 +50,7 @@ def ping_pong_video(path: Path, frames: int, dataset: Path) -> tuple[Path, Path]
     """The back-and-forth walk (module docstring) as an mp4 of `frames` frames, and its
     ground-truth trajectory as a TUM file beside it (one pose per video frame)."""
     from recon.io.frames import open_source
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.io.video import write_video
 
     poses_path = path.with_suffix(".tum.txt")

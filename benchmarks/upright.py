@@ -94,7 +94,7 @@ def summary(planes: list[tuple[float, int]]) -> dict:
 def gravity_error(folder: Path, report: dict, gt: Path) -> float | None:
     """Degrees between report.json's up and the dataset's gravity, in the run's world."""
     from recon.io.datasets import detect_kind, open_dataset
-    from recon.io.trajectories import read_poses
+    from recon.io.pose_formats.trajectories import read_poses
 
     kind = detect_kind(gt)
     if kind not in GRAVITY_UP or "upright" not in report:
@@ -116,7 +116,7 @@ def reference_up(folder: Path) -> np.ndarray:
     import open3d as o3d
 
     from recon.fusion.upright import camera_up, directions_around
-    from recon.io.trajectories import read_poses
+    from recon.io.pose_formats.trajectories import read_poses
 
     mesh = o3d.io.read_triangle_mesh(str(folder / "mesh.ply"))
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
@@ -141,7 +141,7 @@ def estimated_again(folder: Path, ply) -> dict:
     """report.json's "upright" as this checkout's estimator gives it from the folder's
     mesh.ply and trajectory.txt (for folders an earlier version wrote)."""
     from recon.fusion.upright import estimate_upright
-    from recon.io.trajectories import read_poses
+    from recon.io.pose_formats.trajectories import read_poses
 
     return estimate_upright(read_poses(folder / "trajectory.txt").poses, np.asarray(ply.vertices)).to_dict()
 

@@ -256,7 +256,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
         row["fscore_icp"] = ev["mesh"]["fscore"] if ev.get("mesh_icp", {}).get("accepted") else None
     if "trajectory" in ev:
         from recon.eval.trajectory import path_length
-        from recon.io.trajectories import read_poses
+        from recon.io.pose_formats.trajectories import read_poses
 
         t = ev["trajectory"]
         dataset = dataset_of(rec)

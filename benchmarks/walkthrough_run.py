@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, say, table, write_json  # noqa: E402
 
 from recon.eval.trajectory import ate_rmse, path_length  # noqa: E402
-from recon.io.trajectories import read_poses  # noqa: E402
+from recon.io.pose_formats.trajectories import read_poses  # noqa: E402
 from recon.poses.second_opinion import MAX_DISAGREEMENT  # noqa: E402
 
 FPS = 30.0

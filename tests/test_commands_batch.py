@@ -28,7 +28,7 @@ def clips(tmp_path_factory):
     """room.mp4 and other/room.mp4 (the same 8 frames of the synthetic room, so one pose file
     and one prior folder serve both), broken.mp4 (text), and the options of a fast run."""
     from recon.io.output_folder import frame_name
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.io.video import write_video
     from recon.synthetic import render_sequence
 

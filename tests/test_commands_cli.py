@@ -21,7 +21,7 @@ from recon.commands.demo import pose_estimator_available
 from recon.export.writers import to_gltf_axes
 from recon.fusion.upright import camera_up
 from recon.io.depth_maps import read_depth_png_mm
-from recon.io.trajectories import read_poses
+from recon.io.pose_formats.trajectories import read_poses
 
 from helpers import glb_vertex_colors, read_recording, save_tiny_depth_anything, save_tiny_dpt
 
@@ -799,7 +799,7 @@ def test_run_on_a_fresh_install_uses_the_packaged_fastdepth(tmp_path, monkeypatc
     not found"). It runs on the FastDepth model packaged with recon and writes a mesh."""
     import recon.priors
     import recon.priors.weights as weights
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.synthetic import render_sequence
 
     # Hide every place outside the package (raising=False: an older lookup order had them).
@@ -833,7 +833,7 @@ def test_run_on_a_fresh_install_uses_the_packaged_fastdepth(tmp_path, monkeypatc
 def rgbd_room(tmp_path_factory) -> Path:
     """6 frames of the synthetic room at 96x72 as an Open3D/Redwood RGB-D folder: colour, depth
     (uint16 mm), trajectory.log, camera.json; ground-truth poses and sensor depth for `recon run`."""
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.synthetic import render_sequence
 
     room = render_sequence(6, 96, 72, seed=0)

@@ -27,7 +27,7 @@ from recon.core.stages import (
     window_frames,
 )
 from recon.errors import ReconInputError
-from recon.io.trajectories import write_poses
+from recon.io.pose_formats.trajectories import write_poses
 
 from helpers import SOURCE_H, SOURCE_W, random_poses, write_images
 

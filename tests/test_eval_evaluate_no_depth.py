@@ -16,7 +16,7 @@ from recon.eval.evaluate import EvalOptions, evaluate_output, format_evaluation
 from recon.export import export_reconstruction
 from recon.geometry.rigid import make_poses
 from recon.io.output_folder import OutputFolder
-from recon.io.trajectories import write_poses
+from recon.io.pose_formats.trajectories import write_poses
 
 from helpers import SHARED_DATA
 

@@ -21,7 +21,7 @@ from recon.errors import ReconInputError
 from recon.export import ExportOptions, export_colmap, export_folder, export_nerfstudio
 from recon.export.colmap_export import colmap_text_model
 from recon.export.nerfstudio_export import nerfstudio_transforms
-from recon.io.trajectories import read_poses
+from recon.io.pose_formats.trajectories import read_poses
 
 from helpers import no_temp_files, random_poses
 

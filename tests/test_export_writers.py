@@ -23,7 +23,7 @@ from recon.io.output_folder import (
     TRAJECTORY,
     OutputFolder,
 )
-from recon.io.trajectories import read_poses
+from recon.io.pose_formats.trajectories import read_poses
 
 from helpers import glb_json, glb_vertex_colors, no_temp_files
 

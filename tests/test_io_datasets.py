@@ -15,7 +15,7 @@ from recon.eval.trajectory import path_length
 from recon.geometry.rigid import make_poses
 from recon.io.datasets import KINDS, detect_dataset, detect_kind, open_dataset
 from recon.io.datasets.base import register_depth
-from recon.io.trajectories import write_poses
+from recon.io.pose_formats.trajectories import write_poses
 from recon.poses.result import invert_poses
 from test_io_datasets_new_layouts import make_colmap, make_kitti, make_record3d
 

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import recon.io.colmap
+import recon.io.pose_formats.colmap
 from recon.errors import ReconInputError
 from recon.eval.trajectory import path_length
 from recon.geometry.rigid import make_poses, matrix_to_quat
 from recon.io.datasets import detect_kind, open_dataset
 from recon.io.datasets.base import upscale_nearest
 from recon.io.exr import read_exr
-from recon.io.trajectories import read_poses, write_poses
+from recon.io.pose_formats.trajectories import read_poses, write_poses
 from recon.poses.result import invert_poses
 
 from helpers import SHARED_DATA
@@ -302,8 +302,8 @@ def make_colmap(root: Path, cameras: list[str], image_cams: list[int], present=N
 def colmap_reader(request, monkeypatch):
     """Text models are read by pycolmap when it is installed, else by recon's own parser: test both."""
     if request.param == "text reader":
-        monkeypatch.setattr(recon.io.colmap, "_import_pycolmap", lambda required: None)
-    elif recon.io.colmap._import_pycolmap(required=False) is None:
+        monkeypatch.setattr(recon.io.pose_formats.colmap, "_import_pycolmap", lambda required: None)
+    elif recon.io.pose_formats.colmap._import_pycolmap(required=False) is None:
         pytest.skip("pycolmap is not installed")
     return request.param
 

@@ -105,7 +105,7 @@ class DemoReport:
 
 def write_demo_inputs(out: OutputFolder, seq: SyntheticSequence, prior: np.ndarray | None) -> dict[str, Path]:
     """The rendered video, the prior maps and the ground-truth trajectory under OUT/input/."""
-    from ..io.trajectories import write_poses
+    from ..io.pose_formats.trajectories import write_poses
     from ..io.video import write_video
 
     video = out.path_for("input/synthetic.mp4")

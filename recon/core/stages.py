@@ -22,7 +22,7 @@ from ..errors import ReconInputError
 from ..geometry.camera import intrinsics_from_fov, resize_intrinsics
 from ..geometry.rolling_shutter import MIN_SHIFT_PX, angular_velocity
 from ..io.frames import DatasetSource, open_source
-from ..io.pose_matching import frame_names, match_pose_file
+from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
 from .sequence import Sequence
 
@@ -243,7 +243,7 @@ class PosePlan:
     """Where the poses will come from, settled before any heavy work.
 
     kind: "gt" (the dataset's ground truth), "estimate" or "file"; data: the read pose
-    file (recon.io.trajectories.PoseData) when kind is "file".
+    file (recon.io.pose_formats.trajectories.PoseData) when kind is "file".
     """
 
     kind: str
@@ -275,7 +275,7 @@ class PoseStage:
 def plan_poses(choice: str, source: FrameSource) -> PosePlan:
     """The pose source for ``choice`` ("auto", "gt", "estimate" or a pose file / folder),
     checked: raises ReconInputError when it cannot work."""
-    from ..io.trajectories import read_poses
+    from ..io.pose_formats.trajectories import read_poses
 
     has_gt = isinstance(source, DatasetSource) and source.poses is not None
     if choice == "auto":

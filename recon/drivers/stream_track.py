@@ -33,7 +33,7 @@ from ..core.stages import (
 )
 from ..errors import ReconInputError
 from ..io.frame_store import FrameStore
-from ..io.pose_matching import frame_names, match_pose_file
+from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
 from .segments import estimator_options
 from .stream_plan import MotionSelector, parse_depth_frames
@@ -239,7 +239,7 @@ class _TrackLoop:
 
 def _frame_namer(source: FrameSource) -> Callable[[np.ndarray, np.ndarray], list[str]]:
     """names(indices, positions) of a batch: a dataset's names cover all its selected frames
-    at once (recon.io.pose_matching.frame_names), other sources name frames by index."""
+    at once (recon.io.pose_formats.matching.frame_names), other sources name frames by index."""
     from ..io.frames import DatasetSource
 
     if isinstance(source, DatasetSource):

@@ -12,8 +12,8 @@ colmap dataparser read.
 
 Pixel centres: recon puts them at integer coordinates (OpenCV's convention,
 intrinsics.json), COLMAP the centre of the first pixel at (0.5, 0.5): the principal point
-gains :data:`recon.io.pose_files.PIXEL_CENTRE` here, and loses it again when
-:mod:`recon.io.colmap` reads the model back.
+gains :data:`recon.io.pose_formats.base.PIXEL_CENTRE` here, and loses it again when
+:mod:`recon.io.pose_formats.colmap` reads the model back.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.geometry.rigid import matrix_to_quat
-from recon.io.pose_files import PIXEL_CENTRE
+from recon.io.pose_formats.base import PIXEL_CENTRE
 from recon.poses.result import invert_poses
 
 from .run_folder import RunFiles

@@ -18,8 +18,8 @@ millimetres to metres) is written for readers of the file; nerfstudio itself tak
 
 Pixel centres: recon puts them at integer coordinates (OpenCV's convention,
 intrinsics.json); nerfstudio casts the ray of pixel (0, 0) through (0.5, 0.5): the principal
-point gains :data:`recon.io.pose_files.PIXEL_CENTRE` here, and loses it again when
-:mod:`recon.io.trajectories` reads transforms.json back.
+point gains :data:`recon.io.pose_formats.base.PIXEL_CENTRE` here, and loses it again when
+:mod:`recon.io.pose_formats.trajectories` reads transforms.json back.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from recon.io.output_folder import (
     json_bytes,
     read_depth,
 )
-from recon.io.pose_files import PIXEL_CENTRE
+from recon.io.pose_formats.base import PIXEL_CENTRE
 
 from .run_folder import RunFiles
 

@@ -41,7 +41,7 @@ from recon.io.output_folder import (
     read_mesh,
     read_report,
 )
-from recon.io.trajectories import read_poses
+from recon.io.pose_formats.trajectories import read_poses
 
 DEFAULT_MAX_POINTS = 100_000
 POINTS_SEED = 0  # the subset of the mesh's vertices is the same on every export

@@ -41,7 +41,7 @@ from recon.io.output_folder import (
     json_bytes,
     npy_bytes,
 )
-from recon.io.trajectories import write_poses
+from recon.io.pose_formats.trajectories import write_poses
 
 # OpenCV (x right, y down, z forward) -> glTF (x right, y up, camera looks down -z).
 GLTF_FROM_OPENCV = np.diag([1.0, -1.0, -1.0])

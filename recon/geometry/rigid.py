@@ -3,7 +3,7 @@ camera axes, and resampling a trajectory in time.
 
 Poses are (N, 4, 4) float64 rigid transforms (camera-to-world unless a function says
 otherwise); quaternions are ``qx qy qz qw``; timestamps are seconds. Pose *files* live in
-:mod:`recon.io.trajectories`; :func:`recon.poses.result.invert_poses` inverts poses.
+:mod:`recon.io.pose_formats.trajectories`; :func:`recon.poses.result.invert_poses` inverts poses.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .output_folder import DEPTH_DIR, DEPTH_NPY, DEPTH_PNG, REPORT_JSON, UNFINISHED, depth_name
+from recon.io.output_folder import DEPTH_DIR, DEPTH_NPY, DEPTH_PNG, REPORT_JSON, UNFINISHED, depth_name
 
 
 def earlier_run_files(folder) -> list[Path]:

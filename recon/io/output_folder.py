@@ -59,7 +59,7 @@ import numpy as np
 from recon.errors import ReconInputError
 from recon.io.depth_maps import read_depth_png_mm
 from recon.io.naming import natural_key
-from recon.io.trajectories import read_poses
+from recon.io.pose_formats.trajectories import read_poses
 
 MESH_PLY = "mesh.ply"
 MESH_GLB = "mesh.glb"

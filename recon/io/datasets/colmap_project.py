@@ -1,7 +1,7 @@
 """COLMAP project folders: ``images/`` and a sparse model in ``sparse/0/`` (or ``sparse/``).
 
 Owns reading a COLMAP project as a dataset (kind ``colmap``). The model is read by
-:func:`recon.io.colmap.read_colmap` (binary or text; its world-to-camera poses come back
+:func:`recon.io.pose_formats.colmap.read_colmap` (binary or text; its world-to-camera poses come back
 as camera-to-world, OpenCV axes). Frames are the model's registered images whose files
 exist under ``images/``, in natural name order; images COLMAP did not register have no
 pose and are left out. A model may have one camera per image (as the automatic
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.io.colmap import colmap_model_dir, read_colmap
+from recon.io.pose_formats.colmap import colmap_model_dir, read_colmap
 
 from .base import RGBDDataset, image_shape, require_dir
 

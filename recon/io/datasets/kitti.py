@@ -9,7 +9,7 @@ P0 belongs to image_0 and P2 to image_2, and fx = P[0,0], fy = P[1,1], cx = P[0,
 cy = P[1,2]. Ground truth is ``poses.txt`` beside the images, or the official
 ``poses/<sequence>.txt`` two folders up: line i is frame i, the 3x4 camera-to-world of the
 left greyscale camera (camera 0) in metres, camera looking along +z (already OpenCV axes;
-:func:`recon.io.trajectories.read_kitti` reads it). Camera 2 sits beside camera 0 with the
+:func:`recon.io.pose_formats.trajectories.read_kitti` reads it). Camera 2 sits beside camera 0 with the
 same orientation, displaced by K^-1 P2[:, 3]; its poses are moved by that offset.
 Timestamps come from ``times.txt`` (seconds, line i is frame i), else KITTI's 10 Hz.
 There is no depth.
@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.io.pose_files import data_lines, parse_floats, parse_table
-from recon.io.trajectories import read_kitti
+from recon.io.pose_formats.base import data_lines, parse_floats, parse_table
+from recon.io.pose_formats.trajectories import read_kitti
 
 from .base import RGBDDataset, image_shape, list_images, require_file
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import ReconInputError
-from recon.io.trajectories import read_log
+from recon.io.pose_formats.trajectories import read_log
 
 from .base import RGBDDataset, image_shape, list_images
 

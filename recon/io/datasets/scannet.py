@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from recon.errors import ReconInputError
-from recon.io.trajectories import read_matrix_folder
+from recon.io.pose_formats.trajectories import read_matrix_folder
 
 from .base import RGBDDataset, image_shape, intrinsics_from_K, list_images, read_matrix_txt
 

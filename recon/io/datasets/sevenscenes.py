@@ -19,7 +19,7 @@ from pathlib import Path
 
 from recon.errors import ReconInputError
 from recon.io.naming import natural_key
-from recon.io.trajectories import read_matrix_folder
+from recon.io.pose_formats.trajectories import read_matrix_folder
 
 from .base import RGBDDataset, image_shape, intrinsics_from_K, read_matrix_txt
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from recon.errors import ReconInputError
 from recon.geometry.rigid import associate_timestamps, interpolate_poses
-from recon.io.trajectories import read_tum
+from recon.io.pose_formats.trajectories import read_tum
 
 from .base import RGBDDataset, check_exist, image_shape, require_file
 

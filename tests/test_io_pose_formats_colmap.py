@@ -1,4 +1,4 @@
-"""COLMAP models as pose files (recon.io.colmap): world-to-camera storage, and the text
+"""COLMAP models as pose files (recon.io.pose_formats.colmap): world-to-camera storage, and the text
 reader/writer agreeing with pycolmap's binary and text models."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
 from recon.geometry.rigid import make_poses
-from recon.io.trajectories import read_poses, write_poses
+from recon.io.pose_formats.trajectories import read_poses, write_poses
 from recon.poses.result import invert_poses
 
 from helpers import POSE_FILE_INTRINSICS, random_poses

@@ -2,7 +2,7 @@
 
 COLMAP stores world-to-camera (``cam_from_world``) poses; everything here hands back and
 takes camera-to-world (N, 4, 4) poses with OpenCV axes, like the other pose formats of
-:mod:`recon.io.trajectories` (which dispatches ``fmt="colmap"`` here). Binary models need
+:mod:`recon.io.pose_formats.trajectories` (which dispatches ``fmt="colmap"`` here). Binary models need
 pycolmap (an optional dependency); text models are read and written without it.
 Images are ordered by :func:`recon.io.naming.natural_key` of their names.
 
@@ -11,7 +11,7 @@ model's distortion terms, which are handed back in OpenCV's order (k1, k2, p1, p
 the models that share OpenCV's pinhole distortion formula (SIMPLE_RADIAL, RADIAL, OPENCV,
 FULL_OPENCV without its rational terms); fisheye and FOV models have none in that form.
 COLMAP puts the centre of the first pixel at 0.5, the project (like OpenCV) at 0: the
-principal point loses :data:`~recon.io.pose_files.PIXEL_CENTRE` as it is read and gains it
+principal point loses :data:`~recon.io.pose_formats.base.PIXEL_CENTRE` as it is read and gains it
 as it is written, so that a model read and written again is unchanged.
 """
 
@@ -27,7 +27,7 @@ import numpy as np
 from recon.errors import ReconInputError
 from recon.geometry.rigid import matrix_to_quat, quat_to_matrix
 from recon.io.naming import natural_key
-from recon.io.pose_files import (
+from recon.io.pose_formats.base import (
     PIXEL_CENTRE,
     PoseData,
     check_poses,

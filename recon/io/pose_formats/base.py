@@ -2,9 +2,9 @@
 name the file and line at fault, the text-parsing helpers, the check of parsed poses, and
 atomic writes (a reader never sees half a file).
 
-The formats themselves live in :mod:`recon.io.trajectories` (TUM, per-frame matrices,
+The formats themselves live in :mod:`recon.io.pose_formats.trajectories` (TUM, per-frame matrices,
 Open3D log, nerfstudio, and the ``read_poses`` / ``write_poses`` entry points) and
-:mod:`recon.io.colmap` (COLMAP models).
+:mod:`recon.io.pose_formats.colmap` (COLMAP models).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Pose file formats (recon.io.trajectories): round trips with auto-detection, conventions
+"""Pose file formats (recon.io.pose_formats.trajectories): round trips with auto-detection, conventions
 (OpenGL axes, invalid poses, Open3D's log), and one-line errors naming the file and line.
 COLMAP models have their own tests (test_io_colmap.py)."""
 
@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from recon.errors import ReconInputError
-from recon.io.trajectories import FORMATS, detect_pose_format, read_poses, write_poses
+from recon.io.pose_formats.trajectories import FORMATS, detect_pose_format, read_poses, write_poses
 
 from helpers import POSE_FILE_INTRINSICS, random_poses
 
@@ -155,7 +155,7 @@ def test_tum_file_is_recognised_by_all_its_lines_and_errors_say_the_format(tmp_p
     (the format is decided by all lines), and the error names that line and the format
     assumed, instead of "expected 4 numbers per row of a 4x4 pose"."""
     from recon.errors import ReconInputError
-    from recon.io.trajectories import detect_pose_format, read_poses
+    from recon.io.pose_formats.trajectories import detect_pose_format, read_poses
 
     rows = [f"{k / 30:.4f} {0.1 * k:.3f} 0 0 0 0 0 1" for k in range(6)]
     good = tmp_path / "ok.txt"

@@ -3,11 +3,11 @@
 This module owns the pose-file formats and their two entry points, :func:`read_poses`
 (format detection included) and :func:`write_poses`. Errors are one line naming the file
 and line (or frame) at fault; files are written atomically. What the formats share
-(:class:`~recon.io.pose_files.PoseData`, parsing, checks) is in :mod:`recon.io.pose_files`,
-COLMAP models in :mod:`recon.io.colmap`, and the pose maths (quaternions, interpolation
+(:class:`~recon.io.pose_formats.base.PoseData`, parsing, checks) is in :mod:`recon.io.pose_formats.base`,
+COLMAP models in :mod:`recon.io.pose_formats.colmap`, and the pose maths (quaternions, interpolation
 in time) in :mod:`recon.geometry.rigid`.
 
-Every reader returns :class:`~recon.io.pose_files.PoseData` whose ``poses`` are
+Every reader returns :class:`~recon.io.pose_formats.base.PoseData` whose ``poses`` are
 camera-to-world (N, 4, 4) float64 with OpenCV camera axes (x right, y down, z forward),
 whatever the file's own convention.
 
@@ -40,9 +40,8 @@ import numpy as np
 
 from recon.errors import ReconInputError
 from recon.geometry.rigid import make_poses, matrix_to_quat, opencv_to_opengl, opengl_to_opencv, quat_to_matrix
-from recon.io.colmap import colmap_model_dir, read_colmap, write_colmap
 from recon.io.naming import natural_key
-from recon.io.pose_files import (
+from recon.io.pose_formats.base import (
     PIXEL_CENTRE,
     PoseData,
     atomic_write_text,
@@ -55,6 +54,7 @@ from recon.io.pose_files import (
     parse_table,
     read_text,
 )
+from recon.io.pose_formats.colmap import colmap_model_dir, read_colmap, write_colmap
 
 FORMATS = ("tum", "colmap", "nerfstudio", "matrices", "log", "kitti")
 FORMAT_NAMES = {"tum": "a TUM trajectory", "matrices": "a 4x4 matrix file", "log": "an Open3D .log trajectory",

@@ -16,7 +16,7 @@ from recon.geometry.camera import resize_intrinsics
 from recon.geometry.rigid import interpolate_poses
 from recon.io.frames import DatasetSource, ImageFolderSource
 from recon.io.output_folder import frame_name
-from recon.io.pose_files import PoseData
+from recon.io.pose_formats.base import PoseData
 from recon.io.source import FrameSource
 
 
