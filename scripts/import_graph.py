@@ -35,6 +35,21 @@ LAYERS = (
     ("commands", ("recon.commands", "recon.__main__")),
 )
 
+# Inside recon.poses its packages keep the same rule, lowest first (recon/poses/__init__.py):
+# what an estimate is, the solver and the matching it fits, the checks on an estimate, the
+# front end's settings, the camera and given poses, the front end, SfM, the entry point.
+POSES_LAYERS = (
+    ("result", ("recon.poses.result",)),
+    ("solver and matching", ("recon.poses.ba", "recon.poses.matching")),
+    ("checks", ("recon.poses.checks",)),
+    ("front-end settings", ("recon.poses.config",)),
+    ("camera and given poses", ("recon.poses.intrinsics", "recon.poses.given")),
+    ("front end", ("recon.poses.frontend",)),
+    ("SfM", ("recon.poses.sfm",)),
+    ("entry point", ("recon.poses",)),
+)
+MOST_MODULES = 12  # modules (besides __init__.py) one folder may hold
+
 
 def module_name(path: Path, root: Path = ROOT) -> str:
     """recon/poses/ba/bundle.py -> recon.poses.ba.bundle; recon/poses/__init__.py -> recon.poses."""
@@ -99,24 +114,40 @@ def loops(edges: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def layer_of(module: str) -> int | None:
+def layer_of(module: str, layers=LAYERS) -> int | None:
+    """The index in `layers` of the longest prefix naming `module` (None: no layer names it)."""
     best, depth = None, -1
-    for k, (_, prefixes) in enumerate(LAYERS):
+    for k, (_, prefixes) in enumerate(layers):
         for prefix in prefixes:
             if (module == prefix or module.startswith(prefix + ".")) and prefix.count(".") > depth:
                 best, depth = k, prefix.count(".")
     return best
 
 
-def upward_imports(root: Path = ROOT) -> dict[str, list[str]]:
-    """{file: the modules it imports from a layer above its own}."""
+def upward_imports(root: Path = ROOT, layers=LAYERS, packages=PACKAGES) -> dict[str, list[str]]:
+    """{file: the modules it imports from a layer above its own}, for the files of `packages`
+    (dotted names) under the order `layers`; modules no layer names are left out."""
+    found = {}
+    for package in packages:
+        for f, names in imported_modules(package.replace(".", "/"), root).items():
+            mine = layer_of(module_name(root / f, root), layers)
+            if mine is None:
+                continue
+            above = sorted(n for n in names if (layer_of(n, layers) or 0) > mine)
+            if above:
+                found[f] = [f"{n} ({layers[layer_of(n, layers)][0]})" for n in above]
+    return found
+
+
+def crowded_folders(root: Path = ROOT, most: int = MOST_MODULES) -> dict[str, int]:
+    """{folder: its module count} for the package folders holding more than `most` modules
+    (.py files besides __init__.py directly in the folder)."""
     found = {}
     for package in PACKAGES:
-        for f, names in imported_modules(package, root).items():
-            mine = layer_of(module_name(root / f, root))
-            above = sorted(n for n in names if (layer_of(n) or 0) > mine)
-            if above:
-                found[f] = [f"{n} ({LAYERS[layer_of(n)][0]})" for n in above]
+        for folder in [root / package, *sorted(p.parent for p in (root / package).rglob("*/__init__.py"))]:
+            count = sum(1 for p in folder.glob("*.py") if p.name != "__init__.py")
+            if count > most:
+                found[folder.relative_to(root).as_posix()] = count
     return found
 
 
@@ -171,6 +202,13 @@ def main() -> None:
     up = upward_imports(root)
     print(f"files importing a layer above their own (LAYERS): {len(up)}"
           + "".join(f"\n  {f}: {', '.join(n)}" for f, n in sorted(up.items())))
+    if (root / "recon" / "poses" / "ba").is_dir():
+        up = upward_imports(root, POSES_LAYERS, ("recon.poses",))
+        print(f"files in recon/poses importing a package above their own (POSES_LAYERS): {len(up)}"
+              + "".join(f"\n  {f}: {', '.join(n)}" for f, n in sorted(up.items())))
+    crowded = crowded_folders(root)
+    print(f"folders holding more than {MOST_MODULES} modules: {len(crowded)}"
+          + "".join(f"\n  {f}: {n}" for f, n in sorted(crowded.items())))
 
 
 if __name__ == "__main__":

@@ -12,7 +12,17 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from import_graph import LAYERS, file_edges, imported_modules, layer_of, loops, upward_imports  # noqa: E402
+from import_graph import (  # noqa: E402
+    LAYERS,
+    MOST_MODULES,
+    POSES_LAYERS,
+    crowded_folders,
+    file_edges,
+    imported_modules,
+    layer_of,
+    loops,
+    upward_imports,
+)
 
 
 @pytest.mark.parametrize("package", ["medea_core", "mvs_core", "viewer"])
@@ -37,6 +47,30 @@ def test_the_layers_are_real_and_the_top_level_is_small():
         assert any(layer_of(m) == k for m in modules), name
     top = sorted(p.name for p in (ROOT / "recon").glob("*.py"))
     assert top == ["__init__.py", "__main__.py", "choices.py", "errors.py", "memory.py", "options.py", "pipeline.py"]
+
+
+def test_the_pose_packages_import_only_their_own_level_and_below():
+    """recon/poses/__init__.py's order: result < ba, matching < checks < config < intrinsics,
+    given < frontend < sfm < the entry point; every level holds code."""
+    assert not upward_imports(ROOT, POSES_LAYERS, ("recon.poses",))
+    modules = {p.relative_to(ROOT).with_suffix("").as_posix().replace("/", ".")
+               for p in (ROOT / "recon" / "poses").rglob("*.py")}
+    for k, (name, _) in enumerate(POSES_LAYERS):
+        assert any(layer_of(m, POSES_LAYERS) == k for m in modules), name
+    assert layer_of("recon.poses.ba.bundle", POSES_LAYERS) < layer_of("recon.poses.frontend.tracker", POSES_LAYERS)
+    assert layer_of("recon.poses.second_opinion", POSES_LAYERS) == len(POSES_LAYERS) - 1
+
+
+def test_no_folder_holds_more_than_twelve_modules(tmp_path):
+    """A folder past MOST_MODULES modules is split into packages by role; the check itself sees
+    a made-up crowded package."""
+    assert not crowded_folders()
+    crowded = tmp_path / "recon" / "crowd"
+    crowded.mkdir(parents=True)
+    for k in range(MOST_MODULES + 1):
+        (crowded / f"m{k}.py").write_text("")
+    (crowded / "__init__.py").write_text("")
+    assert crowded_folders(tmp_path) == {"recon/crowd": MOST_MODULES + 1}
 
 
 def test_no_import_loop_between_files():
