@@ -237,9 +237,11 @@ class TsdfVolume:
         return self._blocks_closed if self.grid is None else int(self.grid.hashmap().size())
 
     def close(self) -> None:
-        """Free the voxels (their counts stay readable): once the mesh and points are out,
-        before the decimation, which needs most of the memory the voxels held (+0.8 GB for
-        2.5 M triangles)."""
+        """Free the voxels (their counts stay readable).
+
+        Called once the mesh and points are out, before the decimation, which needs most of the
+        memory the voxels held (+0.8 GB for 2.5 M triangles).
+        """
         if self.grid is not None:
             self._blocks_closed = self.blocks_used
             self.grid = None
