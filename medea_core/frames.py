@@ -34,21 +34,38 @@ class Level:
 
     @property
     def maps(self) -> torch.Tensor:
-        """(N, C, H, W)."""
+        """The warped signal of every frame, a view into `packed`.
+
+        Returns:
+            (N, C, H, W) RGB in [0, 1] or features.
+        """
         return self.packed[:, :-2]
 
     @property
     def prior(self) -> torch.Tensor:
-        """(N, H, W)."""
+        """The prior depth of every frame at this resolution, a view into `packed`.
+
+        Returns:
+            (N, H, W) depth in metres, 0 = invalid.
+        """
         return self.packed[:, -2]
 
     @property
     def valid(self) -> torch.Tensor:
-        """(N, H, W) bool."""
+        """Where the prior depth at this resolution is valid.
+
+        Returns:
+            (N, H, W) bool.
+        """
         return self.packed[:, -1] > 0.5
 
     @property
     def size(self) -> tuple[int, int]:
+        """The resolution of this level.
+
+        Returns:
+            (H, W) in pixels.
+        """
         return tuple(self.packed.shape[-2:])
 
 
@@ -62,6 +79,11 @@ class FrameData:
 
     @property
     def num_frames(self) -> int:
+        """The number of frames N.
+
+        Returns:
+            N, the first dimension of `poses`.
+        """
         return self.poses.shape[0]
 
 
@@ -80,10 +102,17 @@ def resize_depth(depth: torch.Tensor, size: tuple[int, int], min_coverage: float
     """Resize depth (N, H, W) by averaging valid pixels only.
 
     A pixel of the result is valid only where (almost) its whole footprint was valid, so
-    that holes in sensor depth never blend into their neighbours.
+    that holes in sensor depth never blend into their neighbours. At the input's own size
+    the depth is returned as float with invalid pixels set to 0.
+
+    Args:
+        depth: (N, H, W) depth in metres; <= 0 and non-finite values are invalid.
+        size: (h, w) target resolution in pixels.
+        min_coverage: fraction of a result pixel's antialiased footprint that must be
+            valid for the pixel to be valid.
 
     Returns:
-        depth (N, h, w) with 0 where invalid, and valid (N, h, w) bool.
+        depth (N, h, w) in metres with 0 where invalid, and valid (N, h, w) bool.
     """
     valid = (depth > 0) & torch.isfinite(depth)
     depth = torch.where(valid, depth, torch.zeros_like(depth))
@@ -99,7 +128,21 @@ def resize_depth(depth: torch.Tensor, size: tuple[int, int], min_coverage: float
 def make_level(
     prior: torch.Tensor, intrinsics: torch.Tensor, maps: torch.Tensor, size: tuple[int, int]
 ) -> Level:
-    """Bring prior (N, H, W), intrinsics (N, 4) of that prior, and maps (N, C, h', w') to size."""
+    """Bring the prior, its intrinsics and a signal to one working resolution.
+
+    The maps are resized with antialiased bilinear interpolation, the prior with
+    resize_depth, and the intrinsics with scale_intrinsics.
+
+    Args:
+        prior: (N, H, W) prior depth in metres, 0 (or NaN) = invalid.
+        intrinsics: (N, 4) fx, fy, cx, cy in pixels of the prior's resolution (H, W).
+        maps: (N, C, h', w') RGB or features, any resolution covering the same field of view.
+        size: (h, w) resolution of the level in pixels.
+
+    Returns:
+        Level with packed (N, C + 2, h, w) maps, depth and validity, and intrinsics (N, 4)
+        in pixels of (h, w).
+    """
     height, width = prior.shape[-2:]
     depth, valid = resize_depth(prior, size)
     scaled = scale_intrinsics(intrinsics, size[1] / width, size[0] / height)
@@ -108,9 +151,19 @@ def make_level(
 
 
 def most_varying_channels(features: torch.Tensor, count: int) -> torch.Tensor:
-    """Indices (count,) of the channels of features (N, C, h, w) with the largest variance
-    over all frames and pixels, in their original order. Selecting channels (rather than
-    projecting them) keeps them non-negative, which the S-form loss assumes."""
+    """Indices of the feature channels with the largest variance over all frames and pixels.
+
+    Selecting channels (rather than projecting them) keeps them non-negative, which the
+    S-form loss assumes.
+
+    Args:
+        features: (N, C, h, w) feature maps.
+        count: number of channels to keep.
+
+    Returns:
+        (count,) int64 channel indices in their original (ascending) order, on the features'
+        device; all C indices when count >= C.
+    """
     if count >= features.shape[1]:
         return torch.arange(features.shape[1], device=features.device)
     total = sum(chunk.float().sum(dim=(0, 2, 3)) for chunk in features.split(_CHUNK))
@@ -121,6 +174,16 @@ def most_varying_channels(features: torch.Tensor, count: int) -> torch.Tensor:
 
 
 def working_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """The resolution at which a (height, width) image is optimised.
+
+    Args:
+        height: image height in pixels.
+        width: image width in pixels.
+        scale: fraction of the input size (e.g. 0.25).
+
+    Returns:
+        (h, w) = each side times scale, rounded, at least 1.
+    """
     return max(1, round(height * scale)), max(1, round(width * scale))
 
 
@@ -143,7 +206,12 @@ def prepare_frames(
         intrinsics: (N, 4) or (4,) fx, fy, cx, cy in pixels of the prior's resolution.
         features: (N, C, h, w) or None, covering the same field of view.
         image_scale: working resolution relative to the prior (0.25 in the paper).
+        device: device the tensors are built on.
         feature_channels: keep this many channels (see most_varying_channels); None: all.
+
+    Returns:
+        FrameData with float64 poses (N, 4, 4), the RGB level at working_size of the prior
+        and the feature level at the features' own resolution (None without features).
     """
     num = prior.shape[0]
     intrinsics = intrinsics.to(device=device, dtype=torch.float32)

@@ -15,7 +15,14 @@ import torch.nn.functional as F
 
 
 def intrinsics_matrix(intrinsics: torch.Tensor) -> torch.Tensor:
-    """(..., 4) fx, fy, cx, cy -> (..., 3, 3) K."""
+    """Build the 3x3 camera matrix K from fx, fy, cx, cy.
+
+    Args:
+        intrinsics: (..., 4) fx, fy, cx, cy in pixels.
+
+    Returns:
+        (..., 3, 3) K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
+    """
     fx, fy, cx, cy = intrinsics.unbind(-1)
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     rows = [fx, zero, cx, zero, fy, cy, zero, zero, one]
@@ -23,13 +30,32 @@ def intrinsics_matrix(intrinsics: torch.Tensor) -> torch.Tensor:
 
 
 def scale_intrinsics(intrinsics: torch.Tensor, sx: float, sy: float) -> torch.Tensor:
-    """Intrinsics (..., 4) of an image resized by (sx, sy), keeping pixel centres aligned."""
+    """Intrinsics of an image resized by (sx, sy), keeping pixel centres aligned.
+
+    Args:
+        intrinsics: (..., 4) fx, fy, cx, cy in pixels of the original image.
+        sx: new width / old width.
+        sy: new height / old height.
+
+    Returns:
+        (..., 4) fx, fy, cx, cy in pixels of the resized image.
+    """
     fx, fy, cx, cy = intrinsics.unbind(-1)
     return torch.stack([fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5], dim=-1)
 
 
 def pixel_grid(height: int, width: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
-    """(H, W, 2) pixel-centre coordinates (u, v) of an image of `height` x `width` pixels."""
+    """Pixel-centre coordinates (u, v) of an image of `height` x `width` pixels.
+
+    Args:
+        height: image height H in pixels.
+        width: image width W in pixels.
+        dtype: dtype of the result.
+        device: device of the result; None: the default device.
+
+    Returns:
+        (H, W, 2) whose entry [v, u] is (u, v): u the column, v the row index.
+    """
     v, u = torch.meshgrid(
         torch.arange(height, device=device, dtype=dtype),
         torch.arange(width, device=device, dtype=dtype),
@@ -39,7 +65,17 @@ def pixel_grid(height: int, width: int, *, dtype=torch.float32, device=None) -> 
 
 
 def camera_rays(intrinsics: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Rays with unit z through every pixel centre: (B, H, W, 3) from intrinsics (B, 4)."""
+    """Rays with unit z through every pixel centre.
+
+    Args:
+        intrinsics: (B, 4) fx, fy, cx, cy in pixels.
+        height: image height H in pixels.
+        width: image width W in pixels.
+
+    Returns:
+        (B, H, W, 3) ray directions (x, y, 1) in OpenCV camera axes; multiplying by a
+        z-depth gives the camera-frame point.
+    """
     uv = pixel_grid(height, width, dtype=intrinsics.dtype, device=intrinsics.device)
     fx, fy, cx, cy = (x[:, None, None] for x in intrinsics.unbind(-1))
     x = (uv[..., 0] - cx) / fx
@@ -48,7 +84,15 @@ def camera_rays(intrinsics: torch.Tensor, height: int, width: int) -> torch.Tens
 
 
 def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Apply (B, 4, 4) rigid transforms to points (B, ..., 3)."""
+    """Apply a rigid transform to a batch of point sets.
+
+    Args:
+        transform: (B, 4, 4) rigid transforms.
+        points: (B, ..., 3) points.
+
+    Returns:
+        (B, ..., 3) transformed points R p + t.
+    """
     batch = points.shape[0]
     flat = points.reshape(batch, -1, 3)
     out = flat @ transform[:, :3, :3].transpose(1, 2) + transform[:, None, :3, 3]
@@ -56,15 +100,25 @@ def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Ten
 
 
 def relative_pose(pose_from: torch.Tensor, pose_to: torch.Tensor) -> torch.Tensor:
-    """(B, 4, 4) transform taking camera `from` coordinates to camera `to` coordinates.
+    """The transform taking camera `from` coordinates to camera `to` coordinates.
 
-    Both inputs are camera-to-world; the result is inv(pose_to) @ pose_from.
+    Args:
+        pose_from: (B, 4, 4) camera-to-world pose of camera `from`.
+        pose_to: (B, 4, 4) camera-to-world pose of camera `to`.
+
+    Returns:
+        (B, 4, 4) inv(pose_to) @ pose_from.
     """
     return torch.linalg.solve(pose_to, pose_from)
 
 
 def project(points: torch.Tensor, intrinsics: torch.Tensor, eps: float = 1e-6):
-    """Project camera-frame points (B, H, W, 3) with intrinsics (B, 4).
+    """Project camera-frame points with intrinsics.
+
+    Args:
+        points: (B, H, W, 3) points in OpenCV camera axes.
+        intrinsics: (B, 4) fx, fy, cx, cy in pixels.
+        eps: smallest z used in the division.
 
     Returns:
         uv (B, H, W, 2) pixel coordinates and z (B, H, W). Points with z <= eps get
@@ -79,24 +133,47 @@ def project(points: torch.Tensor, intrinsics: torch.Tensor, eps: float = 1e-6):
 
 
 def pixels_to_normalized(uv: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Pixel coordinates (..., 2) -> grid_sample coordinates (align_corners=False)."""
+    """Convert pixel coordinates to grid_sample coordinates (align_corners=False).
+
+    Args:
+        uv: (..., 2) pixel coordinates (u, v), pixel centres at integers.
+        height: height H of the sampled image in pixels.
+        width: width W of the sampled image in pixels.
+
+    Returns:
+        (..., 2) coordinates in [-1, 1] over the image's outer edges.
+    """
     scale = uv.new_tensor([2.0 / width, 2.0 / height])
     return (uv + 0.5) * scale - 1.0
 
 
 def sample(maps: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Bilinearly sample maps (B, C, H, W) at pixel coordinates uv (B, H', W', 2).
+    """Bilinearly sample maps at pixel coordinates.
 
-    Returns (B, C, H', W'); outside the image the result is 0.
+    Args:
+        maps: (B, C, H, W) maps to sample.
+        uv: (B, H', W', 2) pixel coordinates (u, v) in the maps.
+
+    Returns:
+        (B, C, H', W'); outside the image the result is 0 (zero padding).
     """
     grid = pixels_to_normalized(uv, maps.shape[-2], maps.shape[-1])
     return F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
 def inside_image(uv: torch.Tensor, height: int, width: int, tolerance: float = 1e-3) -> torch.Tensor:
-    """(B, H', W') bool: the bilinear footprint of uv lies inside the image.
+    """Whether the bilinear footprint of each coordinate lies inside the image.
 
     The tolerance keeps border pixels that round-off moves a hair outside.
+
+    Args:
+        uv: (B, H', W', 2) pixel coordinates (u, v).
+        height: image height H in pixels.
+        width: image width W in pixels.
+        tolerance: pixels allowed outside [0, W - 1] x [0, H - 1].
+
+    Returns:
+        (B, H', W') bool.
     """
     u, v = uv[..., 0], uv[..., 1]
     lo = -tolerance
@@ -116,10 +193,17 @@ class Reprojection:
 
 
 def pair_transforms(poses: torch.Tensor, pairs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Camera-i-to-camera-j and camera-j-to-camera-i transforms for pairs (P, 2) of (i, j).
+    """Camera-i-to-camera-j and camera-j-to-camera-i transforms for pairs of frames.
 
     Computed in float64 so that large world coordinates do not cost precision, and
-    returned as float32. `poses` is (N, 4, 4) camera-to-world.
+    returned as float32.
+
+    Args:
+        poses: (N, 4, 4) camera-to-world poses.
+        pairs: (P, 2) frame indices (i, j).
+
+    Returns:
+        i_to_j (P, 4, 4) and j_to_i (P, 4, 4), float32.
     """
     world = poses.double()
     pose_i, pose_j = world[pairs[:, 0]], world[pairs[:, 1]]
@@ -153,11 +237,16 @@ def reproject(
 
     Args:
         depth_i: (B, H, W) z-depth of view i in metres (<= 0 is invalid).
-        intrinsics_i, intrinsics_j: (B, 4) at the resolution of depth_i / of frame j.
+        intrinsics_i: (B, 4) fx, fy, cx, cy in pixels of depth_i's resolution.
+        intrinsics_j: (B, 4) fx, fy, cx, cy in pixels of frame j's maps (size_j).
         i_to_j: (B, 4, 4) camera-i to camera-j transform (see pair_transforms).
         size_j: (H_j, W_j) of the maps that will be sampled in frame j.
         pixels_i: (H, W, 2) pixel coordinates of depth_i's samples in view i; default
             every pixel centre.
+
+    Returns:
+        Reprojection with uv_j (B, H, W, 2) pixel coordinates in frame j and valid
+        (B, H, W) bool: positive depth in i, z > 1e-3 in j, inside frame j.
     """
     height, width = depth_i.shape[-2:]
     m, b = _pixel_homography(intrinsics_i, intrinsics_j, i_to_j)
@@ -182,12 +271,13 @@ def depth_in_view_i(
     """The pseudo depth D_{j->i}: z, in camera i, of frame j's surface point seen at uv_j.
 
     Args:
-        sampled_depth_j: (B, H, W) D_j sampled at uv_j.
+        sampled_depth_j: (B, H, W) D_j in metres sampled at uv_j.
         uv_j: (B, H, W, 2) pixel coordinates in frame j.
-        intrinsics_j: (B, 4).
+        intrinsics_j: (B, 4) fx, fy, cx, cy in pixels of frame j's maps.
         j_to_i: (B, 4, 4) camera-j to camera-i transform.
+
     Returns:
-        (B, H, W) depth along camera i's z axis.
+        (B, H, W) depth along camera i's z axis, in metres.
     """
     # Only the z row of j_to_i is needed: z_i = r3 . (D_j K_j^-1 [u, v, 1]) + t3.
     c = (j_to_i[:, 2:3, :3] @ torch.linalg.inv(intrinsics_matrix(intrinsics_j)))[:, 0, :, None, None]

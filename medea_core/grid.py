@@ -14,7 +14,17 @@ import torch.nn.functional as F
 
 
 def interpolation_matrix(size_out: int, size_in: int, device=None) -> torch.Tensor:
-    """(size_out, size_in) linear interpolation weights, end points aligned."""
+    """Linear interpolation weights from size_in samples to size_out, end points aligned.
+
+    Args:
+        size_out: number of output samples.
+        size_in: number of input samples.
+        device: device of the result; None: the default device.
+
+    Returns:
+        (size_out, size_in) matrix W: out = W @ in interpolates as
+        F.interpolate(mode="linear", align_corners=True).
+    """
     eye = torch.eye(size_in, device=device)[None]
     return F.interpolate(eye, size=size_out, mode="linear", align_corners=True)[0].T
 
@@ -29,11 +39,12 @@ def scale_field(
     differentiate.
 
     Args:
-        log_scales: (B, h, w).
-        size: (H, W).
+        log_scales: (B, h, w) log-scale grids.
+        size: (H, W) frame size in pixels.
         lattice: optional (row slice, column slice) to evaluate only those pixels.
+
     Returns:
-        (B, H, W), or (B, H', W') on the lattice.
+        (B, H, W) scale field, or (B, H', W') on the lattice.
     """
     rows = interpolation_matrix(size[0], log_scales.shape[-2], log_scales.device)
     cols = interpolation_matrix(size[1], log_scales.shape[-1], log_scales.device)
@@ -43,10 +54,19 @@ def scale_field(
 
 
 def sample_scale_field(log_scales: torch.Tensor, uv: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """S at arbitrary pixel coordinates uv (B, H', W', 2) of a (H, W) frame -> (B, H', W').
+    """The scale field S at arbitrary pixel coordinates of a frame.
 
     Samples the coarse grid directly, so frame j's scale at warped positions costs a
     grid_sample over (h, w) values instead of one over a full-resolution field.
+
+    Args:
+        log_scales: (B, h, w) log-scale grids.
+        uv: (B, H', W', 2) pixel coordinates (u, v) in the frame; outside the frame the
+            border value is used.
+        size: (H, W) frame size in pixels.
+
+    Returns:
+        (B, H', W') scale S = B(exp(l)) at uv.
     """
     height, width = size
     scale = uv.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
@@ -56,12 +76,30 @@ def sample_scale_field(log_scales: torch.Tensor, uv: torch.Tensor, size: tuple[i
 
 
 def adjust_depth(prior_depth: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
-    """D = D0 * S for priors (B, H, W) and grids (B, h, w); invalid (0) stays 0."""
+    """Apply the log-scale grids to the prior depth: D = D0 * S.
+
+    Args:
+        prior_depth: (B, H, W) prior depth in metres, 0 = invalid.
+        log_scales: (B, h, w) log-scale grids.
+
+    Returns:
+        (B, H, W) adjusted depth in metres; invalid (0) stays 0.
+    """
     return prior_depth * scale_field(log_scales, prior_depth.shape[-2:])
 
 
 def vertex_cells(height: int, width: int, grid: tuple[int, int], device=None) -> torch.Tensor:
-    """(H, W) int64 index of the grid vertex nearest to each pixel centre (row-major)."""
+    """Index of the grid vertex nearest to each pixel centre.
+
+    Args:
+        height: frame height H in pixels.
+        width: frame width W in pixels.
+        grid: (h, w) grid size in vertices.
+        device: device of the result; None: the default device.
+
+    Returns:
+        (H, W) int64 row-major vertex index, row * w + column.
+    """
     gh, gw = grid
     rows = torch.round(torch.arange(height, device=device) * (gh - 1) / max(height - 1, 1)).long()
     cols = torch.round(torch.arange(width, device=device) * (gw - 1) / max(width - 1, 1)).long()
@@ -76,11 +114,12 @@ def median_pool_to_grid(values: torch.Tensor, valid: torch.Tensor, grid: tuple[i
     frame's valid values, or NaN if the frame has none.
 
     Args:
-        values: (B, H, W).
-        valid: (B, H, W) bool.
-        grid: (h, w).
+        values: (B, H, W) per-pixel values.
+        valid: (B, H, W) bool, which values count.
+        grid: (h, w) grid size in vertices.
+
     Returns:
-        (B, h, w).
+        (B, h, w) pooled medians.
     """
     batch, height, width = values.shape
     cells = vertex_cells(height, width, grid, values.device).flatten()

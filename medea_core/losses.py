@@ -11,29 +11,74 @@ import torch
 
 
 def masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean of per_pixel (B, H, W) over mask (B, H, W) per pair -> (B,); 0 where empty."""
+    """Mean of per-pixel values over a mask, per pair.
+
+    Args:
+        per_pixel: (B, H, W) values.
+        mask: (B, H, W) bool or 0/1 weights.
+
+    Returns:
+        (B,) mean over the masked pixels; 0 where the mask is empty.
+    """
     mask = mask.to(per_pixel.dtype)
     count = mask.flatten(1).sum(1)
     return (per_pixel * mask).flatten(1).sum(1) / count.clamp(min=1.0)
 
 
 def photometric_loss(image_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """L_photo = mean over valid pixels and the 3 channels of |I_i - I_{j->i}|."""
+    """L_photo = mean over valid pixels and the channels of |I_i - I_{j->i}|.
+
+    Args:
+        image_i: (B, C, H, W) image of view i (RGB in [0, 1]).
+        warped_j: (B, C, H, W) image of frame j warped into view i.
+        mask: (B, H, W) bool, valid reprojections.
+
+    Returns:
+        (B,) per-pair loss.
+    """
     return masked_mean((image_i - warped_j).abs().mean(dim=1), mask)
 
 
 def depth_loss(depth_i: torch.Tensor, depth_j_in_i: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """L_depth = mean over valid pixels of |D_i - D_{j->i}| (metres)."""
+    """L_depth = mean over valid pixels of |D_i - D_{j->i}| (metres).
+
+    Args:
+        depth_i: (B, H, W) depth of view i in metres.
+        depth_j_in_i: (B, H, W) D_{j->i}, frame j's depth as z in camera i, in metres.
+        mask: (B, H, W) bool, valid reprojections.
+
+    Returns:
+        (B,) per-pair loss in metres.
+    """
     return masked_mean((depth_i - depth_j_in_i).abs(), mask)
 
 
 def feature_loss_s(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor, eps: float = 0.01) -> torch.Tensor:
-    """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / (|Fi + Fj->i| + eps);
-    eps keeps the ratio smooth where both features are near zero (MedeaConfig.feature_eps)."""
+    """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / (|Fi + Fj->i| + eps).
+
+    Args:
+        feat_i: (B, C, H, W) features of view i.
+        warped_j: (B, C, H, W) features of frame j warped into view i.
+        mask: (B, H, W) bool, valid reprojections.
+        eps: keeps the ratio smooth where both features are near zero
+            (MedeaConfig.feature_eps).
+
+    Returns:
+        (B,) per-pair loss.
+    """
     ratio = (feat_i - warped_j).abs() / ((feat_i + warped_j).abs() + eps)
     return masked_mean(ratio.mean(dim=1), mask)
 
 
 def feature_loss_m(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """MEDeA-M: negative mean over valid pixels of the dot product Fi . Fj->i."""
+    """MEDeA-M: negative mean over valid pixels of the dot product Fi . Fj->i.
+
+    Args:
+        feat_i: (B, C, H, W) features of view i.
+        warped_j: (B, C, H, W) features of frame j warped into view i.
+        mask: (B, H, W) bool, valid reprojections.
+
+    Returns:
+        (B,) per-pair loss.
+    """
     return -masked_mean((feat_i * warped_j).sum(dim=1), mask)

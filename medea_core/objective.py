@@ -29,8 +29,19 @@ class PairBatch:
 
 
 def pixel_lattice(size: tuple[int, int], stride: int, generator: torch.Generator | None) -> tuple[slice, slice]:
-    """Rows and columns of view i scored in one step: every `stride`-th pixel, at a
-    random phase so that successive steps cover the whole image. stride 1: all pixels."""
+    """Rows and columns of view i scored in one step.
+
+    Every `stride`-th pixel, at a random phase so that successive steps cover the whole
+    image.
+
+    Args:
+        size: (H, W) of view i in pixels.
+        stride: keep every stride-th row and column; <= 1: all pixels.
+        generator: draws the phase; None: torch's default generator.
+
+    Returns:
+        (row slice, column slice); (slice(None), slice(None)) for stride <= 1.
+    """
     if stride <= 1:
         return slice(None), slice(None)
     dy, dx = torch.randint(0, stride, (2,), generator=generator).tolist()
@@ -48,11 +59,19 @@ def warp_level(
     """Warp frame j's maps and depth into view i at one level.
 
     Args:
+        level: the frames at this resolution (maps, prior, validity, intrinsics).
+        batch: B pairs (i, j) with their relative transforms.
+        log_scales_i: (B, h, w) log-scale grids of frames i.
+        log_scales_j: (B, h, w) log-scale grids of frames j.
+        min_validity: smallest bilinearly sampled validity of frame j's prior for a
+            pixel to count.
         lattice: optional (rows, cols) slices of view i to score (see pixel_lattice);
             frame j is always sampled at full resolution.
+
     Returns:
-        maps_i (B, C, H', W') of view i, depth_i (B, H', W'), warped maps (B, C, H', W'),
-        D_{j->i} (B, H', W'), mask (B, H', W'); H', W' is the lattice (default H, W).
+        maps_i (B, C, H', W') of view i, depth_i (B, H', W') in metres, warped maps
+        (B, C, H', W'), D_{j->i} (B, H', W') in metres, mask (B, H', W') bool; H', W'
+        is the lattice (default H, W).
     """
     size = level.size
     lattice = lattice or (slice(None), slice(None))
@@ -80,10 +99,21 @@ def pair_losses(
     config: MedeaConfig,
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
-    """Per-pair loss terms (B,) and "total" (weighted sum of the enabled terms).
+    """Per-pair loss terms and their weighted sum for a batch of pairs.
 
-    Also returns "valid_fraction" (B,), the share of view i's pixels that j covers.
-    `generator` draws the pixel lattice when config.pixel_stride > 1.
+    Args:
+        data: the frames' levels and poses (see prepare_frames).
+        batch: B pairs (i, j) with their relative transforms.
+        log_scales_i: (B, h, w) log-scale grids of frames i.
+        log_scales_j: (B, h, w) log-scale grids of frames j.
+        config: which terms are enabled, their weights, strides and epsilons.
+        generator: draws the pixel lattice when config.pixel_stride or
+            config.feature_stride > 1.
+
+    Returns:
+        dict of (B,) tensors: "photometric", "depth", "feature" (those enabled),
+        "total" (weighted sum of the enabled terms) and "valid_fraction" (the share of
+        view i's scored pixels that j covers).
     """
     level = data.image
     lattice = pixel_lattice(level.size, config.pixel_stride, generator)

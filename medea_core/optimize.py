@@ -72,12 +72,24 @@ def optimise_stage(
 ) -> tuple[torch.Tensor, StageHistory]:
     """Optimise the grids of `trainable` frames on `pairs`.
 
+    Each epoch visits the pairs in a random order in batches of config.batch_pairs; pairs
+    without overlap are left out of the loss. The stage stops early when the epoch loss has
+    not improved by stage.min_rel_improvement for stage.patience epochs.
+
     Args:
+        data: frames at working resolution (see prepare_frames).
         log_scales: (N, h, w) starting grids (left untouched; a new tensor is returned).
-        trainable: (N,) bool.
+        trainable: (N,) bool, the frames whose grids are optimised; the others stay fixed.
         pairs: (P, 2) frame pairs (i, j) on the CPU.
+        stage: epochs, learning rate, decay and early-stop settings of this stage.
+        config: loss terms, weights and batch size.
+        generator: CPU generator that shuffles the pairs and draws pixel lattices.
+        name: stage name passed to `progress`.
+        progress: optional callback progress(name, epoch, epoch_losses) after every epoch.
+
     Returns:
-        (N, h, w) optimised grids and the stage history.
+        (N, h, w) optimised grids and the stage history. With no pairs, no trainable frame
+        or no epochs the grids are a copy of log_scales and the history is empty.
     """
     history = StageHistory()
     start = time.perf_counter()
@@ -160,8 +172,14 @@ def run_medea(
         features: optional (N, C, h, w) dense features for the feature-metric term.
         config: options; the defaults are the paper's.
         progress: optional per-epoch callback.
+
     Returns:
-        MedeaResult with depth at the prior's resolution, on the prior's device.
+        MedeaResult with depth (N, H, W) in metres at the prior's resolution (0 where the
+        prior was invalid), on the prior's device.
+
+    Raises:
+        ValueError: a setting of config is out of range, there are no frames, or images,
+            prior, poses and features differ in frame count.
     """
     config = config or MedeaConfig()
     config.validate()

@@ -14,8 +14,14 @@ import torch
 def hierarchical_pairs(num_frames: int, min_level: int, max_level: int) -> torch.Tensor:
     """Pairs(a, b) for a sequence of `num_frames` frames.
 
+    Args:
+        num_frames: sequence length N.
+        min_level: a, the smallest level (pairs 2^a frames apart).
+        max_level: b, the largest level (pairs 2^b frames apart).
+
     Returns:
-        (P, 2) int64 tensor of (i, j), sorted by level, then i, then j.
+        (P, 2) int64 tensor of (i, j), sorted by level, then i, then j; (0, 2) when no
+        level has a pair.
     """
     out = []
     for level in range(min_level, max_level + 1):
@@ -33,7 +39,14 @@ def hierarchical_pairs(num_frames: int, min_level: int, max_level: int) -> torch
 
 
 def frames_in(pairs: torch.Tensor) -> torch.Tensor:
-    """Sorted unique frame indices that appear in `pairs` (P, 2)."""
+    """Sorted unique frame indices that appear in a set of pairs.
+
+    Args:
+        pairs: (P, 2) frame pairs (i, j).
+
+    Returns:
+        (K,) sorted unique frame indices.
+    """
     return torch.unique(pairs.flatten())
 
 
@@ -41,7 +54,9 @@ def nearest_keyframe(num_frames: int, keyframes: torch.Tensor) -> torch.Tensor:
     """Temporally nearest keyframe of every frame (the earlier one on ties).
 
     Args:
-        keyframes: (K,) sorted frame indices.
+        num_frames: sequence length N.
+        keyframes: (K,) sorted frame indices, K >= 1.
+
     Returns:
         (N,) int64 keyframe index per frame.
     """
@@ -59,8 +74,14 @@ def stage_pairs(num_frames: int, stage1_levels: tuple[int, int], stage2_levels: 
     Stage I runs on every level that exists, Pairs(0, floor(log2(N - 1))); Stage II then
     has nothing left to optimise and its pair set is empty.
 
+    Args:
+        num_frames: sequence length N.
+        stage1_levels: (a, b) levels of Stage I.
+        stage2_levels: (a, b) levels of Stage II.
+
     Returns:
-        (stage1_pairs (P1, 2), keyframes (K,), stage2_pairs (P2, 2)).
+        (stage1_pairs (P1, 2), keyframes (K,), stage2_pairs (P2, 2)), all int64; the
+        keyframes are the frames of the Stage I pairs.
     """
     a, b = stage1_levels
     p1 = hierarchical_pairs(num_frames, a, b)

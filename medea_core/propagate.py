@@ -30,9 +30,15 @@ def propagate_scales(
     Args:
         data: frames at working resolution.
         log_scales: (N, h, w) current grids (sources already optimised).
-        targets, sources: (T,) frame indices; sources[k] is the keyframe of targets[k].
+        targets: (T,) frame indices to initialise.
+        sources: (T,) frame indices; sources[k] is the keyframe of targets[k].
+        batch_size: pairs warped at once.
+        min_validity: smallest bilinearly sampled validity of the source's prior for a
+            pixel to count.
+
     Returns:
-        (T, h, w) log-scale grids for the targets.
+        (T, h, w) log-scale grids for the targets: log of the median, per grid vertex, of
+        D_{source->target} / D0_target.
     """
     grid = tuple(log_scales.shape[-2:])
     pairs = torch.stack([targets, sources], dim=1).to(log_scales.device)

@@ -34,11 +34,19 @@ def consistent_views(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Agreeing sources per pixel and the depth averaged over them.
 
-    depth: (N, H, W) metres (0 invalid); poses: (N, 4, 4) camera-to-world; intrinsics: (4,)
-    at depth's resolution; sources: (N, S) the views to check each frame against;
-    targets: the frames to check (default all N; T of them).
-    Returns count (T, H, W) of agreeing sources and mean (T, H, W): the pixel's own depth
-    averaged with the agreeing sources' depths expressed in frame i (0 where invalid).
+    Args:
+        depth: (N, H, W) depth in metres, 0 = invalid.
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution, shared by all frames.
+        sources: (N, S) the views to check each frame against.
+        rel_depth: largest |z_back - d| / d of an agreeing source.
+        pixels: largest round-trip error in pixels of an agreeing source.
+        targets: the frames to check (default all N; T of them).
+
+    Returns:
+        count (T, H, W) of agreeing sources (depth's dtype) and mean (T, H, W) in metres:
+        the pixel's own depth averaged with the agreeing sources' depths expressed in
+        frame i (0 where invalid).
     """
     num, height, width = depth.shape
     poses = poses.double().to(depth.device)

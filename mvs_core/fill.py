@@ -14,7 +14,16 @@ import torch.nn.functional as F
 
 
 def gaussian_blur(maps: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of maps (N, H, W), replicated borders."""
+    """Separable Gaussian blur with replicated borders.
+
+    Args:
+        maps: (N, H, W) maps to blur.
+        sigma: Gaussian standard deviation in pixels; the kernel reaches
+            max(1, round(3 sigma)) pixels either side.
+
+    Returns:
+        (N, H, W) blurred maps.
+    """
     radius = max(1, int(round(3 * sigma)))
     x = torch.arange(-radius, radius + 1, dtype=maps.dtype, device=maps.device)
     kernel = torch.exp(-0.5 * (x / sigma) ** 2)
@@ -29,10 +38,16 @@ def propagate_log_ratio(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Confidence-weighted spread of a correction field.
 
-    log_ratio: (N, H, W) log(refined / input) where known; weight: (N, H, W) in [0, 1]
-    (0 where unknown); sigma: Gaussian sigma in pixels. Returns the spread field (N, H, W)
-    (0 where the local weight is below min_weight) and the local weight (N, H, W), the
-    Gaussian-weighted share of confident pixels around each pixel.
+    Args:
+        log_ratio: (N, H, W) log(refined / input) where known.
+        weight: (N, H, W) confidence in [0, 1], 0 where unknown.
+        sigma: Gaussian sigma in pixels.
+        min_weight: smallest local weight at which the spread field is kept.
+
+    Returns:
+        The spread field (N, H, W) (0 where the local weight is below min_weight) and the
+        local weight (N, H, W), the Gaussian-weighted share of confident pixels around each
+        pixel.
     """
     support = gaussian_blur(weight, sigma)
     spread = gaussian_blur(log_ratio * weight, sigma) / support.clamp(min=1e-6)

@@ -66,9 +66,24 @@ def sweep_frames(
     grey: torch.Tensor, depth: torch.Tensor, poses: torch.Tensor, intrinsics: torch.Tensor, sources: torch.Tensor,
     config: MvsConfig, progress: Callable[[int], None] | None = None, frames: range | None = None,
 ) -> torch.Tensor:
-    """Step 2 for the frames in ``frames`` (default all N): multi-view depth (F, h, w), 0
-    where no hypothesis matched (best cost above max_cost, or the winner on the band's edge,
-    or the input invalid). All inputs at the working resolution; sources: (N, S)."""
+    """Step 2 (the plane sweep) for the frames in ``frames``.
+
+    All inputs are at the working resolution.
+
+    Args:
+        grey: (N, h, w) grey images in [0, 1].
+        depth: (N, h, w) input depth in metres, 0 = invalid: the band's centre.
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of (h, w).
+        sources: (N, S) the views each frame is matched against.
+        config: band, hypotheses, patch radius, keep_best, texture floor and max_cost.
+        progress: called with 1 after each frame's sweep.
+        frames: the frames to sweep (default all N; F of them).
+
+    Returns:
+        (F, h, w) multi-view depth in metres, 0 where no hypothesis matched (best cost above
+        max_cost, or the winner on the band's edge, or the input invalid).
+    """
     offsets = torch.linspace(-config.band, config.band, config.hypotheses, device=grey.device, dtype=grey.dtype)
     poses = poses.double()
     frames = range(depth.shape[0]) if frames is None else frames
@@ -98,14 +113,28 @@ def refine_depth(
 ) -> RefineResult:
     """Refine depth maps (N, H, W) by multi-view stereo around them.
 
-    grey: (N, h, w) grey images in [0, 1] at the working resolution (config.image_scale of
-    the depth's size; resizing is the caller's, so that it happens once, from the frames);
-    depth: (N, H, W) metres, 0 invalid (MEDeA's output); poses: (N, 4, 4) camera-to-world;
-    intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution. progress: called with
-    1 after each frame's sweep. known: (K, h, w) swept depth of the first K frames from an
-    earlier call (its ``RefineResult.swept``; a streamed window's frames shared with the
-    window before): they serve as sources as they were matched then, and are neither swept
-    nor refined again; the result covers frames K.. only.
+    Args:
+        grey: (N, h, w) grey images in [0, 1] at the working resolution (config.image_scale
+            of the depth's size; resizing is the caller's, so that it happens once, from the
+            frames).
+        depth: (N, H, W) depth in metres, 0 = invalid (MEDeA's output).
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution.
+        config: options; None: MvsConfig().
+        progress: called with 1 after each frame's sweep.
+        known: (K, h, w) swept depth of the first K frames from an earlier call (its
+            ``RefineResult.swept``; a streamed window's frames shared with the window
+            before): they serve as sources as they were matched then, and are neither swept
+            nor refined again; the result covers frames K.. only.
+
+    Returns:
+        RefineResult with the refined depth (N - K, H, W) in metres at the input's
+        resolution, its confidence and the views used. With fewer than 2 frames the depth
+        is a copy of the input and nothing is reconstructed.
+
+    Raises:
+        ValueError: a setting of config is out of range, or ``known`` covers all N frames
+            or is not at the working size (h, w).
     """
     config = config or MvsConfig()
     config.validate()

@@ -24,9 +24,17 @@ from medea_core.geometry import intrinsics_matrix, pixel_grid
 
 
 def box_mean(maps: torch.Tensor, radius: int) -> torch.Tensor:
-    """Mean over (2 radius + 1)^2 windows of maps (..., H, W), borders replicated (so that
-    the image edge is no texture), by integral images: the cost does not grow with the
-    window."""
+    """Mean over (2 radius + 1)^2 windows, borders replicated (so that the image edge is no texture).
+
+    Computed by integral images: the cost does not grow with the window.
+
+    Args:
+        maps: (..., H, W) maps.
+        radius: window half-size in pixels.
+
+    Returns:
+        (..., H, W) window means.
+    """
     k = 2 * radius + 1
     shape = maps.shape
     padded = F.pad(maps.reshape(-1, 1, *shape[-2:]), (radius, radius, radius, radius), mode="replicate")
@@ -37,7 +45,15 @@ def box_mean(maps: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def patch_statistics(grey: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean and variance (each like grey (..., H, W)) over every pixel's patch."""
+    """Mean and variance over every pixel's patch.
+
+    Args:
+        grey: (..., H, W) grey image(s).
+        radius: patch half-size in pixels.
+
+    Returns:
+        mean (..., H, W) and variance (..., H, W), the variance clamped at 0.
+    """
     mean = box_mean(grey, radius)
     return mean, (box_mean(grey * grey, radius) - mean * mean).clamp(min=0)
 
@@ -45,11 +61,16 @@ def patch_statistics(grey: torch.Tensor, radius: int) -> tuple[torch.Tensor, tor
 def hypothesis_grid(depth: torch.Tensor, offsets: torch.Tensor, intrinsics: torch.Tensor, ref_to_src: torch.Tensor):
     """Where each pixel of the reference lands in each source, for each depth hypothesis.
 
-    depth: (H, W) reference depth (metres, > 0); offsets: (M,) log-depth offsets;
-    intrinsics: (4,) shared by both views; ref_to_src: (S, 4, 4) reference-camera to
-    source-camera transforms. Returns grid (S, M, H, W, 2), the source positions in
-    ``grid_sample`` coordinates (align_corners=False), and seen (S, M, H, W) bool: in front
-    of the source and inside it.
+    Args:
+        depth: (H, W) reference depth in metres, > 0.
+        offsets: (M,) log-depth offsets; hypothesis k is depth * exp(offsets[k]).
+        intrinsics: (4,) fx, fy, cx, cy in pixels, shared by both views.
+        ref_to_src: (S, 4, 4) reference-camera to source-camera transforms.
+
+    Returns:
+        grid (S, M, H, W, 2), the source positions in ``grid_sample`` coordinates
+        (align_corners=False), and seen (S, M, H, W) bool: in front of the source and
+        inside it.
     """
     height, width = depth.shape
     k = intrinsics_matrix(intrinsics.double())
@@ -84,14 +105,26 @@ def sweep_cost(
     keep_best: int,
     texture_floor: float,
 ) -> torch.Tensor:
-    """Matching cost (M, H, W) of M depth hypotheses per pixel, 1 - NCC in [0, 2].
+    """Matching cost of M depth hypotheses per pixel, 1 - NCC in [0, 2].
 
-    ref: (H, W) and sources: (S, H, W) grey images; ref_stats: the reference's
-    :func:`patch_statistics`; ref_depth: (H, W) the band's centre; ref_to_src: (S, 4, 4);
-    offsets: (M,); texture_floor: standard deviation added to every patch's (module
-    docstring). A source that does not see a pixel's hypothesis scores 1 there (no
-    evidence either way); the cost of a hypothesis is the mean of its `keep_best` lowest
-    source costs, so a source that is occluded there does not spoil it.
+    A source that does not see a pixel's hypothesis scores 1 there (no evidence either
+    way); the cost of a hypothesis is the mean of its `keep_best` lowest source costs, so a
+    source that is occluded there does not spoil it.
+
+    Args:
+        ref: (H, W) grey reference image.
+        ref_stats: the reference's :func:`patch_statistics`, mean and variance (H, W).
+        ref_depth: (H, W) the band's centre in metres.
+        sources: (S, H, W) grey source images.
+        intrinsics: (4,) fx, fy, cx, cy in pixels, shared by all views.
+        ref_to_src: (S, 4, 4) reference-camera to source-camera transforms.
+        offsets: (M,) log-depth offsets.
+        radius: patch half-size in pixels.
+        keep_best: number of lowest source costs averaged per hypothesis.
+        texture_floor: standard deviation added to every patch's (module docstring).
+
+    Returns:
+        (M, H, W) cost.
     """
     num_src, num_hyp = ref_to_src.shape[0], offsets.shape[0]
     height, width = ref.shape
@@ -117,11 +150,17 @@ def sweep_cost(
 def select_winner(cost: torch.Tensor, offsets: torch.Tensor, separation: int = 3):
     """The best hypothesis of every pixel, refined to sub-sample precision.
 
-    cost: (M, H, W); offsets: (M,) evenly spaced. Returns offset (H, W) at the minimum of a
-    parabola through the best sample and its neighbours, the best cost (H, W), the gap
-    (H, W) between the best cost and the best one more than `separation` samples away (a
-    unique minimum has a large gap), and at_edge (H, W) bool: the minimum is on the band's
-    edge, so the true depth may lie outside the band.
+    Args:
+        cost: (M, H, W) matching cost per hypothesis.
+        offsets: (M,) evenly spaced log-depth offsets.
+        separation: hypotheses more than this many samples from the best count for the gap.
+
+    Returns:
+        offset (H, W) at the minimum of a parabola through the best sample and its
+        neighbours, the best cost (H, W), the gap (H, W) between the best cost and the best
+        one more than `separation` samples away (a unique minimum has a large gap; 0 when
+        there is none), and at_edge (H, W) bool: the minimum is on the band's edge, so the
+        true depth may lie outside the band.
     """
     num = cost.shape[0]
     best = cost.argmin(0)

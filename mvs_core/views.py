@@ -15,10 +15,16 @@ LATTICE = 16
 
 
 def lattice_points(depth: torch.Tensor, intrinsics: torch.Tensor, poses: torch.Tensor, lattice: int = LATTICE):
-    """World points (N, M, 3) float64 of a coarse pixel lattice of every frame, validity (N, M).
+    """World points of a coarse pixel lattice of every frame.
 
-    depth: (N, H, W) metres (0 invalid); intrinsics: (4,) at depth's resolution;
-    poses: (N, 4, 4) camera-to-world.
+    Args:
+        depth: (N, H, W) depth in metres, 0 = invalid.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution.
+        poses: (N, 4, 4) camera-to-world, float64.
+        lattice: lattice columns; rows follow the aspect ratio (at least 2).
+
+    Returns:
+        World points (N, M, 3) float64 and validity (N, M) bool (depth > 0).
     """
     num, height, width = depth.shape
     rows = torch.linspace(0, height - 1, max(2, lattice * height // max(width, 1)), device=depth.device).round().long()
@@ -41,15 +47,25 @@ def view_scores(
     min_angle: float,
     max_angle: float,
 ) -> torch.Tensor:
-    """Scores (R, N) in [0, 1] of every frame as a source for R reference frames.
+    """Scores in [0, 1] of every frame as a source for R reference frames.
 
-    points, valid: (R, M, 3) world points and (R, M) validity of the references' lattices;
-    ref_centres: (R, 3) the references' camera centres; poses: (N, 4, 4) camera-to-world of
-    all frames; size: (H, W) of the images the intrinsics (4,) belong to.
     A point scores 1 when it projects inside the source, in front of it, and its rays from
     the two centres meet at an angle in [min_angle, max_angle] degrees; less outside
     (linearly below, as (max / angle)^2 above). A frame's score is the mean over the
     reference's valid points.
+
+    Args:
+        points: (R, M, 3) world points of the references' lattices.
+        valid: (R, M) bool validity of those points.
+        ref_centres: (R, 3) the references' camera centres.
+        poses: (N, 4, 4) camera-to-world of all frames.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of images of `size`.
+        size: (H, W) of the images the intrinsics belong to.
+        min_angle: smallest full-score triangulation angle in degrees.
+        max_angle: largest full-score triangulation angle in degrees.
+
+    Returns:
+        (R, N) float64 scores.
     """
     height, width = size
     fx, fy, cx, cy = intrinsics.double().tolist()
@@ -78,11 +94,22 @@ def select_sources(
     max_angle: float = 20.0,
     chunk: int = 16,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The best `num_sources` neighbours of every frame: indices (N, S) and scores (N, S).
+    """The best `num_sources` neighbours of every frame.
 
-    depth: (N, H, W) metres; poses: (N, 4, 4) camera-to-world; intrinsics: (4,) at depth's
-    resolution. A frame is never its own source; with fewer than S + 1 frames the missing
-    slots repeat the best source (its score is kept, so callers can see it).
+    A frame is never its own source; with fewer than S + 1 frames the missing slots repeat
+    the best source (its score is kept, so callers can see it).
+
+    Args:
+        depth: (N, H, W) depth in metres, 0 = invalid.
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of depth's resolution.
+        num_sources: S, sources per frame.
+        min_angle: smallest full-score triangulation angle in degrees.
+        max_angle: largest full-score triangulation angle in degrees.
+        chunk: reference frames scored at once.
+
+    Returns:
+        indices (N, S) int64 and scores (N, S) float32 in [0, 1], best first.
     """
     num = depth.shape[0]
     poses = poses.double().to(depth.device)

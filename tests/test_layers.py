@@ -4,6 +4,8 @@ each other in a loop. Read from the source (every import statement, also those i
 functions), not from what happens to be loaded (scripts/import_graph.py prints the same
 reading as floors)."""
 
+import ast
+import re
 import sys
 from pathlib import Path
 
@@ -101,3 +103,105 @@ def test_every_test_file_is_named_after_the_module_it_tests():
     misnamed = [p.name for p in sorted((ROOT / "tests").glob("test_*.py")) if p.name not in REPO_WIDE_TESTS
                 and not any(p.stem[5:] == m or p.stem[5:].startswith(m + "_") for m in modules)]
     assert not misnamed
+
+
+# Public functions of these packages state their contract as kornia does (issue 65).
+DOCUMENTED_PACKAGES = ("medea_core", "mvs_core", "recon/geometry", "recon/fusion")
+# Methods whose docstrings are another change's: the config dataclasses' fields and methods.
+DOCUMENTED_ELSEWHERE = {"medea_core/config.py"}
+
+
+def _public_functions(tree: ast.Module):
+    """(qualified name, node) of the module's public functions and public classes' public methods."""
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
+            yield node.name, node
+        elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+            for member in node.body:
+                if isinstance(member, (ast.FunctionDef, ast.AsyncFunctionDef)) and not member.name.startswith("_"):
+                    yield f"{node.name}.{member.name}", member
+
+
+def _returns_value(fn) -> bool:
+    """A return annotation other than None, or a `return <value>` outside nested functions."""
+    if fn.returns is not None and not (isinstance(fn.returns, ast.Constant) and fn.returns.value is None):
+        return True
+    stack = list(fn.body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+            continue
+        if isinstance(node, ast.Return) and node.value is not None:
+            return True
+        stack.extend(ast.iter_child_nodes(node))
+    return False
+
+
+def contract_problems(fn) -> list[str]:
+    """What a function's docstring lacks: a summary line followed by a blank line, an `Args:` section
+    naming every parameter but self/cls, a `Returns:` section when it returns a value."""
+    doc = ast.get_docstring(fn) or ""
+    lines = doc.splitlines()
+    problems = []
+    if not lines or not lines[0].strip() or (len(lines) > 1 and lines[1].strip()):
+        problems.append("summary line")
+    args = fn.args
+    params = [a.arg for a in args.posonlyargs + args.args + args.kwonlyargs + [args.vararg, args.kwarg] if a]
+    params = [p for p in params if p not in ("self", "cls")]
+    if params:
+        section = re.search(r"^Args:\n((?:[ \t]+\S.*\n?|\n)*)", doc, re.M)
+        named = set(re.findall(r"^[ \t]+\**(\w+)[ \t]*[(:]", section.group(1), re.M)) if section else set()
+        problems += [f"Args: {p}" for p in params if p not in named]
+    if _returns_value(fn) and not re.search(r"^Returns:\n[ \t]+\S", doc, re.M):
+        problems.append("Returns")
+    return problems
+
+
+def test_public_functions_document_their_contract():
+    """Every public function and method of the method and geometry packages has a summary line,
+    Args naming each parameter and Returns when it returns something."""
+    found, undocumented = 0, {}
+    for package in DOCUMENTED_PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            name = path.relative_to(ROOT).as_posix()
+            if name in DOCUMENTED_ELSEWHERE:
+                continue
+            for qualname, fn in _public_functions(ast.parse(path.read_text(encoding="utf-8"))):
+                found += 1
+                if problems := contract_problems(fn):
+                    undocumented[f"{name}:{fn.lineno} {qualname}"] = problems
+    assert found > 100
+    assert not undocumented
+
+
+def test_the_contract_check_can_fail():
+    """The check above on made-up functions: a missing parameter, Returns and summary line are found."""
+    source = '''
+def good(x, *, y=1):
+    """Add.
+
+    Args:
+        x: (N,) values.
+        y: offset.
+
+    Returns:
+        (N,) x + y.
+    """
+    return x + y
+
+def bad(x, y):
+    """Add
+    two numbers.
+
+    Args:
+        x: (N,) values.
+    """
+    return x + y
+
+def nothing(self):
+    """Do nothing."""
+'''
+    funcs = {fn.name: fn for fn in ast.parse(source).body}
+    assert contract_problems(funcs["good"]) == []
+    assert contract_problems(funcs["bad"]) == ["summary line", "Args: y", "Returns"]
+    assert contract_problems(funcs["nothing"]) == []

@@ -175,7 +175,18 @@ class FusionResult:
 
 
 def o3d_device(device: str) -> o3c.Device:
-    """Open3D device of a torch-style name ("cpu", "cuda", "cuda:1"); one-line error if unusable."""
+    """Open3D device of a torch-style device name.
+
+    Args:
+        device: "cpu", "cuda" or "cuda:N" (case and surrounding spaces ignored).
+
+    Returns:
+        The Open3D device (CPU:0 or CUDA:N).
+
+    Raises:
+        ReconInputError: (one line) the name is malformed, or names a CUDA device that this
+            Open3D build cannot use or that is not visible.
+    """
     name = str(device).strip().lower()
     kind, _, number = name.partition(":")
     if kind not in ("cpu", "cuda") or (number and not number.isdigit()):
@@ -191,9 +202,21 @@ def o3d_device(device: str) -> o3c.Device:
 
 
 def fusion_device(device: str) -> o3c.Device:
-    """Where TSDF fusion runs: ``device`` when this Open3D build can use it. A CUDA device
-    that only torch can use (pip's Open3D is often built without CUDA) falls back to the
-    CPU with a warning, rather than failing after the torch stages have run on the GPU."""
+    """Where TSDF fusion runs: ``device`` when this Open3D build can use it.
+
+    A CUDA device that only torch can use (pip's Open3D is often built without CUDA) falls
+    back to the CPU with a warning, rather than failing after the torch stages have run on
+    the GPU.
+
+    Args:
+        device: torch-style device name ("cpu", "cuda", "cuda:1").
+
+    Returns:
+        The Open3D device.
+
+    Raises:
+        ReconInputError: as :func:`o3d_device`.
+    """
     if str(device).strip().lower().startswith("cuda") and not o3c.cuda.is_available():
         log.warning("this Open3D build has no CUDA support (or sees no GPU): TSDF fusion runs on the CPU; "
                     "the prior, MEDeA and the refinement still use %s", device)
@@ -215,7 +238,17 @@ def _frame_intrinsics(intrinsics, n: int) -> np.ndarray:
 
 
 def depth_sample(depth, frames: Sequence[int], step: int = _STAT_STEP, max_frames: int = _STAT_FRAMES) -> np.ndarray:
-    """Valid depth values (M,) from a pixel lattice of up to `max_frames` evenly spaced `frames`."""
+    """Valid depth values from a pixel lattice of up to `max_frames` evenly spaced frames.
+
+    Args:
+        depth: (N, H, W) depth in metres (any indexable of (H, W) arrays).
+        frames: indices of the frames to sample from.
+        step: lattice step in pixels.
+        max_frames: the most frames read.
+
+    Returns:
+        (M,) finite depth values > 0 in metres.
+    """
     frames = np.asarray(frames)
     if len(frames) > max_frames:
         frames = frames[np.linspace(0, len(frames) - 1, max_frames).round().astype(int)]
@@ -225,13 +258,27 @@ def depth_sample(depth, frames: Sequence[int], step: int = _STAT_STEP, max_frame
 
 
 def auto_max_depth(values: np.ndarray) -> float:
-    """1.1 x the 99th percentile of valid depth values (M,)."""
+    """The automatic depth limit: 1.1 x the 99th percentile of valid depth values.
+
+    Args:
+        values: (M,) valid depth in metres, M >= 1.
+
+    Returns:
+        The limit in metres.
+    """
     return float(MAX_DEPTH_MARGIN * np.percentile(values, MAX_DEPTH_PERCENTILE))
 
 
 def auto_voxel_size(median_depth: float, metric: bool = True) -> float:
-    """clamp(median depth / 200, 5 mm, 5 cm); without the bounds where the depth's metres
-    are not to be trusted (``metric`` False)."""
+    """The automatic voxel size: clamp(median depth / 200, 5 mm, 5 cm).
+
+    Args:
+        median_depth: median valid depth in metres.
+        metric: the depth's metres are to be trusted; False drops the bounds.
+
+    Returns:
+        The voxel size in metres.
+    """
     voxel = median_depth * VOXEL_PER_DEPTH
     return float(np.clip(voxel, MIN_VOXEL, MAX_VOXEL) if metric else voxel)
 
@@ -261,8 +308,18 @@ def estimate_block_count(
     are lifted to world points at depth d - trunc, d and d + trunc along their rays (the
     band TSDF integration touches); the distinct blocks of all those points are counted.
 
-    depth: (N, H, W) metres (any indexable of (H, W) arrays); poses: (N, 4, 4)
-    camera-to-world; intrinsics: (4,) or (N, 4); frames: which frames (default all).
+    Args:
+        depth: (N, H, W) depth in metres, 0 = invalid (any indexable of (H, W) arrays).
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) or (N, 4) fx, fy, cx, cy in pixels of the depth maps.
+        voxel_size: voxel side in metres.
+        trunc: truncation distance in metres.
+        max_depth: depth beyond it (metres) is ignored.
+        block_resolution: voxels per block side.
+        frames: which frames (default all).
+
+    Returns:
+        The predicted number of blocks.
     """
     n = len(poses)
     frames = range(n) if frames is None else frames
@@ -310,7 +367,24 @@ def fit_to_budget(
     depth, poses, intrinsics, voxel_size: float, trunc: float, max_depth: float, block_resolution: int, budget: int,
     frames,
 ) -> tuple[float, float, int]:
-    """(voxel_size, trunc, estimated blocks), the voxel grown until the estimate fits `budget`."""
+    """Grow the voxel (and truncation) until the block estimate fits `budget`.
+
+    Each try scales both by 1.05 sqrt(estimate / budget), with a warning; at most 8 tries.
+
+    Args:
+        depth: (N, H, W) depth in metres, 0 = invalid.
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) or (N, 4) fx, fy, cx, cy in pixels of the depth maps.
+        voxel_size: starting voxel side in metres.
+        trunc: starting truncation distance in metres.
+        max_depth: depth limit in metres.
+        block_resolution: voxels per block side.
+        budget: the most blocks allowed.
+        frames: which frames count.
+
+    Returns:
+        (voxel_size, trunc, estimated blocks), sizes in metres.
+    """
     estimate = estimate_block_count(depth, poses, intrinsics, voxel_size, trunc, max_depth, block_resolution, frames)
     for _ in range(8):
         if estimate <= budget:
@@ -363,14 +437,31 @@ class ConfidentDepth:
         return np.where(np.asarray(self.confidence[i]) >= self.threshold, d, np.float32(0.0))
 
     def weight(self, i: int) -> np.ndarray | None:
-        """(H, W) observations of frame i's pixels, None when every fused pixel weighs 1."""
+        """The observations each pixel of frame i counts for (``confidence_weight``).
+
+        Args:
+            i: frame index.
+
+        Returns:
+            (H, W) uint8 observations, or None when every fused pixel weighs 1.
+        """
         return confidence_weight(self.confidence[i], self.threshold, self.levels) if self.levels else None
 
 
 def confidence_weight(confidence, min_confidence: float, levels: Sequence[float] = ()) -> np.ndarray:
-    """Observations (H, W) uint8 each pixel counts for in the TSDF: 0 below min_confidence,
-    else 1 plus the number of ``levels`` its confidence (H, W) reaches. A weighted TSDF
-    average (Curless and Levoy 1996) in whole steps, the steps Open3D integrates."""
+    """Observations each pixel counts for in the TSDF.
+
+    A weighted TSDF average (Curless and Levoy 1996) in whole steps, the steps Open3D
+    integrates.
+
+    Args:
+        confidence: (H, W) confidence in [0, 1].
+        min_confidence: pixels below it count 0 times.
+        levels: each level the confidence reaches adds one observation.
+
+    Returns:
+        (H, W) uint8: 0 below min_confidence, else 1 plus the number of levels reached.
+    """
     confidence = np.asarray(confidence)
     weight = (confidence >= min_confidence).astype(np.uint8)
     for level in levels:
@@ -379,8 +470,15 @@ def confidence_weight(confidence, min_confidence: float, levels: Sequence[float]
 
 
 def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, float, float]:
-    """(voxel, trunc, max_depth) in metres: the options' values, else chosen from valid depth
-    values (M,) of the frames (module docstring)."""
+    """Voxel size, truncation and depth limit: the options' values, else chosen from the depth.
+
+    Args:
+        values: (M,) valid depth values in metres of the frames (see depth_sample).
+        options: voxel_size, trunc, trunc_voxels, max_depth and metric.
+
+    Returns:
+        (voxel, trunc, max_depth) in metres (module docstring).
+    """
     max_depth = options.max_depth or auto_max_depth(values)
     in_range = values[values <= max_depth]
     median = float(np.median(in_range if in_range.size else values))
@@ -389,7 +487,13 @@ def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, floa
 
 
 def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: bool) -> None:
-    """Say that fusion meshed nothing, and which settings decide what is meshed."""
+    """Say that fusion meshed nothing, and which settings decide what is meshed.
+
+    Args:
+        volume: the fused volume (frames fused, depth limit).
+        options: the fusion options named in the warning.
+        confidence_used: a confidence map gated the pixels.
+    """
     gate = (f"; pixels the refinement confirmed less than --min-confidence {options.min_confidence:g} are not "
             "fused (0 fuses every pixel; camera motion between frames gives the refinement its evidence)"
             if confidence_used and options.min_confidence else "")
@@ -399,9 +503,20 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
 
 
 def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: bool):
-    """(mesh within options.max_triangles, point cloud or None, fragment triangles removed,
-    triangles before the budget) of a volume whose fusion is done; its voxels are freed
-    before the decimation (TsdfVolume.close), which needs most of the memory they held."""
+    """The mesh and point cloud of a volume whose fusion is done.
+
+    The voxels are freed before the decimation (TsdfVolume.close), which needs most of the
+    memory they held.
+
+    Args:
+        volume: the fused volume; closed on return.
+        options: weight threshold, fragment removal, point_cloud and max_triangles.
+        confidence_used: a confidence map gated the pixels (for the empty-mesh warning).
+
+    Returns:
+        (mesh within options.max_triangles, point cloud or None, fragment triangles removed,
+        triangles before the budget).
+    """
     mesh, removed = volume.mesh(options)
     full = len(mesh.triangles)
     if full == 0:
@@ -426,6 +541,11 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
 
     Returns:
         FusionResult with a legacy TriangleMesh (vertex colours, normals).
+
+    Raises:
+        ReconInputError: an option is out of range, the device is unusable, or no frame has
+            valid depth and a valid pose.
+        ValueError: the inputs' frame counts or shapes disagree.
     """
     options = options or FusionOptions()
     options.validate()

@@ -79,12 +79,22 @@ class Upright:
 
     @property
     def transform(self) -> np.ndarray:
-        """(4, 4) the rotation as a rigid transform (no translation)."""
+        """The rotation as a rigid transform (no translation).
+
+        Returns:
+            (4, 4) float64 transform.
+        """
         t = np.eye(4)
         t[:3, :3] = self.rotation
         return t
 
     def to_dict(self) -> dict:
+        """The estimate as JSON-ready values for report.json.
+
+        Returns:
+            dict with the transform (4x4 list), up_in_world, tilt_deg, source, the horizontal
+            and vertical shares and what the rotation applies to.
+        """
         return {"transform": self.transform.round(9).tolist(), "up_in_world": self.up.round(9).tolist(),
                 "tilt_deg": round(float(self.tilt_deg), 3), "source": self.source,
                 "horizontal_share": round(float(self.horizontal), 4), "vertical_share": round(float(self.vertical), 4),
@@ -101,8 +111,14 @@ def _smallest_eigenvector(m: np.ndarray) -> np.ndarray:
 
 
 def camera_up(poses: np.ndarray) -> np.ndarray | None:
-    """(3,) the cameras' mean up (minus their mean image-y axis) in the world, or None
-    without a finite pose. poses: (N, 4, 4) camera-to-world."""
+    """The cameras' mean up (minus their mean image-y axis) in the world.
+
+    Args:
+        poses: (N, 4, 4) camera-to-world, OpenCV axes; non-finite poses are ignored.
+
+    Returns:
+        (3,) unit vector, or None without a finite pose.
+    """
     poses = np.asarray(poses, dtype=np.float64)
     down = poses[np.isfinite(poses).all(axis=(1, 2)), :3, 1].sum(axis=0)
     if np.linalg.norm(down) < 1e-9:
@@ -111,9 +127,17 @@ def camera_up(poses: np.ndarray) -> np.ndarray | None:
 
 
 def surface_normals(points: np.ndarray) -> np.ndarray:
-    """(K, 3) unit normals of a surface's points, thinned to a grid (``GRID_SHARE`` of the
-    extent, so each normal stands for about the same area) and fitted over ``NORMAL_CELLS``
-    cells. points: (M, 3). Sign arbitrary."""
+    """Unit normals of a surface's points, one per equal patch of surface.
+
+    The points are thinned to a grid (``GRID_SHARE`` of the extent, so each normal stands
+    for about the same area) and the normals fitted over ``NORMAL_CELLS`` cells.
+
+    Args:
+        points: (M, 3) surface points in metres.
+
+    Returns:
+        (K, 3) unit normals, sign arbitrary; (0, 3) for fewer than 100 points.
+    """
     import open3d as o3d
 
     points = np.asarray(points, dtype=np.float64)
@@ -130,10 +154,15 @@ def refine_with_surfaces(guess: np.ndarray, normals: np.ndarray, cones_deg=CONES
                          ) -> tuple[np.ndarray, float, float]:
     """The cameras' up refined by the floors and walls (module docstring, part 2).
 
-    guess: (3,) unit; normals: (K, 3) unit, one per equal patch of surface. Returns the
-    refined unit up (in the guess's hemisphere) and the shares of the normals that counted
-    as horizontal and vertical in the last round; the guess itself (and zeros) when they
-    make less than ``MIN_SURFACE_SHARE``.
+    Args:
+        guess: (3,) unit up.
+        normals: (K, 3) unit normals, one per equal patch of surface.
+        cones_deg: the cone half-angles in degrees of the successive rounds.
+
+    Returns:
+        The refined unit up (3,) (in the guess's hemisphere) and the shares of the normals
+        that counted as horizontal and vertical in the last round; the guess itself (and
+        zeros) when they make less than ``MIN_SURFACE_SHARE``.
     """
     prior = _unit(np.asarray(guess, dtype=np.float64))
     if not len(normals):
@@ -155,8 +184,16 @@ def refine_with_surfaces(guess: np.ndarray, normals: np.ndarray, cones_deg=CONES
 
 
 def directions_around(axis: np.ndarray, max_deg: float, step_deg: float) -> np.ndarray:
-    """(K, 3) unit directions spread evenly (a Fibonacci spiral) over the cap within
-    ``max_deg`` of unit ``axis``, about ``step_deg`` apart, the axis itself first."""
+    """Unit directions spread evenly (a Fibonacci spiral) over a cap around an axis.
+
+    Args:
+        axis: (3,) unit axis.
+        max_deg: the cap's half-angle in degrees.
+        step_deg: about this many degrees between directions.
+
+    Returns:
+        (K, 3) unit directions, the axis itself first.
+    """
     axis = _unit(np.asarray(axis, dtype=np.float64))
     cap = 2.0 * np.pi * (1.0 - np.cos(np.radians(max_deg)))
     count = max(int(np.ceil(cap / np.radians(step_deg) ** 2)), 1)
@@ -173,10 +210,15 @@ def directions_around(axis: np.ndarray, max_deg: float, step_deg: float) -> np.n
 
 
 def vote_up(guess: np.ndarray, normals: np.ndarray, search_deg: float = SEARCH_DEG) -> tuple[np.ndarray, float]:
-    """The candidate up (within ``search_deg`` of ``guess``) that the most normals vote for
-    as floors and walls (module docstring, part 2), and its score (a share of the normals).
+    """The candidate up that the most normals vote for as floors and walls (module docstring).
 
-    guess: (3,) unit; normals: (K, 3) unit, sign arbitrary.
+    Args:
+        guess: (3,) unit up.
+        normals: (K, 3) unit normals, sign arbitrary.
+        search_deg: candidates lie within this many degrees of `guess`.
+
+    Returns:
+        The winning candidate (3,) and its score (a share of the normals).
     """
     candidates = directions_around(guess, search_deg, VOTE_STEP_DEG)
     along, across = np.cos(np.radians(VOTE_CONE_DEG)), np.sin(np.radians(VOTE_CONE_DEG))
@@ -190,7 +232,15 @@ def vote_up(guess: np.ndarray, normals: np.ndarray, search_deg: float = SEARCH_D
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues)."""
+    """The smallest rotation taking unit vector ``a`` to unit vector ``b`` (Rodrigues).
+
+    Args:
+        a: (3,) vector (normalised here).
+        b: (3,) vector (normalised here).
+
+    Returns:
+        (3, 3) rotation R with R a = b; half a turn when they are opposite.
+    """
     a, b = _unit(np.asarray(a, float)), _unit(np.asarray(b, float))
     axis = np.cross(a, b)
     sin, cos = float(np.linalg.norm(axis)), float(a @ b)
@@ -209,9 +259,14 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def estimate_upright(poses: np.ndarray, points: np.ndarray | None = None) -> Upright:
     """The upright rotation of a reconstruction (module docstring).
 
-    poses: (N, 4, 4) camera-to-world (non-finite rows are ignored); points: (M, 3) of the
-    fused surface (the mesh's vertices), or None. Without a finite pose the world is taken
-    as upright already (identity, source "none").
+    Without a finite pose the world is taken as upright already (identity, source "none").
+
+    Args:
+        poses: (N, 4, 4) camera-to-world (non-finite poses are ignored).
+        points: (M, 3) of the fused surface (the mesh's vertices), or None.
+
+    Returns:
+        Upright with the rotation taking the run's world to the upright one (up = -y).
     """
     guess = camera_up(poses)
     if guess is None:

@@ -31,7 +31,14 @@ BUDGET_TRIES = 3
 
 
 def clean_depth(d) -> np.ndarray:
-    """(H, W) float32 C-contiguous depth with NaN/inf/negative values set to 0 (invalid)."""
+    """Depth with NaN, inf and negative values set to 0 (invalid).
+
+    Args:
+        d: (H, W) depth in metres.
+
+    Returns:
+        (H, W) float32 C-contiguous depth in metres, 0 = invalid.
+    """
     d = np.ascontiguousarray(d, dtype=np.float32)
     bad = ~np.isfinite(d) | (d < 0)
     if bad.any():
@@ -71,7 +78,15 @@ def _extract(extract, empty_type):
 
 
 def triangle_components(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
-    """(F,) component label of each triangle (F, 3), triangles sharing a vertex being connected."""
+    """Connected-component label of each triangle, triangles sharing a vertex being connected.
+
+    Args:
+        triangles: (F, 3) vertex indices.
+        num_vertices: number of vertices of the mesh.
+
+    Returns:
+        (F,) int component labels.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -88,10 +103,17 @@ def remove_fragments(
 ) -> tuple[o3d.geometry.TriangleMesh, int]:
     """Drop connected components smaller than `min_triangles` or `min_fraction` of the largest.
 
-    Works in place on `mesh` (a legacy TriangleMesh) and returns it with the number of
-    triangles removed. Components are triangles linked through shared vertices (marching
-    cubes shares vertices between neighbours), found with scipy's sparse connected
-    components: ~20x faster than TriangleMesh.cluster_connected_triangles on big meshes.
+    Components are triangles linked through shared vertices (marching cubes shares vertices
+    between neighbours), found with scipy's sparse connected components: ~20x faster than
+    TriangleMesh.cluster_connected_triangles on big meshes.
+
+    Args:
+        mesh: legacy TriangleMesh, changed in place.
+        min_triangles: smallest component kept, in triangles.
+        min_fraction: smallest component kept, as a share of the largest one's triangles.
+
+    Returns:
+        (mesh, number of triangles removed); 0 and 0 keep everything.
     """
     if len(mesh.triangles) == 0 or (min_triangles <= 0 and min_fraction <= 0):
         return mesh, 0
@@ -131,12 +153,23 @@ class TsdfVolume:
         self.frames_fused = 0
 
     def integrate(self, depth, pose, intrinsics, rgb=None, weight=None) -> bool:
-        """Fuse one frame: depth (H, W) metres (0 invalid), pose (4, 4) camera-to-world,
-        intrinsics (fx, fy, cx, cy) of the depth, rgb (H', W', 3) uint8 or None, weight (H, W)
-        integer observations each pixel counts for (None: 1 each; 0 leaves a pixel out).
+        """Fuse one frame into the volume.
+
         Open3D adds one observation per integration, so a pixel of weight w is integrated w
-        times, each time with the pixels of weight below that count left out. False when the
-        frame has no valid depth within max_depth (nothing fused; Open3D raises on it)."""
+        times, each time with the pixels of weight below that count left out.
+
+        Args:
+            depth: (H, W) depth in metres, 0 = invalid.
+            pose: (4, 4) camera-to-world.
+            intrinsics: (fx, fy, cx, cy) in pixels of the depth.
+            rgb: (H', W', 3) uint8 colour (resampled to (H, W)), or None.
+            weight: (H, W) integer observations each pixel counts for (None: 1 each; 0 leaves a
+                pixel out).
+
+        Returns:
+            False when the frame has no valid depth within max_depth (nothing fused; Open3D
+            raises on it), else True.
+        """
         d = clean_depth(depth)
         if weight is not None:
             weight = np.asarray(weight)
@@ -165,10 +198,19 @@ class TsdfVolume:
         return True
 
     def render_depth(self, pose, intrinsics, size: tuple[int, int], min_weight: float = 2.0) -> np.ndarray:
-        """(H, W) float32 depth in metres of the fused surface seen from a camera (0 where a ray
-        meets no surface observed at least `min_weight` times); pose (4, 4) camera-to-world,
-        intrinsics (fx, fy, cx, cy) of an image of size (H, W). Ray casting through the
-        volume's active blocks (Open3D's VoxelBlockGrid.ray_cast)."""
+        """Depth of the fused surface seen from a camera, by ray casting.
+
+        Ray casting through the volume's active blocks (Open3D's VoxelBlockGrid.ray_cast).
+
+        Args:
+            pose: (4, 4) camera-to-world.
+            intrinsics: (fx, fy, cx, cy) in pixels of an image of `size`.
+            size: (H, W) of the rendered image.
+            min_weight: the fewest observations of a surface a ray may stop on.
+
+        Returns:
+            (H, W) float32 depth in metres, 0 where a ray meets no such surface.
+        """
         h, w = (int(v) for v in size)
         if self.blocks_used == 0:
             return np.zeros((h, w), np.float32)
@@ -187,12 +229,19 @@ class TsdfVolume:
 
     @property
     def blocks_used(self) -> int:
+        """Voxel blocks allocated so far (the count at closing once the voxels are freed).
+
+        Returns:
+            Number of blocks.
+        """
         return self._blocks_closed if self.grid is None else int(self.grid.hashmap().size())
 
     def close(self) -> None:
-        """Free the voxels (their counts stay readable): once the mesh and points are out,
-        before the decimation, which needs most of the memory the voxels held (+0.8 GB for
-        2.5 M triangles)."""
+        """Free the voxels (their counts stay readable).
+
+        Called once the mesh and points are out, before the decimation, which needs most of the
+        memory the voxels held (+0.8 GB for 2.5 M triangles).
+        """
         if self.grid is not None:
             self._blocks_closed = self.blocks_used
             self.grid = None
@@ -201,9 +250,18 @@ class TsdfVolume:
             release_memory(force=True)
 
     def mesh(self, options) -> tuple[o3d.geometry.TriangleMesh, int]:
-        """(legacy mesh, triangles removed as fragments) of what is fused so far; options:
-        FusionOptions (weight_threshold, min_fragment_triangles, min_fragment_fraction).
-        Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding)."""
+        """The mesh of what is fused so far, cleaned of small fragments.
+
+        Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding).
+
+        Args:
+            options: FusionOptions (weight_threshold, min_fragment_triangles,
+                min_fragment_fraction).
+
+        Returns:
+            (legacy TriangleMesh in world coordinates and canonical order, triangles removed
+            as fragments).
+        """
         # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
         if self.blocks_used == 0:  # nothing integrated (Open3D raises on an empty hash map)
             return o3d.geometry.TriangleMesh(), 0
@@ -215,8 +273,14 @@ class TsdfVolume:
         return canonical_mesh(mesh), removed
 
     def point_cloud(self, options) -> o3d.geometry.PointCloud:
-        """The zero crossings of what is fused so far (the mesh's weight threshold), in
-        canonical order (canonical_points)."""
+        """The zero crossings of what is fused so far, at the mesh's weight threshold.
+
+        Args:
+            options: FusionOptions (weight_threshold).
+
+        Returns:
+            Legacy PointCloud in world coordinates, in canonical order (canonical_points).
+        """
         if self.blocks_used == 0:
             return o3d.geometry.PointCloud()
         threshold = options.weight_threshold - 0.5
@@ -235,7 +299,14 @@ def _position_order(points: np.ndarray) -> np.ndarray:
 
 
 def canonical_points(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
-    """The point cloud (with its colours and normals) sorted by position."""
+    """The point cloud (with its colours and normals) sorted by position.
+
+    Args:
+        cloud: legacy PointCloud.
+
+    Returns:
+        A new PointCloud sorted by x, then y, then z.
+    """
     order = _position_order(np.asarray(cloud.points))
     out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points)[order]))
     if cloud.has_colors():
@@ -246,14 +317,23 @@ def canonical_points(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
 
 
 def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.geometry.TriangleMesh:
-    """The mesh with at most `max_triangles` triangles (0: no limit), by vertex clustering
-    (Rossignac and Borrel 1993: the vertices in each cell of a grid merged into their mean,
-    vertex colours averaged with them), in canonical order. Web viewers and phone AR stall on
-    meshes of millions of triangles. A TSDF mesh is already a grid surface, so a coarser grid
-    thins it evenly; the cell size is chosen from the mesh's mean edge length so that the
-    triangles land between BUDGET_FILL and 1 of the budget (a triangle count falls with the
-    square of the cell). Quadric decimation gives the same surface (F@5cm within 0.001 on
-    7-Scenes) ten times slower: 24 s for 2.4 M -> 1 M triangles on a 2-core CPU."""
+    """The mesh thinned to at most `max_triangles` triangles by vertex clustering.
+
+    Rossignac and Borrel 1993: the vertices in each cell of a grid merged into their mean,
+    vertex colours averaged with them. Web viewers and phone AR stall on meshes of millions
+    of triangles. A TSDF mesh is already a grid surface, so a coarser grid thins it evenly;
+    the cell size is chosen from the mesh's mean edge length so that the triangles land
+    between BUDGET_FILL and 1 of the budget (a triangle count falls with the square of the
+    cell). Quadric decimation gives the same surface (F@5cm within 0.001 on 7-Scenes) ten
+    times slower: 24 s for 2.4 M -> 1 M triangles on a 2-core CPU.
+
+    Args:
+        mesh: legacy TriangleMesh.
+        max_triangles: triangle budget; 0 = no limit.
+
+    Returns:
+        The mesh itself when within budget, else a thinned mesh in canonical order.
+    """
     if max_triangles <= 0 or len(mesh.triangles) <= max_triangles:
         return mesh
     cell = mean_edge_length(mesh) * math.sqrt(len(mesh.triangles) / max_triangles)
@@ -281,16 +361,32 @@ def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
 
 
 def mean_edge_length(mesh: o3d.geometry.TriangleMesh, sample: int = 100_000) -> float:
-    """Mean length of the mesh's triangle edges (each edge counted once per triangle), over
-    about `sample` triangles taken evenly through the list (all of a smaller mesh)."""
+    """Mean length of the mesh's triangle edges (each edge counted once per triangle).
+
+    Args:
+        mesh: legacy TriangleMesh with at least one triangle.
+        sample: about this many triangles are taken evenly through the list (all of a
+            smaller mesh).
+
+    Returns:
+        The mean edge length in the mesh's units (metres).
+    """
     vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     corners = vertices[triangles[:: max(1, len(triangles) // sample)]]  # (T', 3, 3)
     return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
 
 
 def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
-    """The same mesh with vertices sorted by position and triangles by their vertices (each
-    triangle rotated to start at its lowest vertex, which keeps its winding)."""
+    """The same mesh with vertices sorted by position and triangles by their vertices.
+
+    Each triangle is rotated to start at its lowest vertex, which keeps its winding.
+
+    Args:
+        mesh: legacy TriangleMesh (colours and normals carried along).
+
+    Returns:
+        A new TriangleMesh in canonical order.
+    """
     vertices = np.asarray(mesh.vertices)
     order = _position_order(vertices)
     rank = np.empty_like(order)

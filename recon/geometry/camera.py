@@ -15,11 +15,19 @@ from recon.errors import ReconInputError
 
 
 def scale_intrinsics(intrinsics, sx: float, sy: float | None = None) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) for an image scaled by `sx` horizontally and `sy` (default sx) vertically.
+    """Intrinsics of an image scaled by `sx` horizontally and `sy` vertically.
 
     Pixel centres sit at integer coordinates, so the scaling is about the image corner
     (-0.5, -0.5): cx' = (cx + 0.5) * sx - 0.5, and likewise for cy (exact for area
     resizing and pooling).
+
+    Args:
+        intrinsics: (fx, fy, cx, cy) in pixels of the original image, any sequence of 4 numbers.
+        sx: new width / old width.
+        sy: new height / old height; None: sx.
+
+    Returns:
+        (fx, fy, cx, cy) floats in pixels of the scaled image.
     """
     sy = sx if sy is None else sy
     fx, fy, cx, cy = (float(v) for v in intrinsics)
@@ -27,14 +35,33 @@ def scale_intrinsics(intrinsics, sx: float, sy: float | None = None) -> tuple[fl
 
 
 def resize_intrinsics(intrinsics, native: tuple[int, int], shape: tuple[int, int]) -> tuple[float, float, float, float]:
-    """Intrinsics of an image of `native` (H, W) after resizing to `shape` (H, W)."""
+    """Intrinsics of an image of `native` (H, W) after resizing to `shape` (H, W).
+
+    Args:
+        intrinsics: (fx, fy, cx, cy) in pixels of the native image.
+        native: (H, W) of the image the intrinsics belong to.
+        shape: (H, W) of the resized image.
+
+    Returns:
+        (fx, fy, cx, cy) floats in pixels of the resized image.
+    """
     return scale_intrinsics(intrinsics, shape[1] / native[1], shape[0] / native[0])
 
 
 def intrinsics_from_fov(fov_deg: float, height: int, width: int) -> tuple[float, float, float, float]:
-    """(f, f, cx, cy) of a centred square-pixel camera with horizontal field of view `fov_deg`.
+    """Intrinsics of a centred square-pixel camera with horizontal field of view `fov_deg`.
 
-    Raises ReconInputError (a ValueError) unless 0 < fov_deg < 180.
+    Args:
+        fov_deg: horizontal field of view in degrees.
+        height: image height in pixels.
+        width: image width in pixels.
+
+    Returns:
+        (f, f, cx, cy) floats in pixels, f = (W / 2) / tan(fov / 2) and the principal point
+        at the image centre ((W - 1) / 2, (H - 1) / 2).
+
+    Raises:
+        ReconInputError: (a ValueError) unless 0 < fov_deg < 180.
     """
     if not 0.0 < float(fov_deg) < 180.0:
         raise ReconInputError(f"field of view must be between 0 and 180 degrees, got {fov_deg}")
@@ -47,8 +74,18 @@ DISTORTION_TERMS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def check_distortion(values, where: str = "--distortion") -> tuple[float, ...]:
-    """OpenCV distortion coefficients k1,k2,p1,p2[,k3] as a tuple of 4 or 5 floats, or a
-    one-line ReconInputError."""
+    """Validate OpenCV distortion coefficients k1, k2, p1, p2[, k3].
+
+    Args:
+        values: the coefficients, any sequence of numbers.
+        where: names the setting in the error message.
+
+    Returns:
+        The coefficients as a tuple of 4 or 5 floats.
+
+    Raises:
+        ReconInputError: (one line) unless there are 4 or 5 finite numbers.
+    """
     coefficients = tuple(float(v) for v in values)
     if len(coefficients) not in (4, 5) or not all(math.isfinite(v) for v in coefficients):
         raise ReconInputError(f"{where}: expected 4 or 5 finite numbers k1,k2,p1,p2[,k3] (OpenCV's model), got "
@@ -57,15 +94,32 @@ def check_distortion(values, where: str = "--distortion") -> tuple[float, ...]:
 
 
 def is_pinhole(distortion) -> bool:
-    """True when there is no distortion to undo (None, or every coefficient 0)."""
+    """Whether there is no distortion to undo.
+
+    Args:
+        distortion: OpenCV coefficients k1, k2, p1, p2[, k3], or None.
+
+    Returns:
+        True for None or when every coefficient is 0.
+    """
     return distortion is None or not any(float(v) for v in distortion)
 
 
 def undistortion_maps(intrinsics, distortion, shape: tuple[int, int]):
-    """(map_x, map_y) float32 (H, W) for ``cv2.remap``: for every pixel of the pinhole image
-    with the same intrinsics, where the lens recorded it (OpenCV's model; the coefficients
-    act on normalised coordinates, so they hold at any image size). intrinsics: (fx, fy,
-    cx, cy) in pixels of an image of `shape` (H, W)."""
+    """Maps for ``cv2.remap`` from the pinhole image to where the lens recorded each pixel.
+
+    For every pixel of the pinhole image with the same intrinsics, the position the lens
+    recorded it at (OpenCV's model; the coefficients act on normalised coordinates, so they
+    hold at any image size).
+
+    Args:
+        intrinsics: (fx, fy, cx, cy) in pixels of an image of `shape`.
+        distortion: OpenCV coefficients k1, k2, p1, p2[, k3].
+        shape: (H, W) of the image.
+
+    Returns:
+        (map_x, map_y), each (H, W) float32, recorded pixel coordinates.
+    """
     import cv2
     import numpy as np
 
@@ -76,8 +130,14 @@ def undistortion_maps(intrinsics, distortion, shape: tuple[int, int]):
 
 
 def largest_lens_shift(maps) -> float:
-    """The largest distance (pixels) between a pinhole pixel and where the lens recorded it,
-    from :func:`undistortion_maps`."""
+    """The largest distance between a pinhole pixel and where the lens recorded it.
+
+    Args:
+        maps: (map_x, map_y) (H, W) from :func:`undistortion_maps`.
+
+    Returns:
+        The largest shift in pixels.
+    """
     import numpy as np
 
     map_x, map_y = maps

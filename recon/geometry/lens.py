@@ -24,8 +24,18 @@ MIN_SHIFT_PX = 0.5
 
 
 def largest_shift(intrinsics, shape: tuple[int, int], k1: float) -> float:
-    """Largest distance (pixels) between a pixel and its recorded position, over the
-    corners of a frame of shape (H, W): where the lens moves pixels most."""
+    """Largest distance between a pixel and its recorded position, over a frame's corners.
+
+    The corners are where the radial term moves pixels most.
+
+    Args:
+        intrinsics: (fx, fy, cx, cy) in pixels of the frame.
+        shape: (H, W) of the frame.
+        k1: radial distortion term on normalised coordinates.
+
+    Returns:
+        The largest shift in pixels.
+    """
     height, width = shape
     corners = torch.tensor([[0.0, 0.0], [width - 1, 0.0], [0.0, height - 1], [width - 1, height - 1]],
                            dtype=torch.float64)
@@ -34,7 +44,16 @@ def largest_shift(intrinsics, shape: tuple[int, int], k1: float) -> float:
 
 
 def worth_undistorting(intrinsics, shape: tuple[int, int], k1: float) -> bool:
-    """Whether the lens moves some pixel of a (W, H) frame by at least MIN_SHIFT_PX."""
+    """Whether the lens moves some pixel of a frame by at least MIN_SHIFT_PX.
+
+    Args:
+        intrinsics: (fx, fy, cx, cy) in pixels of the frame.
+        shape: (H, W) of the frame.
+        k1: radial distortion term on normalised coordinates.
+
+    Returns:
+        True when largest_shift >= MIN_SHIFT_PX.
+    """
     return largest_shift(intrinsics, shape, k1) >= MIN_SHIFT_PX
 
 
@@ -55,27 +74,57 @@ def _remap(images: np.ndarray, maps: tuple[np.ndarray, np.ndarray], nearest: boo
 
 
 def undistort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = False) -> np.ndarray:
-    """Frames (N, H, W[, C]) resampled into the pinhole image; intrinsics (fx, fy, cx, cy) in
-    their pixels. nearest: no interpolation (depth, where mixing across edges invents
-    surfaces)."""
+    """Frames resampled into the pinhole image; pixels from outside the recording become 0.
+
+    Args:
+        images: (N, H, W) or (N, H, W, C) frames as recorded.
+        intrinsics: (fx, fy, cx, cy) in pixels of the frames.
+        k1: radial distortion term on normalised coordinates.
+        nearest: no interpolation (depth, where mixing across edges invents surfaces).
+
+    Returns:
+        (N, H, W[, C]) pinhole frames, the input's dtype.
+    """
     height, width = images.shape[1:3]
     return _remap(images, _source_map(width, height, intrinsics, k1), nearest,
                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 def distort_images(images: np.ndarray, intrinsics, k1: float, nearest: bool = False) -> np.ndarray:
-    """The inverse of :func:`undistort_images`: what a camera with radial term k1 records of
-    pinhole frames (N, H, W[, C]) (recorded pixel p shows the pinhole image at
-    ``undistort(p)``; reflected at the border, so that a simulated recording has no black
-    margin). For simulating lenses in tests and benchmarks."""
+    """The inverse of :func:`undistort_images`: what a camera with radial term k1 records.
+
+    Recorded pixel p shows the pinhole image at ``undistort(p)``; reflected at the border,
+    so that a simulated recording has no black margin. For simulating lenses in tests and
+    benchmarks.
+
+    Args:
+        images: (N, H, W) or (N, H, W, C) pinhole frames.
+        intrinsics: (fx, fy, cx, cy) in pixels of the frames.
+        k1: radial distortion term on normalised coordinates.
+        nearest: no interpolation.
+
+    Returns:
+        (N, H, W[, C]) recorded frames, the input's dtype.
+    """
     height, width = images.shape[1:3]
     return _remap(images, _source_map(width, height, intrinsics, k1, recording=True), nearest,
                   borderMode=cv2.BORDER_REFLECT)
 
 
 def undistort_features(features: np.ndarray, intrinsics, shape: tuple[int, int], k1: float) -> np.ndarray:
-    """Feature maps (N, C, h, w) covering frames of shape (H, W) with intrinsics in frame
-    pixels, resampled into the pinhole image (bilinear, zeros outside)."""
+    """Feature maps covering recorded frames, resampled into the pinhole image.
+
+    Bilinear, zeros outside the recorded image.
+
+    Args:
+        features: (N, C, h, w) float32 feature maps covering the whole frame.
+        intrinsics: (fx, fy, cx, cy) in pixels of the frames.
+        shape: (H, W) of the frames.
+        k1: radial distortion term on normalised coordinates.
+
+    Returns:
+        (N, C, h, w) float32 pinhole feature maps.
+    """
     n, c, h, w = features.shape
     height, width = shape
     intr = pj.scale_intrinsics(intrinsics, w / width, h / height)

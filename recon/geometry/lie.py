@@ -23,7 +23,14 @@ _SMALL_ANGLE = 1e-4
 
 
 def skew(w: torch.Tensor) -> torch.Tensor:
-    """Cross-product matrices (..., 3, 3) of vectors w (..., 3): skew(a) @ b == a x b."""
+    """Cross-product matrices of vectors: skew(a) @ b == a x b.
+
+    Args:
+        w: (..., 3) vectors.
+
+    Returns:
+        (..., 3, 3) skew-symmetric matrices.
+    """
     zero = torch.zeros_like(w[..., 0])
     wx, wy, wz = w.unbind(-1)
     return torch.stack(
@@ -48,7 +55,14 @@ def _so3_coefficients(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, 
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) of axis-angle vectors w (..., 3) (Rodrigues)."""
+    """Rotation matrices of axis-angle vectors (Rodrigues).
+
+    Args:
+        w: (..., 3) axis-angle vectors, angle in radians.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
     theta = w.norm(dim=-1)
     a, b, _ = _so3_coefficients(theta)
     k = skew(w)
@@ -57,7 +71,14 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
 
 
 def so3_log(rot: torch.Tensor) -> torch.Tensor:
-    """Axis-angle vectors (..., 3) of rotation matrices (..., 3, 3), angle in [0, pi]."""
+    """Axis-angle vectors of rotation matrices, angle in [0, pi].
+
+    Args:
+        rot: (..., 3, 3) rotation matrices.
+
+    Returns:
+        (..., 3) axis-angle vectors, angle in radians.
+    """
     cos = ((rot.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
     theta = torch.acos(cos)
     vee = torch.stack(
@@ -82,7 +103,14 @@ def so3_log(rot: torch.Tensor) -> torch.Tensor:
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
-    """4x4 transforms (..., 4, 4) of tangent vectors xi = (v, w) (..., 6)."""
+    """4x4 rigid transforms of tangent vectors xi = (v, w).
+
+    Args:
+        xi: (..., 6) tangent vectors, translation part v first, then rotation w.
+
+    Returns:
+        (..., 4, 4) rigid transforms.
+    """
     v, w = xi[..., :3], xi[..., 3:]
     theta = w.norm(dim=-1)
     a, b, c = _so3_coefficients(theta)
@@ -99,7 +127,14 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
-    """Tangent vectors (..., 6) = (v, w) of 4x4 rigid transforms (..., 4, 4)."""
+    """Tangent vectors xi = (v, w) of 4x4 rigid transforms.
+
+    Args:
+        T: (..., 4, 4) rigid transforms.
+
+    Returns:
+        (..., 6) tangent vectors, translation part v first, then rotation w.
+    """
     w = so3_log(T[..., :3, :3])
     theta = w.norm(dim=-1)
     k = skew(w)
@@ -116,7 +151,14 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def inv(T: torch.Tensor) -> torch.Tensor:
-    """Inverses (..., 4, 4) of rigid transforms (..., 4, 4), without a general matrix inverse."""
+    """Inverses of rigid transforms, without a general matrix inverse.
+
+    Args:
+        T: (..., 4, 4) rigid transforms.
+
+    Returns:
+        (..., 4, 4) inverses [R^T, -R^T t].
+    """
     rot_t = T[..., :3, :3].transpose(-1, -2)
     out = torch.zeros_like(T)
     out[..., :3, :3] = rot_t
@@ -126,9 +168,15 @@ def inv(T: torch.Tensor) -> torch.Tensor:
 
 
 def adjoint(T: torch.Tensor) -> torch.Tensor:
-    """Adjoint matrices (..., 6, 6) of rigid transforms (..., 4, 4) for xi = (v, w).
+    """Adjoint matrices of rigid transforms for xi = (v, w).
 
     ``Ad(T) = [[R, [t]x R], [0, R]]``, so ``T exp(xi) T^-1 = exp(Ad(T) xi)``.
+
+    Args:
+        T: (..., 4, 4) rigid transforms.
+
+    Returns:
+        (..., 6, 6) adjoint matrices.
     """
     rot, t = T[..., :3, :3], T[..., :3, 3]
     out = torch.zeros(T.shape[:-2] + (6, 6), dtype=T.dtype, device=T.device)
@@ -139,15 +187,32 @@ def adjoint(T: torch.Tensor) -> torch.Tensor:
 
 
 def relative(T_cw: torch.Tensor, ii: torch.Tensor, jj: torch.Tensor) -> torch.Tensor:
-    """Transforms (E, 4, 4) from camera ii to camera jj, ``T_j @ T_i^-1``, of world-to-camera poses (K, 4, 4)."""
+    """Transforms from camera ii to camera jj, ``T_j @ T_i^-1``, of world-to-camera poses.
+
+    Args:
+        T_cw: (K, 4, 4) world-to-camera poses.
+        ii: (E,) indices of the first cameras.
+        jj: (E,) indices of the second cameras.
+
+    Returns:
+        (E, 4, 4) camera-ii-to-camera-jj transforms.
+    """
     return T_cw[jj] @ inv(T_cw[ii])
 
 
 def interpolate(T_a: np.ndarray, T_b: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Poses (M, 4, 4) on the geodesic from T_a (M, 4, 4) to T_b (M, 4, 4) at fractions alpha (M,).
+    """Poses on the geodesic from T_a to T_b.
 
     Interpolates ``T_a exp(alpha log(T_a^-1 T_b))`` (float64 numpy in, numpy out); the frame
     convention does not matter as long as both ends share it.
+
+    Args:
+        T_a: (M, 4, 4) start poses.
+        T_b: (M, 4, 4) end poses.
+        alpha: (M,) fractions, 0 at T_a and 1 at T_b.
+
+    Returns:
+        (M, 4, 4) float64 poses.
     """
     a = torch.as_tensor(np.asarray(T_a, dtype=np.float64))
     b = torch.as_tensor(np.asarray(T_b, dtype=np.float64))
@@ -157,14 +222,15 @@ def interpolate(T_a: np.ndarray, T_b: np.ndarray, alpha: np.ndarray) -> np.ndarr
 
 
 def interpolated_pose(i: int, kf_frames: np.ndarray, T_kf: np.ndarray) -> np.ndarray:
-    """Pose (4, 4) of frame i on the geodesic between the keyframes before and after it.
+    """Pose of frame i on the geodesic between the keyframes before and after it.
 
     Args:
         i: the frame's index in the sequence.
         kf_frames: (K,) sorted sequence indices of the keyframes.
         T_kf: (K, 4, 4) float64 poses of the keyframes (either convention, as ``interpolate``).
+
     Returns:
-        (4, 4) float64: the nearest keyframe's pose past either end of the keyframes.
+        (4, 4) float64 pose; the nearest keyframe's pose past either end of the keyframes.
     """
     nxt = int(np.searchsorted(kf_frames, i))
     if nxt == 0 or nxt == len(kf_frames):

@@ -30,13 +30,33 @@ MIN_DEPTH = 0.05
 
 
 def pixel_grid(height: int, width: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Pixel coordinates (H, W, 2) = (u, v) of every pixel centre: medea_core's grid, in
-    float64 unless told otherwise (the front end's BA works in double precision)."""
+    """Pixel coordinates (u, v) of every pixel centre, in float64 unless told otherwise.
+
+    medea_core's grid; the front end's BA works in double precision.
+
+    Args:
+        height: image height H in pixels.
+        width: image width W in pixels.
+        dtype: dtype of the result.
+        device: device of the result; None: the default device.
+
+    Returns:
+        (H, W, 2) whose entry [v, u] is (u, v).
+    """
     return geometry.pixel_grid(height, width, dtype=dtype, device=device)
 
 
 def backproject(uv: torch.Tensor, disp: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
-    """Homogeneous points (..., 4) = (x, y, 1, d) of pixels uv (..., 2) with inverse depth disp (...)."""
+    """Homogeneous points (x, y, 1, d) of pixels with inverse depth.
+
+    Args:
+        uv: (..., 2) pixel coordinates (u, v).
+        disp: (...) inverse depth d in 1/metres (broadcast against uv's leading dimensions).
+        intr: (4,) fx, fy, cx, cy in pixels.
+
+    Returns:
+        (..., 4) homogeneous points ((u - cx) / fx, (v - cy) / fy, 1, d).
+    """
     fx, fy, cx, cy = intr.unbind(-1)
     x = (uv[..., 0] - cx) / fx
     y = (uv[..., 1] - cy) / fy
@@ -45,13 +65,20 @@ def backproject(uv: torch.Tensor, disp: torch.Tensor, intr: torch.Tensor) -> tor
 
 
 def undistort(uv: torch.Tensor, intr: torch.Tensor, k1: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole pixels (..., 2) of recorded pixels uv (..., 2) and their derivative (..., 2)
-    with respect to k1.
+    """Pinhole pixels of recorded pixels, and their derivative with respect to k1.
 
     Undistorting is a 1-D Newton solve per pixel for the factor s = |x_u| / |x_d| (x the
     normalised coordinates): s + k1 |x_d|^2 s^3 = 1. It converges quadratically from s = 1:
     three steps leave a relative error ~ (k1 |x|^2)^8, below float32 precision for
     |k1| |x|^2 < 0.1 (|k1| = 0.2 at the corners of a 60 degree lens).
+
+    Args:
+        uv: (..., 2) recorded pixel coordinates.
+        intr: (4,) fx, fy, cx, cy in pixels.
+        k1: radial distortion term on normalised coordinates; 0 = pinhole.
+
+    Returns:
+        Pinhole pixels (..., 2) and d(pinhole pixels)/d(k1) (..., 2).
     """
     fx, fy, cx, cy = intr.unbind(-1)
     x = (uv[..., 0] - cx) / fx
@@ -66,7 +93,16 @@ def undistort(uv: torch.Tensor, intr: torch.Tensor, k1: float) -> tuple[torch.Te
 
 
 def distort(uv: torch.Tensor, intr: torch.Tensor, k1: float) -> torch.Tensor:
-    """Recorded pixels (..., 2) of pinhole pixels uv (..., 2): the inverse of :func:`undistort`."""
+    """Recorded pixels of pinhole pixels: the inverse of :func:`undistort`.
+
+    Args:
+        uv: (..., 2) pinhole pixel coordinates.
+        intr: (4,) fx, fy, cx, cy in pixels.
+        k1: radial distortion term; a normalised point x is recorded at x (1 + k1 |x|^2).
+
+    Returns:
+        (..., 2) recorded pixel coordinates.
+    """
     fx, fy, cx, cy = intr.unbind(-1)
     x = (uv[..., 0] - cx) / fx
     y = (uv[..., 1] - cy) / fy
@@ -75,7 +111,15 @@ def distort(uv: torch.Tensor, intr: torch.Tensor, k1: float) -> torch.Tensor:
 
 
 def transform(T: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
-    """Homogeneous points X (E, ..., 4) moved by transforms T (E, 4, 4)."""
+    """Homogeneous points moved by one transform per edge.
+
+    Args:
+        T: (E, 4, 4) transforms.
+        X: (E, ..., 4) homogeneous points.
+
+    Returns:
+        (E, ..., 4) points T X.
+    """
     shape = X.shape
     Xf = X.reshape(shape[0], -1, 4)
     return (Xf @ T.transpose(-1, -2)).reshape(shape)
@@ -88,10 +132,17 @@ def _in_front(Z: torch.Tensor, W: torch.Tensor) -> torch.Tensor:
 
 
 def project(Xj: torch.Tensor, intr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixels (..., 2) of homogeneous points (..., 4) and validity (...) (in front of the camera).
+    """Pixels of homogeneous points, and whether they are in front of the camera.
 
     Validity compares Z with MIN_DEPTH * W, i.e. metric depth > MIN_DEPTH for points with
     positive inverse depth W.
+
+    Args:
+        Xj: (..., 4) homogeneous points (X, Y, Z, W) in the camera.
+        intr: (4,) fx, fy, cx, cy in pixels.
+
+    Returns:
+        uv (..., 2) pixel coordinates (projected with Z = 1 where invalid) and valid (...) bool.
     """
     fx, fy, cx, cy = intr.unbind(-1)
     X, Y, Z, W = Xj.unbind(-1)
@@ -106,9 +157,16 @@ def reproject(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the pixels of keyframes ii land in keyframes jj.
 
-    T_cw: (K, 4, 4) world-to-camera; disps: (K, H, W) inverse depth; ii, jj: (E,) edges;
-    uv: (H, W, 2) or (H * W, 2) pixel coordinates of the disps' pixels (None: the grid).
-    Returns coordinates (E, H, W, 2) in jj's pixels and validity (E, H, W).
+    Args:
+        T_cw: (K, 4, 4) world-to-camera poses.
+        disps: (K, H, W) inverse depth in 1/metres.
+        intr: (4,) fx, fy, cx, cy in pixels of the disps' grid.
+        ii: (E,) source keyframe of each edge.
+        jj: (E,) target keyframe of each edge.
+        uv: (H, W, 2) or (H * W, 2) pixel coordinates of the disps' pixels (None: the grid).
+
+    Returns:
+        Coordinates (E, H, W, 2) in jj's pixels and validity (E, H, W) bool.
     """
     height, width = disps.shape[-2:]
     if uv is None:
@@ -130,13 +188,18 @@ def reproject_with_jacobians(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Projections of Xi into camera j and their Jacobians with respect to pose j and depth.
 
-    Tij: (E, 4, 4) camera i -> camera j; Xi: (E, 4, P) homogeneous points (x, y, 1, d) as
-    planes. Returns uv (E, 2, P), valid (E, P), Jj (E, 2, 6, P) with respect to a left
-    update of the world-to-camera pose T_j, and Jz (E, 2, P) with respect to d.
-
     The Jacobian for pose i is ``Ji = -Jj @ adjoint(Tij)`` (a left update of T_i reaches
     T_ij as ``exp(-Ad(T_ij) xi_i)``); callers apply it per edge to the summed normal
     equations instead of per pixel, which is what keeps dense BA cheap.
+
+    Args:
+        Tij: (E, 4, 4) camera i -> camera j transforms.
+        Xi: (E, 4, P) homogeneous points (x, y, 1, d) as planes.
+        intr: (4,) fx, fy, cx, cy in pixels.
+
+    Returns:
+        uv (E, 2, P), valid (E, P) bool, Jj (E, 2, 6, P) with respect to a left update of the
+        world-to-camera pose T_j, and Jz (E, 2, P) with respect to d.
     """
     return project_with_jacobians(Tij, Tij @ Xi, intr)
 
@@ -144,8 +207,19 @@ def reproject_with_jacobians(
 def project_with_jacobians(
     Tij: torch.Tensor, Xj: torch.Tensor, intr: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`reproject_with_jacobians` for points already moved into camera j: Xj (E, 4, P)
-    = Tij Xi (for callers that need Xj again, e.g. :func:`ray_jacobian`)."""
+    """:func:`reproject_with_jacobians` for points already moved into camera j.
+
+    For callers that need Xj = Tij Xi again, e.g. :func:`ray_jacobian`.
+
+    Args:
+        Tij: (E, 4, 4) camera i -> camera j transforms (their translation gives Jz).
+        Xj: (E, 4, P) homogeneous points Tij Xi in camera j, as planes.
+        intr: (4,) fx, fy, cx, cy in pixels.
+
+    Returns:
+        uv (E, 2, P), valid (E, P) bool, Jj (E, 2, 6, P) and Jz (E, 2, P), as
+        :func:`reproject_with_jacobians`.
+    """
     fx, fy, cx, cy = intr.unbind(-1)
     X, Y, Z, W = Xj.unbind(1)
     valid = _in_front(Z, W)
@@ -177,9 +251,20 @@ def project_with_jacobians(
 
 
 def ray_jacobian(Tij: torch.Tensor, Xj: torch.Tensor, intr: torch.Tensor, dray: torch.Tensor) -> torch.Tensor:
-    """Derivative (E, 2, P) of the projections of points Xj = Tij Xi (E, 4, P) in camera j
-    (Tij (E, 4, 4)) when their pinhole source pixels move by dray (2, P) (per unit of some
-    parameter, e.g. k1): the source ray (x, y, 1) moves by dray / (fx, fy), depth d held."""
+    """Derivative of the projections in camera j when the source pixels move.
+
+    The pinhole source pixels move by dray per unit of some parameter (e.g. k1): the source
+    ray (x, y, 1) moves by dray / (fx, fy), depth d held.
+
+    Args:
+        Tij: (E, 4, 4) camera i -> camera j transforms.
+        Xj: (E, 4, P) homogeneous points Tij Xi in camera j, as planes.
+        intr: (4,) fx, fy, cx, cy in pixels.
+        dray: (2, P) motion of the source pixels in pixels per unit of the parameter.
+
+    Returns:
+        (E, 2, P) derivative of the projected pixels in camera j.
+    """
     fx, fy, _, _ = intr.unbind(-1)
     X, Y, Z, _ = Xj.unbind(1)
     iz = 1.0 / torch.where(Z > 1e-6, Z, torch.ones_like(Z))

@@ -22,7 +22,14 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def rotation_errors(rotations: np.ndarray) -> np.ndarray:
-    """Orthonormality error max |R^T R - I| of rotations (N, 3, 3) -> (N,); inf if det <= 0."""
+    """Orthonormality error max |R^T R - I| of rotation matrices.
+
+    Args:
+        rotations: (N, 3, 3) matrices.
+
+    Returns:
+        (N,) float64 errors; inf where det <= 0 (a reflection is no camera rotation).
+    """
     rotations = np.asarray(rotations, dtype=np.float64)
     gram = np.einsum("nji,njk->nik", rotations, rotations)
     err = np.abs(gram - np.eye(3)).max(axis=(1, 2))
@@ -31,9 +38,18 @@ def rotation_errors(rotations: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(quats_xyzw: np.ndarray, path=None, linenos: Sequence[int] | None = None) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) from quaternions (N, 4) ``qx qy qz qw``, normalising them.
+    """Rotation matrices from quaternions ``qx qy qz qw``, normalising them.
 
-    Quaternions of near-zero norm raise, naming `path` and the line when given.
+    Args:
+        quats_xyzw: (N, 4) quaternions (anything reshapeable to it).
+        path: names the source in the error message; None: "<quaternions>".
+        linenos: (N,) line numbers of the quaternions in `path`, named in the error.
+
+    Returns:
+        (N, 3, 3) float64 rotation matrices.
+
+    Raises:
+        ReconInputError: a quaternion's norm is below MIN_QUAT_NORM.
     """
     q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
     norm = np.linalg.norm(q, axis=1)
@@ -46,14 +62,29 @@ def quat_to_matrix(quats_xyzw: np.ndarray, path=None, linenos: Sequence[int] | N
 
 
 def matrix_to_quat(rotations: np.ndarray) -> np.ndarray:
-    """Quaternions (N, 4) ``qx qy qz qw`` with qw >= 0 from rotation matrices (N, 3, 3)."""
+    """Quaternions ``qx qy qz qw`` with qw >= 0 from rotation matrices.
+
+    Args:
+        rotations: (N, 3, 3) rotation matrices.
+
+    Returns:
+        (N, 4) float64 unit quaternions, qw >= 0.
+    """
     q = Rotation.from_matrix(np.asarray(rotations, dtype=np.float64)).as_quat()
     # q and -q are the same rotation; a fixed sign makes written files reproducible.
     return np.where(q[:, 3:4] < 0, -q, q)
 
 
 def make_poses(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
-    """4x4 poses (N, 4, 4) from rotations (N, 3, 3) and translations (N, 3)."""
+    """4x4 poses from rotations and translations.
+
+    Args:
+        rotations: (N, 3, 3) rotation matrices.
+        translations: (N, 3) translations (camera centres for camera-to-world poses).
+
+    Returns:
+        (N, 4, 4) float64 poses.
+    """
     n = len(rotations)
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, :3] = rotations
@@ -62,7 +93,14 @@ def make_poses(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
 
 
 def opengl_to_opencv(poses: np.ndarray) -> np.ndarray:
-    """Camera-to-world (N, 4, 4) with OpenGL camera axes -> OpenCV axes (and back: same op)."""
+    """Camera-to-world poses with OpenGL camera axes -> OpenCV axes (and back: same op).
+
+    Args:
+        poses: (N, 4, 4) camera-to-world poses.
+
+    Returns:
+        (N, 4, 4) float64 poses with the camera's y and z axes flipped.
+    """
     return np.asarray(poses, dtype=np.float64) @ GL_TO_CV
 
 
@@ -79,9 +117,16 @@ def associate_timestamps(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one matches between two timestamp lists, closest pairs first (TUM's associate.py).
 
-    query: (N,), reference: (M,) seconds; a pair (i, j) is allowed when
-    ``|query[i] - (reference[j] + offset)| < max_diff``. Returns index arrays (K,), (K,)
-    ordered by query index.
+    A pair (i, j) is allowed when ``|query[i] - (reference[j] + offset)| < max_diff``.
+
+    Args:
+        query: (N,) timestamps in seconds.
+        reference: (M,) timestamps in seconds.
+        max_diff: largest time difference of a match in seconds.
+        offset: seconds added to every reference timestamp.
+
+    Returns:
+        Index arrays (K,) into query and (K,) into reference, ordered by query index.
     """
     q = np.asarray(query, dtype=np.float64).ravel()
     r = np.asarray(reference, dtype=np.float64).ravel() + offset
@@ -115,12 +160,23 @@ def associate_timestamps(
 def interpolate_poses(
     query_ts, ref_ts, ref_poses: np.ndarray, max_gap: float = 0.1, max_diff: float = 0.02, snap: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses at `query_ts` (M,) from a trajectory sampled at `ref_ts` (N,) with `ref_poses` (N, 4, 4).
+    """Poses at query timestamps from a trajectory sampled at other timestamps.
 
     A sample within `snap` s is taken as is (for timestamps that differ only by rounding).
     Else, between two samples at most `max_gap` s apart: SLERP of rotation, linear
     translation. Otherwise (outside the trajectory or across a gap): the nearest sample when
-    within `max_diff` s. Returns poses (M, 4, 4) (NaN where none applies) and valid (M,) bool.
+    within `max_diff` s.
+
+    Args:
+        query_ts: (M,) timestamps in seconds.
+        ref_ts: (N,) timestamps of the trajectory in seconds, any order.
+        ref_poses: (N, 4, 4) poses of the trajectory.
+        max_gap: longest time in seconds between two samples to interpolate across.
+        max_diff: largest time in seconds to the nearest sample outside an interpolation.
+        snap: time in seconds within which a sample is taken as is.
+
+    Returns:
+        poses (M, 4, 4) float64 (NaN where none applies) and valid (M,) bool.
     """
     q = np.asarray(query_ts, dtype=np.float64).ravel()
     order = np.argsort(np.asarray(ref_ts, dtype=np.float64), kind="stable")
@@ -157,7 +213,10 @@ def apply_similarity(poses: np.ndarray, rot: np.ndarray, trans: np.ndarray, scal
 
     Args:
         poses: (N, 4, 4) camera-to-world poses (NaN poses stay NaN).
-        rot: (3, 3) rotation R; trans: (3,) translation t; scale: s.
+        rot: (3, 3) rotation R.
+        trans: (3,) translation t.
+        scale: scale s.
+
     Returns:
         (N, 4, 4) float64: rotations R @ R_i, camera centres s R c_i + t.
     """
@@ -168,7 +227,14 @@ def apply_similarity(poses: np.ndarray, rot: np.ndarray, trans: np.ndarray, scal
 
 
 def polyline_length(points) -> float:
-    """Length of the polyline through points (N, 3) in order (0 for fewer than two)."""
+    """Length of the polyline through points in order.
+
+    Args:
+        points: (N, 3) points.
+
+    Returns:
+        The summed segment length; 0 for fewer than two points.
+    """
     points = np.asarray(points, dtype=np.float64)
     return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
 
@@ -176,8 +242,17 @@ def polyline_length(points) -> float:
 def umeyama(src, dst, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
 
-    src, dst: (N, 3) corresponding points. Returns R (3, 3) (a rotation, det +1), t (3,),
-    s (1.0 when not `with_scale`).
+    Args:
+        src: (N, 3) points.
+        dst: (N, 3) corresponding points.
+        with_scale: estimate s; False: s = 1.
+
+    Returns:
+        R (3, 3) (a rotation, det +1), t (3,), s (1.0 when not `with_scale`).
+
+    Raises:
+        ReconInputError: the point sets are not both (N, 3), N < 2, or the source points
+            all coincide.
     """
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)

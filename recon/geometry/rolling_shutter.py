@@ -38,10 +38,18 @@ MIN_SHIFT_PX = 0.5
 
 
 def angular_velocity(poses: np.ndarray, timestamps: np.ndarray) -> np.ndarray:
-    """(N, 3) body angular velocity (rad/s, in each camera's axes) from camera-to-world
-    poses (N, 4, 4) and timestamps (N,) seconds: the turn from the previous to the next
-    frame over their time apart (one-sided at the ends). Frames without a finite pose, or
-    whose neighbours share their timestamp, get 0."""
+    """Body angular velocity of every frame, from its poses and timestamps.
+
+    The turn from the previous to the next frame over their time apart (one-sided at the
+    ends). Frames without a finite pose, or whose neighbours share their timestamp, get 0.
+
+    Args:
+        poses: (N, 4, 4) camera-to-world poses.
+        timestamps: (N,) seconds.
+
+    Returns:
+        (N, 3) float64 angular velocity in rad/s, in each camera's axes.
+    """
     poses = np.asarray(poses, np.float64)
     stamps = np.asarray(timestamps, np.float64)
     count = len(poses)
@@ -59,9 +67,17 @@ def angular_velocity(poses: np.ndarray, timestamps: np.ndarray) -> np.ndarray:
 
 
 def recorded_position(omega: np.ndarray, intrinsics, shape: tuple[int, int], readout: float) -> np.ndarray:
-    """(H, W, 2) float32: for every pixel of a frame at its timestamp, where the rolling
-    shutter recorded it. omega (3,) rad/s, readout seconds, intrinsics (fx, fy, cx, cy) in
-    pixels of frames of shape (H, W)."""
+    """For every pixel of a frame at its timestamp, where the rolling shutter recorded it.
+
+    Args:
+        omega: (3,) body angular velocity in rad/s.
+        intrinsics: (fx, fy, cx, cy) in pixels of frames of `shape`.
+        shape: (H, W) of the frames.
+        readout: time in seconds from the first row to the last.
+
+    Returns:
+        (H, W, 2) float32 recorded pixel coordinates (u, v).
+    """
     height, width = shape
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     grid = pj.pixel_grid(height, width)  # (H, W, 2) float64
@@ -74,31 +90,67 @@ def recorded_position(omega: np.ndarray, intrinsics, shape: tuple[int, int], rea
 
 
 def recorded_positions(omega: np.ndarray, intrinsics, shape: tuple[int, int], readout: float) -> np.ndarray:
-    """(N, H, W, 2) float32, :func:`recorded_position` of N frames (omega (N, 3))."""
+    """:func:`recorded_position` of N frames.
+
+    Args:
+        omega: (N, 3) body angular velocities in rad/s.
+        intrinsics: (fx, fy, cx, cy) in pixels of frames of `shape`.
+        shape: (H, W) of the frames.
+        readout: time in seconds from the first row to the last.
+
+    Returns:
+        (N, H, W, 2) float32 recorded pixel coordinates.
+    """
     return np.stack([recorded_position(w, intrinsics, shape, readout) for w in np.asarray(omega)])
 
 
 def largest_shift(positions: np.ndarray) -> np.ndarray:
-    """(N,) the largest distance (pixels) between a pixel and where it was recorded."""
+    """The largest distance between a pixel and where it was recorded, per frame.
+
+    Args:
+        positions: (N, H, W, 2) from :func:`recorded_positions`.
+
+    Returns:
+        (N,) largest shift in pixels.
+    """
     height, width = positions.shape[1:3]
     grid = pj.pixel_grid(height, width).numpy()
     return np.linalg.norm(positions - grid, axis=-1).reshape(len(positions), -1).max(axis=1)
 
 
 def unroll_images(images: np.ndarray, positions: np.ndarray, nearest: bool = False) -> np.ndarray:
-    """Frames (N, H, W[, C]) resampled to their timestamps (positions from
-    :func:`recorded_positions`). Colour takes the nearest recorded pixel at the border (no
-    black margin for the flow to match); depth (nearest=True, no interpolation across edges)
-    is 0 where the recording has no pixel."""
+    """Frames resampled to their timestamps.
+
+    Colour takes the nearest recorded pixel at the border (no black margin for the flow to
+    match); depth (nearest=True, no interpolation across edges) is 0 where the recording
+    has no pixel.
+
+    Args:
+        images: (N, H, W) or (N, H, W, C) frames as recorded.
+        positions: (N, H, W, 2) float32 from :func:`recorded_positions`.
+        nearest: nearest-neighbour sampling and zeros outside (for depth).
+
+    Returns:
+        (N, H, W[, C]) frames, the input's dtype.
+    """
     mode = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
     border = dict(borderMode=cv2.BORDER_CONSTANT, borderValue=0) if nearest else dict(borderMode=cv2.BORDER_REPLICATE)
     return np.stack([cv2.remap(im, pos[..., 0], pos[..., 1], mode, **border) for im, pos in zip(images, positions)])
 
 
 def roll_images(images: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`unroll_images` to first order: what a rolling shutter records of
-    frames taken at one instant (recorded pixel q shows the instant's image at
-    ``2 q - positions[q]``). For simulating rolling-shutter video in tests."""
+    """The inverse of :func:`unroll_images` to first order: what a rolling shutter records.
+
+    Recorded pixel q shows the instant's image at ``2 q - positions[q]``. For simulating
+    rolling-shutter video in tests.
+
+    Args:
+        images: (N, H, W) or (N, H, W, C) frames taken at one instant.
+        positions: (N, H, W, 2) float32 from :func:`recorded_positions`.
+
+    Returns:
+        (N, H, W[, C]) recorded frames, the input's dtype.
+    """
     height, width = positions.shape[1:3]
     grid = pj.pixel_grid(height, width).numpy().astype(np.float32)
     back = 2 * grid[None] - positions
@@ -107,7 +159,15 @@ def roll_images(images: np.ndarray, positions: np.ndarray) -> np.ndarray:
 
 
 def unroll_features(features: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """Feature maps (N, C, h, w) covering the frames, resampled like the frames (bilinear)."""
+    """Feature maps covering the frames, resampled like the frames (bilinear).
+
+    Args:
+        features: (N, C, h, w) feature maps covering the whole frame.
+        positions: (N, H, W, 2) from :func:`recorded_positions` at the frames' size.
+
+    Returns:
+        (N, C, h, w) feature maps, the input's dtype.
+    """
     h, w = features.shape[2:]
     height, width = positions.shape[1:3]
     pos = torch.from_numpy(positions).permute(0, 3, 1, 2)
