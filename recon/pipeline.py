@@ -96,12 +96,10 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
     ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget
     holds at their size, stages.budget_capacity: a one-shot run's memory grows with its
     frames' pixels, a streamed run's does not) and
-    video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
-    the streamed run gives depth only to the frames the camera moved to reach, which on the
-    videos measured was 1.1-1.9x faster for a mesh as good (docs/benchmarks.md, "Videos
-    stream when their poses are estimated"). SfM needs every frame at once, and a rolling
-    shutter with estimated poses needs the trajectory estimated a second time: neither is
-    streamed by that rule.
+    video files whose poses are estimated (the streamed run gives depth only to the frames
+    the camera moved to reach). SfM needs every frame at once, and a rolling shutter with
+    estimated poses needs the trajectory estimated a second time: neither is streamed by
+    that rule. why: docs/decisions.md#streamed-or-one-shot
     """
     if config.stream == "on":
         return "streaming"

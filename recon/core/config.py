@@ -112,15 +112,13 @@ class PipelineConfig:
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
     medea_gate: skip MEDeA, and give the refinement the prior's depth, when given poses
         contradict the frames (recon.poses.pose_check, run on every run with given poses:
-        one warning either way). Off by default: on TUM fr1/rpy's motion capture, skipping
-        it raised the mesh's F@5cm (0.05 -> 0.10) but lowered the depth's accuracy (abs rel
-        0.33 -> 0.36), docs/benchmarks.md, "The gate on given poses".
+        one warning either way). Off by default: skipping MEDeA trades depth accuracy for
+        the mesh. why: docs/decisions.md#the-gate-on-given-poses
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
     polish: polish given poses against the frames before MEDeA when refining (one-shot
-        runs; recon.poses.polish); off: given poses are used as given. On held-out
-        recordings the polish made good poses worse (7-Scenes F@5cm 0.55 -> 0.15, issue 44);
-        the validation table is in docs/benchmarks.md. polish_config: its settings.
+        runs; recon.poses.polish); off: given poses are used as given.
+        why: docs/decisions.md#given-poses-are-used-as-given. polish_config: its settings.
     fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
     rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
         OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.

@@ -271,7 +271,7 @@ class StreamingFrontend:
             self.cfg = replace(self.cfg, lens_k1=lens.k1(focal))
             self.diagnostics["plumb_line"]["k1"] = self.cfg.lens_k1
         # A warning, not a detail: the mesh's size and shape follow the focal length, and the
-        # estimates have known errors (docs/benchmarks.md, "The focal length from nothing").
+        # estimates have known errors. why: docs/decisions.md#the-focal-length-from-nothing
         log.warning(choice.warning(width))
         for i, frame in enumerate(frames):
             self._track(i, frame)

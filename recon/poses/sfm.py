@@ -64,8 +64,7 @@ MAPPERS = ("incremental", "global")
 
 @dataclass
 class SfMConfig:
-    """SfM fallback settings. How the defaults were chosen: docs/benchmarks.md, "Pose
-    settings: how the defaults were chosen".
+    """SfM fallback settings. why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
 
     max_keyframes: at most this many frames go to COLMAP, which bounds the time; the rest
         are registered densely.
