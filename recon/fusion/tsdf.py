@@ -15,13 +15,9 @@ Automatic parameters (each can be overridden in :class:`FusionOptions`):
   trusted (``metric=False``: an estimated scale the depth prior cannot vouch for, off by
   x1.5 to several times) the bounds go: the voxel follows the depth alone, so that a
   close-up 5x too far or a street 25x too near still gets ~2.5 pixels a voxel.
-* ``trunc`` = ``trunc_voxels`` (8) x voxel size, ~4 % of the median depth. Wider than the
-  3-4 voxels usual for sensor depth because monocular depth, even after MEDeA, still
-  disagrees between frames by 1-3 % of the depth: on the demo's 90-frame synthetic room
-  (estimated poses) the mesh F-score at 5 cm went 0.54 / 0.79 / 0.84 at 4 / 8 / 12 voxels
-  (recall 0.37 -> 0.69 -> 0.79: a narrow band leaves disagreeing surfaces fragmented);
-  on 7-Scenes it changed by < 0.01 and sensor depth still scores F 0.996 against its
-  4-voxel mesh.
+* ``trunc`` = ``trunc_voxels`` (8) x voxel size, ~4 % of the median depth: wider than the
+  3-4 voxels usual for sensor depth, because monocular depth still disagrees between
+  frames by 1-3 % of the depth. why: docs/decisions.md#the-tsdf-band
 * memory: every voxel block (``block_resolution``^3 voxels of tsdf + weight + colour,
   20 bytes each: 10 KiB at resolution 8) is allocated up front. Blocks are counted before
   integrating by lifting a pixel lattice of every frame to world points along the ray
@@ -32,10 +28,10 @@ Automatic parameters (each can be overridden in :class:`FusionOptions`):
 Confidence: with a per-pixel confidence map (the refinement's, ``recon.core.refine``), pixels
 below ``min_confidence`` are left out of the integration: the depth the images could not
 confirm is not fused, so it cannot pull the surface or leave floaters. Textureless walls the
-refinement left to MEDeA then leave holes rather than wavy surfaces (see
-``docs/benchmarks.md``: on 7-Scenes with given poses fusing them too lowered the mesh
-F-score). ``None`` leaves the threshold to the caller (the pipeline picks one by where the
-poses came from); ``fuse`` itself then uses DEFAULT_MIN_CONFIDENCE. With
+refinement left to MEDeA then leave holes rather than wavy surfaces
+(why: docs/decisions.md#which-refined-pixels-are-fused). ``None`` leaves the threshold to
+the caller (the pipeline picks one by where the poses came from); ``fuse`` itself then uses
+DEFAULT_MIN_CONFIDENCE. With
 ``confidence_weights`` the pixels admitted also weigh by their confidence
 (``confidence_weight``), so that confirmed depth outweighs filled depth in the average.
 
