@@ -54,10 +54,8 @@ class PipelineConfig:
     stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
     frame_budget: the most frames a one-shot run holds in memory, counted at 640x480 (a
         frame of more pixels counts for more: recon.core.stages.budget_capacity). A one-shot run
-        needs about 1.1 GB and 14 MB a frame at 640x480 (7-Scenes: 2.2-2.7 GB at 100 frames,
-        6.8 GB at 400): 150 holds 80 frames of a 640x853 phone capture at once (2.8 GB; a
-        streamed run of that close-up gave depth to 8 of them) and a 640x480 one-shot run
-        to about 3.2 GB. stream: "auto" streams inputs with more frames than
+        needs about 1.1 GB and 14 MB a frame at 640x480. why:
+        docs/decisions.md#the-frame-budget. stream: "auto" streams inputs with more frames than
         the budget holds (recon.drivers.streamed: frames flow through the stages, memory flat in the
         video's length) and videos whose poses are estimated (recon.pipeline.stream_reason),
         "on" always, "off" never (then, with no stride given, the stride is raised so that

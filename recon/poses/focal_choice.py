@@ -28,14 +28,12 @@ from recon.poses.vanishing import VanishingFocal
 DISAGREEMENT = 1.10
 # Focal lengths whose search score is within this factor of the best one are not ruled out.
 FLAT_SCORE = 1.02
-# Vanishing points that were taken came within 3.4 % of the camera's focal length
-# (benchmarks/focal.py): as an end of the range their value stands for this much either side.
+# As an end of the range the vanishing points' value stands for this much either side (their
+# accuracy where taken). why: docs/decisions.md#the-focal-length-from-nothing
 VANISHING_ACCURACY = 1.04
 # An estimate that takes over (the SfM fallback's bundle adjustment) and lies further than
-# this factor from the vanishing points' value is not taken. The vanishing points came within
-# -5 % to +9 % of the camera even where they were not agreed on (7-Scenes, TUM, Record3D);
-# SfM's bundle adjustment on TUM fr1/rpy's turning camera found -38 % (a trajectory 4.7 % of its
-# path off), on Record3D +1.6 %.
+# this factor from the vanishing points' value is not taken.
+# why: docs/decisions.md#the-focal-length-from-nothing
 TAKEOVER_TOLERANCE = 1.25
 
 
