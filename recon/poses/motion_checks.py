@@ -40,9 +40,8 @@ from recon.poses.result import frame_spans
 class MotionCheckConfig:
     """window: consecutive keyframe pairs judged together for rotation only;
     max_translation_share: below this share of the window's flow made by translation
-        (against rotation), its keyframes are rotation only (TUM fr1/rpy, a camera turned on
-        the spot: 0.08-0.13; hand-held walks and orbits on 7-Scenes, Record3D and the phone
-        video: 0.57-1.13);
+        (against rotation), its keyframes are rotation only
+        (why: docs/decisions.md#the-checks-on-an-estimated-trajectory);
     large_motion_share: neighbouring frames whose motion moves the image by more than this
         share of its width (median over the pixels) are farther apart than dense flow follows;
     min_large_motion_share: ... and a run is judged to move too fast when this share of its

@@ -138,8 +138,8 @@ class Tracker:
         """Alignment to keyframe kf from the predicted pose: unseeded flow first, then (when
         the prediction moves the keyframe's pixels by more than ``seed_min_flow``) flow
         seeded with what the prediction implies, which reaches motions DIS cannot find from
-        zero. Unseeded first keeps what works at full frame rate exactly as it was: seeding
-        every frame there cost 7-Scenes 2.86 -> 3.01 cm."""
+        zero. Unseeded first keeps what works at full frame rate exactly as it was.
+        why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen"""
         s = self.state
         found = self._against(kf, gray, predicted)
         if found is None and s.cfg.seed_min_flow < float("inf"):
