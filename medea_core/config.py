@@ -23,10 +23,8 @@ class StageConfig:
     # Early stop when the epoch loss has not dropped by at least this fraction of the
     # best loss so far for `patience` consecutive epochs ("1% throughout 40 epochs").
     min_rel_improvement: float = 0.01
-    # Adam's epsilon (torch's default; the paper does not give one). Adam moves every grid
-    # cell by about the learning rate whatever its gradient, so cells the data barely
-    # constrains follow the last bits of their gradient; a larger epsilon (1e-2 against
-    # gradients of ~1e-3) damps them. docs/benchmarks.md, "MEDeA on CPU and CUDA".
+    # Adam's epsilon (torch's default; the paper does not give one). A larger one damps the
+    # grid cells the data barely constrains. why: docs/decisions.md#medea-on-cpu-and-cuda
     adam_eps: float = 1e-8
 
     def checks(self) -> dict[str, bool]:
@@ -76,30 +74,23 @@ class MedeaConfig:
     feature_weight: float = 1.0
     seed: int = 0
     device: str = "cpu"
-    # Added to the S-form's denominator |Fi + Fj->i| (the paper has none). The features are
-    # ReLU outputs, often 0: where both sides are near 0 the bare ratio jumps between 0 and
-    # 1 and its gradient eps / (F + eps)^2 explodes, so last-bit noise (another device,
-    # 1e-6 in the prior) moved 7-Scenes depth by 10 % (median); at 0.01 (activations reach
-    # 6) runs agree within 0.3 % and abs rel is lower. docs/benchmarks.md, "MEDeA on CPU
-    # and CUDA".
+    # Added to the S-form's denominator |Fi + Fj->i| (the paper has none): the features are
+    # ReLU outputs, often 0, and where both sides are near 0 the bare ratio and its gradient
+    # jump. why: docs/decisions.md#medea-on-cpu-and-cuda
     feature_eps: float = 0.01
     # A warped pixel counts only if its bilinear footprint lies on valid depth in frame j.
     min_sample_validity: float = 0.999
 
     @classmethod
     def fast(cls, **overrides) -> "MedeaConfig":
-        """Our faster preset, measured against the paper's defaults in docs/benchmarks.md.
+        """Our faster preset: the paper's defaults with these changes.
 
         - pixel_stride 2: each step scores a quarter of view i's pixels (random phase);
-        - Stage II learning rate 0.01: Adam's first steps move every grid entry by about
-          the learning rate, and at the paper's 0.1 that throws away the propagated
-          scale (the Stage II loss jumps from its propagated value to several times
-          higher, then spends all 60 epochs recovering). At 0.01 Stage II refines the
-          propagated scale and stops early.
-        - Stage I at most 150 epochs (paper 600): every recording folder measured stops by
-          itself after 68-106 epochs; on video files (compression artefacts) the loss keeps
-          falling by a little over 1 % per 40 epochs for 181-255 epochs while the mesh stays
-          the same (7-Scenes mp4: F 0.337 at 150 against 0.338 at 255, 16 % less time).
+        - Stage II learning rate 0.01 (paper 0.1): Stage II refines the propagated scale
+          instead of throwing it away, and stops early;
+        - Stage I at most 150 epochs (paper 600).
+
+        why: docs/decisions.md#the-fast-preset
         """
         config = cls(pixel_stride=2, feature_stride=2)
         config.stage1.epochs = 150

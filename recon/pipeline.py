@@ -1,48 +1,12 @@
 """The whole reconstruction: one typed configuration, the input opened, a driver chosen.
 
 This module owns what comes before the stages and the choice between the two drivers: the
-configuration checked, the input opened and its frames selected, the intrinsics and the
-lens the user gave, the output folder (checked before any heavy work, marked unfinished
-until the run ends, removed again when a run that created it fails before writing), the pose
-source, and then one of the drivers of :mod:`recon.drivers`: one-shot
-(:mod:`recon.drivers.oneshot`, every frame in memory) or streamed
-(:mod:`recon.drivers.streamed`, memory flat on long videos; :func:`stream_reason`). Both run
-the stages of :mod:`recon.core.stages` on the configuration of :mod:`recon.core.config` and
-write the report of :mod:`recon.core.report`; the methods live in :mod:`recon.io`,
-:mod:`recon.priors`, :mod:`recon.poses`, :mod:`recon.core.medea`, :mod:`recon.core.refine`,
-:mod:`recon.fusion`, :mod:`recon.export` and Rerun logging in :mod:`viewer`.
-
-Stages, in order (each timed in ``PipelineResult.seconds`` under its name):
-
-``decode``     open the input, check the output folder and the pose source, select and
-               resize frames (stored at working resolution);
-``prior``      per-frame metric depth (FastDepth by default; sensor depth; a depth folder; a
-               local Hugging Face model, its disparity aligned to FastDepth or sensor depth);
-               the network is loaded before the frames are decoded;
-``poses``      camera-to-world poses: a pose file, the dataset's ground truth (both used as
-               given), or estimated (frames the quality gate drops leave the sequence here);
-               with a rolling-shutter readout given, the frames are resampled to one instant
-               each with the poses' turn rate (:mod:`recon.geometry.rolling_shutter`) and estimated
-               poses estimated again on them; given poses are polished against the frames
-               only with ``polish`` (:mod:`recon.poses.given.polish`), and checked against them
-               (:mod:`recon.poses.given.pose_check`: a warning when the frames contradict them);
-``undistort``  frames, prior and features resampled into the pinhole camera when the poses
-               came with a lens term (:mod:`recon.geometry.lens`);
-``medea``      MEDeA multi-view depth adjustment (skipped with ``adjust=False``, and with
-               ``medea_gate`` when the frames contradict the given poses);
-``refine``     per-pixel multi-view stereo around MEDeA's depth, with a confidence per pixel
-               (``refine="mvs"``, :mod:`recon.core.refine`; ``"none"`` keeps the paper's pipeline);
-``fusion``     TSDF fusion of the final depth with colour (only the pixels the refinement
-               reconstructed, when it ran), marching cubes, clean-up;
-``export``     mesh.ply, mesh.glb, trajectory.txt, intrinsics.json, depth maps;
-``logging``    the Rerun recording (frames, depths, cameras, trajectory, mesh, losses).
-
-``report.json`` is written last: inputs, options, versions, timings, MEDeA loss summary.
-
-Intrinsics, first that applies: ``intrinsics`` given (pixels of the input as decoded),
-``fov`` given, the dataset's calibration, the pose file's, the pose estimator's estimate,
-and finally a camera with NYU Depth v2's field of view (~63 degrees horizontal; a warning
-says so). Poses ``"auto"``: a dataset's ground truth when it has one, else estimation.
+configuration checked, the input opened and its frames selected, the intrinsics and lens
+the user gave, the output folder (checked before any heavy work, marked unfinished until the
+run ends), the pose source, then one driver of :mod:`recon.drivers`: one-shot (every frame in
+memory) or streamed (memory flat on long videos; :func:`stream_reason`). Both run the stages
+of :mod:`recon.core.stages` and write the report of :mod:`recon.core.report`. The stages, in
+order, and where the intrinsics come from: docs/running.md#the-stages-of-a-run.
 """
 
 from __future__ import annotations
@@ -96,12 +60,10 @@ def stream_reason(config: PipelineConfig, source, pose_plan) -> str | None:
     ``auto`` streams what a one-shot run cannot hold (more frames than the frame budget
     holds at their size, stages.budget_capacity: a one-shot run's memory grows with its
     frames' pixels, a streamed run's does not) and
-    video files whose poses are estimated: at 30 fps most of their frames repeat a view, and
-    the streamed run gives depth only to the frames the camera moved to reach, which on the
-    videos measured was 1.1-1.9x faster for a mesh as good (docs/benchmarks.md, "Videos
-    stream when their poses are estimated"). SfM needs every frame at once, and a rolling
-    shutter with estimated poses needs the trajectory estimated a second time: neither is
-    streamed by that rule.
+    video files whose poses are estimated (the streamed run gives depth only to the frames
+    the camera moved to reach). SfM needs every frame at once, and a rolling shutter with
+    estimated poses needs the trajectory estimated a second time: neither is streamed by
+    that rule. why: docs/decisions.md#streamed-or-one-shot
     """
     if config.stream == "on":
         return "streaming"

@@ -275,7 +275,7 @@ def _raise_terminated(signum, frame):
 
 def main(argv: list[str] | None = None) -> int:
     # A crash in native code (Open3D, torch, FFmpeg) then leaves the Python stack on stderr
-    # instead of a bare exit status (issue 46: one segmentation fault, nothing said).
+    # instead of a bare exit status.
     if not faulthandler.is_enabled():
         faulthandler.enable()
     in_main_thread = threading.current_thread() is threading.main_thread()

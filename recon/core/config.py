@@ -54,10 +54,8 @@ class PipelineConfig:
     stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
     frame_budget: the most frames a one-shot run holds in memory, counted at 640x480 (a
         frame of more pixels counts for more: recon.core.stages.budget_capacity). A one-shot run
-        needs about 1.1 GB and 14 MB a frame at 640x480 (7-Scenes: 2.2-2.7 GB at 100 frames,
-        6.8 GB at 400): 150 holds 80 frames of a 640x853 phone capture at once (2.8 GB; a
-        streamed run of that close-up gave depth to 8 of them) and a 640x480 one-shot run
-        to about 3.2 GB. stream: "auto" streams inputs with more frames than
+        needs about 1.1 GB and 14 MB a frame at 640x480. why:
+        docs/decisions.md#the-frame-budget. stream: "auto" streams inputs with more frames than
         the budget holds (recon.drivers.streamed: frames flow through the stages, memory flat in the
         video's length) and videos whose poses are estimated (recon.pipeline.stream_reason),
         "on" always, "off" never (then, with no stride given, the stride is raised so that
@@ -112,15 +110,13 @@ class PipelineConfig:
     adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
     medea_gate: skip MEDeA, and give the refinement the prior's depth, when given poses
         contradict the frames (recon.poses.given.pose_check, run on every run with given poses:
-        one warning either way). Off by default: on TUM fr1/rpy's motion capture, skipping
-        it raised the mesh's F@5cm (0.05 -> 0.10) but lowered the depth's accuracy (abs rel
-        0.33 -> 0.36), docs/benchmarks.md, "The gate on given poses".
+        one warning either way). Off by default: skipping MEDeA trades depth accuracy for
+        the mesh. why: docs/decisions.md#the-gate-on-given-poses
     refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
         mvs: its configuration (mvs_core.MvsConfig).
     polish: polish given poses against the frames before MEDeA when refining (one-shot
-        runs; recon.poses.given.polish); off: given poses are used as given. On held-out
-        recordings the polish made good poses worse (7-Scenes F@5cm 0.55 -> 0.15, issue 44);
-        the validation table is in docs/benchmarks.md. polish_config: its settings.
+        runs; recon.poses.given.polish); off: given poses are used as given.
+        why: docs/decisions.md#given-poses-are-used-as-given. polish_config: its settings.
     fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
     rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
         OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.

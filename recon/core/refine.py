@@ -20,12 +20,8 @@ from ..choices import REFINE_CHOICES
 # reconstructed pixels around them: always below a reconstructed pixel's confidence
 # (min_consistent / num_sources, 1/3 by default), so one fusion threshold picks the policy.
 FILLED_CONFIDENCE = 0.1
-# Fusion thresholds: reconstructed pixels only with given (polished) poses; with estimated
-# poses also the filled pixels with support >= 0.1. Measured on 7-Scenes (every 4th, every
-# 8th, 200-399 every 2nd) and TUM: with given poses reconstructed-only gives the best mesh
-# (F 0.570 / 0.386 / 0.560 against 0.484 / 0.414 / 0.482), with estimated poses, whose
-# reconstructed surfaces are less precise, the filled pixels near evidence add more recall
-# than they cost (0.371 / 0.330 / 0.386 against 0.307 / 0.240 / 0.347); docs/benchmarks.md.
+# Fusion thresholds: reconstructed pixels only with given poses; with estimated poses also
+# the filled pixels with support >= 0.1. why: docs/decisions.md#which-refined-pixels-are-fused
 MIN_CONFIDENCE_GIVEN = FILLED_CONFIDENCE
 MIN_CONFIDENCE_ESTIMATED = 0.01
 

@@ -21,10 +21,8 @@ def _wh(shape) -> list[int]:
 def scale_vs_prior(log_scales) -> dict:
     """How far MEDeA moved the depth's overall scale from the prior's, from its log-scale
     grids (N, h, w): each frame's median cell, as a factor; the median, 10th and 90th
-    percentile over frames. Only translation between views measures that scale: under
-    near-pure rotation (TUM fr1/rpy, ground-truth poses: 0.72, where the sensor says 0.93)
-    the losses move it and nothing corrects them (docs/benchmarks.md, "Probes of stop
-    41")."""
+    percentile over frames. Only translation between views measures that scale.
+    why: docs/decisions.md#medeas-scale-under-rotation"""
     # MEDeA returns them on the prior's device, which may be a GPU.
     grids = np.asarray(log_scales.cpu() if hasattr(log_scales, "cpu") else log_scales, np.float64)
     if len(grids) == 0:

@@ -447,9 +447,7 @@ def judge_given_poses(rgb: np.ndarray, poses: np.ndarray, intrinsics, gate: bool
     (N, H, W, 3) and poses (N, 4, 4) of neighbouring frames in order, intrinsics of a pinhole
     camera): (what report.json says of it, why MEDeA is skipped or None). Poses the frames
     contradict are said in one warning; MEDeA is skipped for them only with `gate`
-    (--medea-gate): on TUM fr1/rpy's motion capture, MEDeA's depth scored better than the
-    prior's (abs rel 0.33 against 0.36) and its mesh worse (F@5cm 0.05 against 0.10), so
-    neither choice is right for every user (docs/benchmarks.md, "The gate on given poses")."""
+    (--medea-gate). why: docs/decisions.md#the-gate-on-given-poses"""
     from ..poses.given.pose_check import check_given_poses
 
     check = check_given_poses(rgb, poses, intrinsics)

@@ -51,11 +51,8 @@ def join_breaks(stretch: np.ndarray, poses: np.ndarray, positions: np.ndarray, f
     :func:`trajectory_stretches`; positions: the frames that can serve as views (colour and
     depth at hand), in order; frame(position) -> (rgb (H, W, 3) uint8, prior depth (h, w)
     metres); intrinsics of the frames. The depth prior is the scale both sides are brought
-    to (the trajectory's units are the prior's metres on the whole, ``backend.metric_rescale``):
-    on 7-Scenes 0-399 (a break at frames 189-196) the join took the Sim(3) ATE from 3.95 to
-    3.57 cm, on TUM fr1/rpy 0-99 (three) it kept 1.58 cm; taking the map's own depth against
-    the prior per stretch instead made them 5.7 and 2.0 cm, and bringing each stretch to its
-    prior's scale before the join (``join_scale_breaks``) 7.6 and 1.9 cm. through_map: where
+    to (the trajectory's units are the prior's metres on the whole, ``backend.metric_rescale``;
+    why: docs/decisions.md#joining-across-a-break). through_map: where
     the ORB join finds nothing, join through one SfM model of both stretches' views
     (``recon.poses.sfm.map_join``; skipped without pycolmap). Each break's entry says ``how``
     ("orb" or "map") it was joined."""

@@ -35,21 +35,14 @@ from .stream_track import TrackedVideo
 
 # Share of a window's pixels the fused surface must cover to anchor the window's scale.
 SURFACE_ANCHOR_MIN_COVER = 0.02
-# Frames of a window, spread over it, into which the fused surface is rendered for the
-# anchor: 8 at half size gave the factors of all 48 within 0.003 on 7-Scenes (rendering
-# every frame made fusion 2x slower).
+# Frames of a window, spread over it, into which the fused surface is rendered (at half
+# size) for the anchor. why: docs/decisions.md#the-windows-anchor
 SURFACE_ANCHOR_VIEWS = 8
 # Every this many pixels of them, each way: a median needs far fewer than a frame's pixels.
-# On 7-Scenes (every 4th frame of 0-399) the factors at 4 and 8 were within 0.001 of those at
-# 2, the same F-score, and that run's fusion stage 10 % faster at 4 than at 2.
 SURFACE_ANCHOR_STEP = 4
 # A window whose own depth scale differs from the surface fused before it by more than this
-# factor (either way) is reported. The anchor brings it to that surface, so what the first
-# windows got wrong holds for the rest: on 7-Scenes frames 0-199 with every frame given
-# depth and --refine none, the first 46 frames (little camera motion) came out 20 % short
-# and the later windows, 0.5-13 % short on their own, were scaled by 0.88-0.69 to match
-# (metric abs rel 0.279 against the one-shot run's 0.130). Windows of the motion rule's
-# frames, or refined, stayed within factors 0.89-1.07.
+# factor (either way) is reported: the anchor brings it to that surface, so what the first
+# windows got wrong holds for the rest. why: docs/decisions.md#the-windows-anchor
 ANCHOR_DISAGREEMENT = 1.15
 
 log = logging.getLogger(__name__)

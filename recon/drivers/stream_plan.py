@@ -8,7 +8,8 @@
   slow pan of a long video gives few frames and a fast walk many, where a fixed frame
   budget would keep one frame in ten of both. The defaults (2 % of the depth, 2 degrees)
   give every 4th-5th frame of the 7-Scenes kitchen walk and every 1st-2nd of TUM fr1/rpy's
-  fast rotations: the densities the depth stages were measured at (docs/benchmarks.md).
+  fast rotations: the densities the depth stages were measured at.
+  why: docs/decisions.md#depth-frames-of-a-streamed-run
 * Windows: the depth frames are adjusted by MEDeA in windows of ``window`` frames of which
   the first ``overlap`` were already adjusted by the previous window. Those shared frames
   give the new window its context (MEDeA's pairs reach back into them) and its anchor:

@@ -63,10 +63,8 @@ def align(est, gt, mode: AlignMode = "sim3") -> tuple[np.ndarray, np.ndarray, fl
 
 # The least share of the ground-truth camera centres' spread that the Sim(3) fit must
 # explain for its scale to be used on a mesh. Umeyama's scale is the centres' covariance over
-# the estimate's variance, so it shrinks towards 0 as the fit explains less: on TUM fr1/rpy
-# (centres within 4 cm) with the polished ground-truth poses the fit explains 5 % and its
-# scale is 0.14, which shrank the mesh to an F-score of 0. On 7-Scenes the fits explain
-# 99 % or more; on TUM with estimated poses 71-73 %.
+# the estimate's variance, so it shrinks towards 0 as the fit explains less.
+# why: docs/decisions.md#the-scale-recon-eval-puts-on-a-mesh
 MIN_SCALE_EXPLAINED = 0.5
 
 

@@ -1,46 +1,12 @@
 """TSDF fusion of metric depth maps into a coloured mesh (Open3D VoxelBlockGrid).
 
-This module owns the choice of voxel size, truncation and depth clipping, the memory
-budget (block count estimated before integrating), the integration loop over frames on CPU
-or CUDA, marching-cubes extraction and the removal of small disconnected fragments.
-
-Automatic parameters (each can be overridden in :class:`FusionOptions`):
-
-* ``max_depth`` = 1.1 x the 99th percentile of valid depth (sampled from up to 64 frames):
-  drops the thin far tail (outliers, sky, specular misses) that would cost many voxel
-  blocks for little surface, while never cutting more than ~1 % of the pixels.
-* ``voxel_size`` = clamp(median valid depth / 200, 5 mm, 5 cm): about 2.5 pixels of a
-  640-pixel-wide image at 525 px focal length, so the grid follows the depth resolution of
-  the frames (12.5 mm for a room seen from 2.5 m). Where the depth's metres are not to be
-  trusted (``metric=False``: an estimated scale the depth prior cannot vouch for, off by
-  x1.5 to several times) the bounds go: the voxel follows the depth alone, so that a
-  close-up 5x too far or a street 25x too near still gets ~2.5 pixels a voxel.
-* ``trunc`` = ``trunc_voxels`` (8) x voxel size, ~4 % of the median depth. Wider than the
-  3-4 voxels usual for sensor depth because monocular depth, even after MEDeA, still
-  disagrees between frames by 1-3 % of the depth: on the demo's 90-frame synthetic room
-  (estimated poses) the mesh F-score at 5 cm went 0.54 / 0.79 / 0.84 at 4 / 8 / 12 voxels
-  (recall 0.37 -> 0.69 -> 0.79: a narrow band leaves disagreeing surfaces fragmented);
-  on 7-Scenes it changed by < 0.01 and sensor depth still scores F 0.996 against its
-  4-voxel mesh.
-* memory: every voxel block (``block_resolution``^3 voxels of tsdf + weight + colour,
-  20 bytes each: 10 KiB at resolution 8) is allocated up front. Blocks are counted before
-  integrating by lifting a pixel lattice of every frame to world points along the ray
-  (d - trunc, d, d + trunc); when the count exceeds ``block_count``, the voxel size and
-  truncation grow by sqrt(estimate / budget) (surface blocks scale as 1 / voxel^2) with a
-  logged warning, instead of running out of memory mid-way.
-
-Confidence: with a per-pixel confidence map (the refinement's, ``recon.core.refine``), pixels
-below ``min_confidence`` are left out of the integration: the depth the images could not
-confirm is not fused, so it cannot pull the surface or leave floaters. Textureless walls the
-refinement left to MEDeA then leave holes rather than wavy surfaces (see
-``docs/benchmarks.md``: on 7-Scenes with given poses fusing them too lowered the mesh
-F-score). ``None`` leaves the threshold to the caller (the pipeline picks one by where the
-poses came from); ``fuse`` itself then uses DEFAULT_MIN_CONFIDENCE. With
-``confidence_weights`` the pixels admitted also weigh by their confidence
-(``confidence_weight``), so that confirmed depth outweighs filled depth in the average.
-
-Fragment removal keeps a connected component only if it has at least
-``min_fragment_triangles`` triangles and ``min_fragment_fraction`` of the largest one's.
+Owns the voxel size, truncation and depth clipping (automatic unless set in
+:class:`FusionOptions`), the memory budget (voxel blocks counted before integrating; the
+voxel grows to fit, with a warning, instead of running out of memory mid-way), the
+integration loop on CPU or CUDA, marching cubes and the removal of small fragments. Pixels
+below ``min_confidence`` are left out; ``confidence_weights`` weigh the rest by confidence.
+How each automatic value is chosen: docs/fusion.md#the-volume.
+why: docs/decisions.md#the-tsdf-band, docs/decisions.md#which-refined-pixels-are-fused
 """
 
 from __future__ import annotations

@@ -324,8 +324,7 @@ def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
     of triangles. A TSDF mesh is already a grid surface, so a coarser grid thins it evenly;
     the cell size is chosen from the mesh's mean edge length so that the triangles land
     between BUDGET_FILL and 1 of the budget (a triangle count falls with the square of the
-    cell). Quadric decimation gives the same surface (F@5cm within 0.001 on 7-Scenes) ten
-    times slower: 24 s for 2.4 M -> 1 M triangles on a 2-core CPU.
+    cell). why: docs/decisions.md#the-triangle-budget
 
     Args:
         mesh: legacy TriangleMesh.

@@ -4,10 +4,8 @@ Most video cameras (phones, webcams, the Kinect's colour camera) read their rows
 bottom over a readout time. While the camera turns, each row sees the scene from a slightly
 different orientation: straight lines lean, and the frame is no longer one pinhole image,
 which every later stage (flow bundle adjustment, MEDeA, the plane sweep, fusion) assumes.
-The bundle adjustment then trades rotation for translation: on 7-Scenes (every 4th frame of
-0-399, estimated poses) the camera path came out 5.4 % too long against the ground truth,
-and 3.6 % on the frames unrolled with a 30 ms readout (docs/benchmarks.md, "Rolling
-shutter").
+The bundle adjustment then trades rotation for translation. Off unless the readout is given.
+why: docs/decisions.md#rolling-shutter
 
 The model is rotation-only, after Forssén and Ringaby ("Rectifying rolling shutter video from
 hand-held devices", CVPR 2010): row v of a frame H rows high is exposed at

@@ -2,8 +2,8 @@
 ``backend``, ``filler``) and by the estimators that reuse them (SfM's dense registration,
 the pose polish).
 
-This module owns :class:`FrontendConfig` (every tunable of the front end; the measurements
-behind the defaults are in docs/benchmarks.md), :class:`Geometry` (the three resolutions:
+This module owns :class:`FrontendConfig` (every tunable of the front end; why the defaults:
+docs/decisions.md#pose-settings-how-the-defaults-were-chosen), :class:`Geometry` (the three resolutions:
 working frames, flow at 1/4, BA at 1/8) and the conversion of a pooled depth prior to the
 BA's inverse depth.
 """
@@ -25,9 +25,8 @@ from recon.poses.matching import flow as fl
 @dataclass
 class FrontendConfig:
     """Front-end settings. keyframe_flow, keyframe_max_flow and proximity_max_flow are in
-    working-resolution pixels, scaled as if the frames were 640 px wide. How the defaults
-    were chosen (on the synthetic room, 7-Scenes and TUM fr1): docs/benchmarks.md, "Pose
-    settings: how the defaults were chosen".
+    working-resolution pixels, scaled as if the frames were 640 px wide.
+    why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
 
     ba_stride: BA grid = working resolution / ba_stride (DROID: 8); flow runs at twice
         the BA resolution and is pooled.
@@ -86,10 +85,8 @@ class FrontendConfig:
     join_scale_breaks: where the map's depth steps against the depth prior's beyond the
         prior's noise (``scale_watch``: the trajectory's scale broke there), bring each
         stretch after such a step to the scale of the one before it
-        (``backend.rescale_stretches``) before the metric rescale. Off until it is
-        measured on the validation table: on the synthetic walk-through
-        (``recon.synthetic.walkthrough``) the map's scale drifted gradually through the
-        plain corridor, not in a step, and the watch found no break to join.
+        (``backend.rescale_stretches``) before the metric rescale. Off: it made the
+        joins worse. why: docs/decisions.md#joining-across-a-break
     stop_untrusted: stop (TrackingLostError, which the SfM fallback then answers) when the
         front end's checks of its own motion (``motion_checks``: the lens fit on its bound,
         a camera turned on the spot for most of the run, with the focal length estimated),
@@ -244,7 +241,6 @@ def ba_pixels(cfg_value: float, ba_width: int) -> float:
 def calibrates_lens(setting: bool | None, intrinsics) -> bool:
     """Whether an estimator with ``calibrate_lens`` = `setting` estimates the lens' radial
     term for a camera with `intrinsics` (None: unknown). None estimates it only together
-    with an unknown focal length: given intrinsics are a calibration, and a lens fitted to
-    the frames on top of it put 7-Scenes' and TUM's calibrated cameras at k1 = +0.2 and
-    +0.5 (the bound) on held-out recordings (issue 44)."""
+    with an unknown focal length: given intrinsics are a calibration.
+    why: docs/decisions.md#the-lens"""
     return (intrinsics is None) if setting is None else bool(setting)

@@ -17,7 +17,7 @@ and the estimator kept is the one with less evidence against it: SfM where the f
 refused its own result, or marked part of it while SfM's own checks hold nothing against
 its map (``sfm.scale_spread``); else the front end. A streamed run asks SfM about its
 depth frames only (:func:`on_views`) and keeps the front end's trajectory, marked where the
-two disagree. Measured on the validation table (docs/validation.md).
+two disagree. why: docs/decisions.md#the-second-opinion
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from recon.geometry.rigid import polyline_length, umeyama
 from recon.poses.result import FrameNumbers, by_position, frame_spans
 
 # Two trajectories whose centres differ by at most this share of the path after a Sim(3)
-# agree: the bar a right trajectory meets against the truth (issue 62's acceptance).
+# agree: the bar a right trajectory meets against the truth. why: docs/decisions.md#the-second-opinion
 MAX_DISAGREEMENT = 0.02
 
 

@@ -225,9 +225,8 @@ class FastDepthPrior(DepthPrior):
             "nyu_crop" runs the NYU crop at 224x224 plus a full-frame "focal" pass that
             fills the borders (2 passes, and less accurate on 7-Scenes and TUM).
         focal_scaling: multiply depth by :func:`focal_factor` (camera vs training focal at
-            the network input). Off by default: measured on 7-Scenes/TUM it hurts at every
-            size (the network follows apparent size only partly: at 480x640, where the
-            factor is 2.5, its depth is only 1.05-1.45x too near).
+            the network input). Off by default: the network follows apparent size only
+            partly. why: docs/decisions.md#the-priors-input-size
         interpolation: input resampling, "area" | "bilinear" | "nearest".
         features: also return encoder features from the same forward pass.
         feature_layer: "stride8" (256 channels before dropping) or "stride4" (120).

@@ -11,18 +11,15 @@
   length, from them: ``rotation_focal``), its path is not.
 * **Large motion.** Dense flow follows a few tens of pixels between neighbouring frames;
   frames farther apart than ``large_motion_share`` of the image width (images taken one
-  every few steps) are marked. With the camera's intrinsics given that is all: the front
-  end starts such frames from ORB matches, and TUM fr1/rpy at strides 4 and 8 (a median
-  15 % and 29 % of the width between frames) tracked as well as at stride 1. With the
-  focal length estimated, a run that moves that far for most of its frames is not
-  trusted: the phone's images (26 %) came back 5.7 % off their path within the
-  reference's pieces (docs/validation.md), and with their intrinsics given the same
-  frames lose tracking outright.
+  every few steps) are marked (the front end starts such frames from ORB matches); with
+  the focal length estimated, a run that moves that far for most of its frames is not
+  trusted.
 * **The lens at its bound.** With the focal length unknown the bundle adjustment also fits
   the lens' radial term k1; a fit that ends on its bound (``ba.MAX_K1``) wanted more,
-  which no lens in the candidates' range does: the camera model does not explain the flow
-  (on KITTI's rectified frames it reached +0.5 for a lens with none), and the trajectory
-  fitted with it is not to be trusted.
+  which no lens in the candidates' range does: the camera model does not explain the flow,
+  and the trajectory fitted with it is not to be trusted.
+
+why: docs/decisions.md#the-checks-on-an-estimated-trajectory
 
 :func:`keyframe_motion` measures the two flows of each pair of consecutive keyframes,
 :func:`rotation_only_stretches` and :func:`large_motion_frames` judge them and
@@ -43,9 +40,8 @@ from recon.poses.result import frame_spans
 class MotionCheckConfig:
     """window: consecutive keyframe pairs judged together for rotation only;
     max_translation_share: below this share of the window's flow made by translation
-        (against rotation), its keyframes are rotation only (TUM fr1/rpy, a camera turned on
-        the spot: 0.08-0.13; hand-held walks and orbits on 7-Scenes, Record3D and the phone
-        video: 0.57-1.13);
+        (against rotation), its keyframes are rotation only
+        (why: docs/decisions.md#the-checks-on-an-estimated-trajectory);
     large_motion_share: neighbouring frames whose motion moves the image by more than this
         share of its width (median over the pixels) are farther apart than dense flow follows;
     min_large_motion_share: ... and a run is judged to move too fast when this share of its
@@ -121,8 +117,8 @@ class MotionChecks:
         if not self.short_flow:
             return ""
         spans = frame_spans(self.short_flow, shown=4)  # already frame numbers
-        # "or more": the edges see only part of such a stretch; on the synthetic walk-through's
-        # corridor they said x1.40 where the steps had come out x2.6 short (docs/validation.md, stop 61).
+        # "or more": the edges see only part of such a stretch.
+        # why: docs/decisions.md#the-short-flow-check
         return (f"frames {spans}: the dense flow made the camera's steps short; the images' edges put them at "
                 f"x{self.short_flow_slope:.2f} longer or more (plain surfaces, where the flow sees only across "
                 "edges), so the trajectory there is shorter than the camera's path and the mesh fused from it is "

@@ -5,7 +5,7 @@ On a plain surface or along a straight edge the images measure only the flow acr
 edge (the aperture problem, Horn and Schunck's *normal flow*); DIS fills in the rest from
 its starting point and its neighbours, and on the synthetic walk-through's corridor it
 returns about half of the true flow with forward-backward and photometric agreement as
-high as on texture (docs/poses.md, "Plain surfaces"). The bundle adjustment fits that flow:
+high as on texture (docs/poses.md#plain-surfaces-the-flows-aperture-problem). The bundle adjustment fits that flow:
 the camera's steps come out short while the map's depth stays at the prior's, so the scale
 watch (``recon.poses.checks.scale_watch``) cannot see it.
 
@@ -21,11 +21,7 @@ the BA shortened the steps the gradients pull the flow across the edges farther 
 poses put it and the slope exceeds 1. Windows of pairs whose pooled slope exceeds
 ``max_slope`` are flagged (:func:`short_stretches`).
 
-Measured (stop 57, docs/validation.md): the pooled slope over 3 pairs stays at or below
-1.13 on 7-Scenes 0-399 (strides 1, 4 and 8; focal length given or estimated), 1.03 on TUM
-fr1/rpy at strides 4 and 8 (at stride 1 its steps are too small to judge) and 1.07 on the
-validation table's rows, and reaches 1.44 in the synthetic walk-through's corridor, where
-the steps came out 0.25-0.6 of the truth.
+why: docs/decisions.md#the-short-flow-check
 """
 
 from __future__ import annotations

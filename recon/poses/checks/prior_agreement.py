@@ -5,16 +5,13 @@ A trajectory estimated from the frames alone is scale-free; its metres come from
 network, as one factor (the median ratio of the prior's depth to the map's:
 ``backend.metric_rescale``, SfM's scale in ``recon.poses.sfm.mapper``). That factor is only as good
 as the network is on this scene. Within what it learned, a metric network's errors are a
-smooth factor over the image, and its depth still rises where the scene's does: on 7-Scenes
-the log depths of FastDepth and of the front end's map correlate 0.84-0.94 keyframe by
-keyframe. Outside it (a close-up of a door handle at 0.24 m, five times nearer than anything
-FastDepth's indoor training set holds) the network sees another scene: the correlation is
-0.1, or -0.6 against SfM's points, and the scale it gives is 4-5x off. Depth triangulated
-from the frames' flow alone is independent of the network, so comparing the two *shapes*
-(the part of the scale-invariant log error of Eigen et al. 2014 that a scale factor cannot
-remove) tells whether the network saw this scene, without knowing its true size. It is a
-necessary condition, not a sufficient one: a prior that gets an indoor layout roughly right
-passes whatever its scale error (7-Scenes: 12-13 %).
+smooth factor over the image, and its depth still rises where the scene's does; outside it
+(a close-up far nearer than its training set holds) the network sees another scene. Depth
+triangulated from the frames' flow alone is independent of the network, so comparing the
+two *shapes* (the part of Eigen et al. 2014's scale-invariant log error that a scale factor
+cannot remove) tells whether the network saw this scene, without knowing its true size: a
+necessary condition, not a sufficient one. why:
+docs/decisions.md#metric-scale-the-depth-prior-cannot-vouch-for
 
 :func:`triangulated_depth` gives the front end's keyframes that depth (the bundle
 adjustment's own is held near the prior where the flow says little), and
@@ -40,14 +37,8 @@ from recon.geometry import projective as pj
 @dataclass(frozen=True)
 class AgreementConfig:
     """min_correlation: the median over keyframes of the prior's log depth against the
-        measured depth (Pearson) below which the prior's scale is not trusted. Measured with
-        FastDepth (docs/validation.md, "Stop 60"), with the scale error each run came back
-        with: from the video alone, 7-Scenes 0.85 and 0.94 (scale error 0.12, 0.13), the
-        phone's video 0.77 and 0.71 (no metric truth), Record3D's door handle -0.58 (SfM's
-        points) and 0.09 (0.86, 0.83); intrinsics given, TUM fr1/rpy 0.29 (0.52: a camera
-        turning on the spot) and KITTI 0.08 (x25 too small), Record3D 0-79 0.49 (0.47, not
-        caught); the synthetic room 0.84 (0.80 against SfM), the walk-through 0.64, the room
-        with each prior map upside down 0.28;
+        measured depth (Pearson) below which the prior's scale is not trusted.
+        why: docs/decisions.md#metric-scale-the-depth-prior-cannot-vouch-for
     min_spread: the least standard deviation of a keyframe's measured log depth for it to
         count (0.05: depth varying by +-5 % over the image, a wall seen face on);
     min_keyframes: fewer counted keyframes than this are not judged;

@@ -115,9 +115,8 @@ class ScaleWatch:
     def without_turns(self, rotation_only: list[list[int]]) -> "ScaleWatch":
         """The same with the breaks that lie inside a stretch where the camera turns on the
         spot (``motion_checks``: [first, last] frames) moved to ``turning``: there the map has
-        no scale to break (no parallax measures its depth; on TUM fr1/rpy, turning on the
-        spot, its ratio to the prior stepped x3.6 and x0.76, and joining the stretches on
-        either side turned the later ones by 0.5-0.7 degrees for nothing). Breaks already
+        no scale to break (no parallax measures its depth;
+        why: docs/decisions.md#joining-across-a-break). Breaks already
         applied (``corrections``) are kept as they are."""
         if self.applied or not self.breaks:
             return self

@@ -263,7 +263,7 @@ class StreamingFrontend:
             self.cfg = replace(self.cfg, lens_k1=lens.k1(focal))
             self.diagnostics["plumb_line"]["k1"] = self.cfg.lens_k1
         # A warning, not a detail: the mesh's size and shape follow the focal length, and the
-        # estimates have known errors (docs/benchmarks.md, "The focal length from nothing").
+        # estimates have known errors. why: docs/decisions.md#the-focal-length-from-nothing
         log.warning(choice.warning(width))
         for i, frame in enumerate(frames):
             self._track(i, frame)
@@ -330,10 +330,9 @@ class StreamingFrontend:
             keyframe_depth=keyframe_depth,
         )
         if why and self.cfg.stop_untrusted:
-            # Frames far apart are SfM's usual input, but on the one recording that moves so
-            # (the phone's images) SfM came back 20 % off its path within the reference's
-            # pieces: the user may choose it, the run does not fall back to it unless it is
-            # asked for a second opinion (recon.poses.second_opinion), which compares the two.
+            # Frames far apart are SfM's usual input, but the run does not fall back to it unless
+            # it is asked for a second opinion (recon.poses.second_opinion), which compares the
+            # two. why: docs/decisions.md#the-checks-on-an-estimated-trajectory
             jumping = motion.moves_too_fast and focal_estimated
             err = TrackingLostError(
                 f"the trajectory of frames {frame_spans([(0, n - 1)], self.number)}"
@@ -371,8 +370,7 @@ class StreamingFrontend:
 
     def _short_flow(self, motion: motion_checks.MotionChecks) -> motion_checks.MotionChecks:
         """The motion checks with the stretches whose steps the dense flow made short
-        (``normal_flow``). A verdict, not a break: split off at its ends, the walk-through's
-        corridor left a segment beside it 21 % off its path where the whole had been 8.6 %."""
+        (``normal_flow``). A verdict, not a break. why: docs/decisions.md#the-short-flow-check"""
         g, s, cfg = self.state.graph, self.state, self.cfg.normal_flow
         num, den, judged = normal_flow.keyframe_slopes(g.poses(), g.disps(), g.gray, s.intr, s.k1, cfg)
         stretches, largest = normal_flow.short_stretches(num, den, judged, cfg)

@@ -131,12 +131,8 @@ class Tracker:
 
     def _predict(self, index: int) -> torch.Tensor:
         """Where the frame starts: the previous frame's pose as tracked (else the reference
-        keyframe's). Measured and dropped: a constant-velocity model (the last relative
-        motion repeated) let the motion-only alignment settle on a longer step that still
-        explained the flow, and the window BA took the scale along (7-Scenes every 8th
-        frame: Sim(3) ATE 3.1 -> 23 cm; the synthetic room at 6x speed with blur: 0.9 -> 49
-        cm); re-reading the previous pose through its keyframe after a window BA did the
-        same at full frame rate (TUM fr1/rpy 1.6 -> 3.1 cm, 7-Scenes 3.0 -> 34 cm)."""
+        keyframe's), not a constant-velocity prediction.
+        why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen"""
         s = self.state
         return s.frame_T.get(index - 1, s.graph.poses([s.ref_kf])[0])
 
@@ -144,8 +140,8 @@ class Tracker:
         """Alignment to keyframe kf from the predicted pose: unseeded flow first, then (when
         the prediction moves the keyframe's pixels by more than ``seed_min_flow``) flow
         seeded with what the prediction implies, which reaches motions DIS cannot find from
-        zero. Unseeded first keeps what works at full frame rate exactly as it was: seeding
-        every frame there cost 7-Scenes 2.86 -> 3.01 cm."""
+        zero. Unseeded first keeps what works at full frame rate exactly as it was.
+        why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen"""
         s = self.state
         found = self._against(kf, gray, predicted)
         if found is None and s.cfg.seed_min_flow < float("inf"):

@@ -1,22 +1,13 @@
 """Polishing given camera poses against the images (flow bundle adjustment with a pose tie).
 
-Poses that come with a video (a dataset's ground truth, ARKit, a pose file) are right
-overall but rarely right to the pixel for the colour camera: 7-Scenes' are the depth
-camera's, tracked by KinectFusion, and under them the colour frames disagree with their
-epipolar geometry by 1.5-2 px (median, frames 16 apart); TUM's come from motion capture.
-Multi-view stereo needs sub-pixel agreement, so the poses can be polished (``--polish``;
-off by default: on held-out recordings it made good poses worse, and it moved Record3D's
-ARKit poses by up to 38 cm, docs/benchmarks.md, "The validation table"): the same
-dense flow bundle adjustment as the front end (``recon.poses.ba.bundle``, DROID-SLAM style), over
-a graph of each frame's temporal neighbours and its best stereo partners, with every pose
-tied to its given value (``ba.PosePrior``). The tie is weak: it holds what flow cannot see
-(the gauge, the metric scale, slow drift) and lets the flow decide relative motion. The
-lens' radial term can be estimated on the way, as the front end does.
-
-Measured on 7-Scenes redkitchen (every 4th of frames 0-399): epipolar error against DIS
-flow 0.8 / 1.5 / 2.0 px at 2 / 4 / 8 frames apart with the given poses, 0.28 / 0.43 / 0.51
-px polished; camera centres moved 3 cm (median). ``benchmarks/refine_study.py`` has the
-study.
+Poses that come with a video are right overall but rarely right to the pixel for the colour
+camera, and multi-view stereo needs sub-pixel agreement, so they can be polished
+(``--polish``; off by default, why: docs/decisions.md#given-poses-are-used-as-given): the
+front end's dense flow bundle adjustment (``recon.poses.ba.bundle``, DROID-SLAM style) over each
+frame's temporal neighbours and best stereo partners, with every pose weakly tied to its
+given value (``ba.PosePrior``): the tie holds what flow cannot see (the gauge, the metric
+scale, slow drift) and lets the flow decide relative motion. The lens' radial term can be
+estimated on the way. ``benchmarks/refine_study.py`` has the study.
 """
 
 from __future__ import annotations
@@ -38,8 +29,8 @@ from recon.poses.result import invert_poses, pool_depth
 
 @dataclass
 class PolishConfig:
-    """Settings of :func:`polish_poses`. How the defaults were chosen (7-Scenes, TUM, the
-    synthetic room): docs/benchmarks.md, "Pose settings: how the defaults were chosen".
+    """Settings of :func:`polish_poses`.
+    why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
 
     ba_stride: BA grid = frame size / ba_stride (flow runs at twice that resolution).
     temporal: each frame is linked to this many following frames.
@@ -58,16 +49,12 @@ class PolishConfig:
         rendered sequence, a good SfM model) are left exactly as given: polishing is
         limited by the flow's own noise.
     calibrate_lens: estimate the lens' radial term k1 as well; off by default, since the
-        poses come with intrinsics (a calibration a fitted lens would override: on
-        held-out recordings it came out at k1 = +0.2 for 7-Scenes' and +0.5, its bound,
-        for TUM's calibrated camera, issue 44).
+        poses come with intrinsics (a calibration a fitted lens would override).
+        why: docs/decisions.md#the-lens
     min_fit: the share of the flow (BA inlier fraction) the poses that come out of the
         polish (polished, or kept as given) should explain; below it ``info["disagreement"]``
         says so (``pose_disagreement``; report.json only: MEDeA's gate judges the poses in
-        use with ``recon.poses.given.pose_check``, which needs no polish). Under TUM fr1/rpy's
-        motion capture, kept as given, 0.65-0.71 of the flow fits; polished 7-Scenes
-        0.90-0.95, ScanNet's keyframes 0.50-0.58 (wide baselines: the flow fails, not the
-        poses).
+        use with ``recon.poses.given.pose_check``, which needs no polish).
     flow: the DIS flow settings.
     """
 

@@ -12,12 +12,8 @@ Geometry", ch. 9), whatever its depth. The dense flow between neighbouring frame
 ``recon.poses.matching.flow``) says where it lands; the distance from that line is the poses'
 error, depth-free. :func:`check_given_poses` takes the median over the confident flow of
 up to ``max_pairs`` neighbouring pairs spread over the run. Pairs whose flow is mostly not
-confident (wide baselines: ScanNet's keyframes, an image set; blur) say nothing about the
-poses and are not judged; with too few judged pairs there is no verdict.
-
-Measured (docs/benchmarks.md, "The gate on given poses"): the median distance at 640 px
-is 0.28-0.44 px for 7-Scenes, Record3D (ARKit) and KITTI, 1.17-1.32 px for TUM fr1/rpy's
-motion capture, whose frames MEDeA cannot trust.
+confident (wide baselines, blur) say nothing about the poses and are not judged; with too
+few judged pairs there is no verdict. why: docs/decisions.md#the-gate-on-given-poses
 """
 
 from __future__ import annotations

@@ -5,33 +5,14 @@ Two estimates come from the first frames of a video (``recon.poses.frontend.stre
 before tracking): the flow-based search (``calib.estimate_focal``: the focal length under
 which a bundle adjustment of the first keyframes fits best) and, in scenes built along
 three orthogonal directions, the vanishing points of the frames' straight edges
-(``vanishing.estimate_focal_vp``). :func:`choose_focal` owns the rule, chosen on every
-recording with published intrinsics (``benchmarks/focal.py``; docs/benchmarks.md, "The
-focal length from nothing"):
-
-* Vanishing points on which at least ``FrontendConfig.vanishing_min_share`` of the frames
-  agree are taken: on the 9 of 19 clips where they were, they came within 3.4 % of the
-  camera's focal length (7-Scenes, the phone's images and video), while the search erred
-  by up to 48 % on the same clips. Below that share they were as often 50-66 % wrong
-  (Record3D) as right.
-* Otherwise the homographies of a camera that turns (``rotation_focal.estimate_focal_rotation``)
-  are taken where they are trusted: most of the pairs that moved are rotations and their
-  summed cost leaves f within x1.35 (TUM fr1/rpy, a camera rolling, pitching and yawing in
-  place: within 1.4 % of its camera on both segments, where the search's minimum lay at an
-  end of its sweep and the vanishing points were not agreed on; trusted on no other clip).
-* Otherwise the search's value stands (its error: -54 % to +61 %, within 10 % on 10 of
-  the 19 clips).
-* The range the evidence leaves open: with the vanishing points taken, theirs and the
-  search's value; with the search's, every focal length it scored within ``FLAT_SCORE``
-  of its best (a flat score: the frames do not fix f) and the vanishing points' value,
-  trusted or not, give or take ``VANISHING_ACCURACY`` (their largest error where they were
-  taken: ScanNet's second segment had them 1.9 % above its camera while the search's
-  flat region lay far above). A search whose best score lay at an end of its sweep did
-  not bracket a minimum (the score still fell towards the end of the candidates: a camera
-  that turns more than it moves, TUM fr1/rpy's second segment, ScanNet's sparse
-  keyframes, KITTI's first): it rules nothing out, and the range spans every candidate it
-  scored. Where the range's ends differ by more than ``DISAGREEMENT`` the warning gives it
-  (report.json: ``poses.diagnostics.focal``).
+(``vanishing.estimate_focal_vp``). :func:`choose_focal` owns the rule: vanishing points on
+which at least ``FrontendConfig.vanishing_min_share`` of the frames agree; otherwise the
+homographies of a camera that turns (``rotation_focal.estimate_focal_rotation``) where
+trusted; otherwise the search's value. The range the evidence leaves open (every focal
+length the search scored within ``FLAT_SCORE`` of its best, the vanishing points' value
+give or take ``VANISHING_ACCURACY``; every candidate where the search bracketed no minimum)
+is given in the warning when its ends differ by more than ``DISAGREEMENT`` (report.json:
+``poses.diagnostics.focal``). why: docs/decisions.md#the-focal-length-from-nothing
 """
 
 from __future__ import annotations
@@ -47,14 +28,12 @@ from recon.poses.intrinsics.vanishing import VanishingFocal
 DISAGREEMENT = 1.10
 # Focal lengths whose search score is within this factor of the best one are not ruled out.
 FLAT_SCORE = 1.02
-# Vanishing points that were taken came within 3.4 % of the camera's focal length
-# (benchmarks/focal.py): as an end of the range their value stands for this much either side.
+# As an end of the range the vanishing points' value stands for this much either side (their
+# accuracy where taken). why: docs/decisions.md#the-focal-length-from-nothing
 VANISHING_ACCURACY = 1.04
 # An estimate that takes over (the SfM fallback's bundle adjustment) and lies further than
-# this factor from the vanishing points' value is not taken. The vanishing points came within
-# -5 % to +9 % of the camera even where they were not agreed on (7-Scenes, TUM, Record3D);
-# SfM's bundle adjustment on TUM fr1/rpy's turning camera found -38 % (a trajectory 4.7 % of its
-# path off), on Record3D +1.6 %.
+# this factor from the vanishing points' value is not taken.
+# why: docs/decisions.md#the-focal-length-from-nothing
 TAKEOVER_TOLERANCE = 1.25
 
 

@@ -60,10 +60,7 @@ class RotationFocalConfig:
         ruled out (the range);
     min_rotation_share, min_pairs, max_range: trusted when at least this share of the
         counted pairs are rotations, at least this many, and the range's ends lie within
-        this factor: measured on every recording of ../shared/data (``benchmarks/focal.py``
-        clips): TUM fr1/rpy's turning camera 0.76-0.81 of its pairs, ranges x1.15-x1.20; the
-        hand-held walks and orbits of 7-Scenes, Record3D, ScanNet, KITTI and the phone
-        0-0.80 (the 0.80 of 10 pairs), ranges x1.59-x5.5 where more than one pair turned."""
+        this factor. why: docs/validation.md#the-focal-length-of-a-camera-that-turns"""
 
     scale: float = 0.5
     max_features: int = 1500

@@ -78,10 +78,9 @@ def _dis(cfg: FlowConfig, shape: tuple[int, int], seeded: bool) -> cv2.DISOptica
     """One DIS instance per parameter set, image shape and use (creating one allocates
     buffers; reusing one on a larger image than it was first used on crashes OpenCV 4.x).
 
-    seeded: calls with an initial flow get their own instance. A call with an initial
-    flow leaves state behind in OpenCV 5.0's DIS that changes the next unseeded call on
-    the same instance (median 0.13 px, up to 100 px on TUM frames), so a shared instance
-    made every flow depend on what ran before it."""
+    seeded: calls with an initial flow get their own instance: a call with an initial flow
+    leaves state behind in OpenCV 5.0's DIS that changes the next unseeded call on the same
+    instance. why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen"""
     key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters, tuple(shape), seeded)
     if key not in _DIS_CACHE:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)

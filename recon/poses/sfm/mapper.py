@@ -64,8 +64,7 @@ MAPPERS = ("incremental", "global")
 
 @dataclass
 class SfMConfig:
-    """SfM fallback settings. How the defaults were chosen: docs/benchmarks.md, "Pose
-    settings: how the defaults were chosen".
+    """SfM fallback settings. why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
 
     max_keyframes: at most this many frames go to COLMAP, which bounds the time; the rest
         are registered densely.
@@ -103,10 +102,9 @@ class SfMConfig:
         frames (standard deviation of the per-frame log ratio that the metric scale is the
         median of; 0 = not checked). Beyond it the model is marked (``scale_spread``), and
         refused under ``--on-break stop``: five times the prior's own scale noise (about 5 %
-        a frame, ``scale_watch``) may be a map whose parts are at different scales (the
-        phone's images 35-70: 0.31, 7 % of the path off, where runs within 5 % had
-        0.05-0.17), or the prior's own noise on a scene it knows badly (a held-out phone
-        capture: x1.48, and the trajectory within 0.04 % of its path).
+        a frame, ``scale_watch``) may be a map whose parts are at different scales, or the
+        prior's own noise on a scene it knows badly.
+        why: docs/decisions.md#the-checks-on-an-estimated-trajectory
     frontend: flow / alignment settings used to choose keyframes (its flow settings,
         ``min_match_correlation`` and ``min_edge_weight`` decide which steps the flow can
         follow) and to register the remaining frames (``lost_inlier`` and the rest).
