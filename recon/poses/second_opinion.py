@@ -1,23 +1,13 @@
 """A second opinion on an estimated trajectory: the dense front end and SfM, two independent
 estimators, compared where the front end's own checks doubt its result.
 
-The front end (dense DIS flow, a flow bundle adjustment) and SfM (SIFT matched across any
-baseline, COLMAP's incremental mapper) fail differently: flow follows small steps and
-slides along plain surfaces, SIFT needs texture and parallax but no small steps. Neither
-says which of its parts to believe. Where the front end refuses its trajectory (frames
-farther apart than flow follows, the lens fitted on its bound, a focal length it did not
-fix) or marks part of it (steps the flow made short, the map's scale breaking), SfM
-estimates the same frames and the two are compared under the similarity that best takes
-one onto the other (:func:`trajectory_agreement`: the camera centres' RMSE after a
-Sim(3), as a share of the path, as the trajectories are judged against the truth).
-
-:func:`second_opinion` gives the verdict report.json carries (``poses.second_opinion``):
-within ``max_disagreement`` the two agree and the stretch is trusted; otherwise it is marked,
-and the estimator kept is the one with less evidence against it: SfM where the front end
-refused its own result, or marked part of it while SfM's own checks hold nothing against
-its map (``sfm.scale_spread``); else the front end. A streamed run asks SfM about its
-depth frames only (:func:`on_views`) and keeps the front end's trajectory, marked where the
-two disagree. why: docs/decisions.md#the-second-opinion
+Flow follows small steps and slides along plain surfaces; SIFT needs texture and parallax
+but no small steps. Where the front end refuses or marks its trajectory, SfM estimates the
+same frames and the two are compared under a Sim(3) (:func:`trajectory_agreement`: centre
+RMSE as a share of the path). :func:`second_opinion` gives the verdict (report.json
+``poses.second_opinion``) and the estimator kept; :func:`on_views` does it for a streamed
+run's depth frames. More: docs/poses.md#a-second-opinion-the-front-end-and-sfm-compared
+why: docs/decisions.md#the-second-opinion
 """
 
 from __future__ import annotations

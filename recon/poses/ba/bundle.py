@@ -1,34 +1,13 @@
 """Dense bundle adjustment over keyframe poses and per-pixel inverse depth (DROID-SLAM style).
 
-This module owns the least-squares problem of the front end and its solvers:
-
-* **dense BA** (:func:`bundle_adjust`): for every edge (i, j) of the frame graph and every
-  pixel p of keyframe i on the BA grid, the residual is
-  ``target_ij(p) - proj(T_j T_i^-1 X_i(p, d_i(p)))`` (pixels), weighted by the flow
-  confidence and a robust (Huber) factor. Unknowns are world-to-camera poses (left
-  updates, ``recon.geometry.lie``) and the inverse depth of every BA pixel of every keyframe.
-  Each inverse depth is also tied to the metric prior by ``sqrt(prior_weight) * log(d /
-  d0)`` (a relative error, so the tie is equally weak near and far; in logs because a
-  network's depth errors are multiplicative: a quadratic tie on (d - d0) / d0 would bias
-  the scale by ~exp(-1.5 sigma^2), 9 % for 25 % errors). Reprojection alone cannot see the
-  global scale; this tie is what makes the result metric.
-* Each step linearises the residuals (:mod:`recon.poses.ba.normal_equations`). The depth
-  block of the Hessian is diagonal, so it is eliminated exactly with the **Schur
-  complement** (:mod:`recon.poses.ba.schur`); the reduced camera system (6 per free pose) is
-  solved densely (Cholesky) in float64, then the depths are back-substituted pixel by
-  pixel. Levenberg-Marquardt damping with step acceptance. Everything per pixel goes a
-  chunk of edges (or a batch of keyframes) at a time, so that a long video's global BA
-  holds little more than its edges.
-* **lens self-calibration** (``BAOptions.calibrate_k1``): flow is measured on the
-  recorded images, and both ends of every correspondence are undistorted with the lens'
-  radial term k1 (``projective.undistort``) before the residual is taken; k1 can be one
-  more unknown, node K of the reduced system (padded to a pose's six rows).
-
-Motion-only alignment of frames against fixed keyframes, on the same residuals, is
-:mod:`recon.poses.ba.motion_only`.
-
-Shapes: K keyframes (poses (K, 4, 4), inverse depths (K, H, W)), E directed edges
-(ii, jj (E,), targets (E, H, W, 2) = where pixel p of ii lands in jj, weights (E, H, W)).
+:func:`bundle_adjust` minimises, over every flow edge (i, j) and BA pixel p of keyframe i,
+``target_ij(p) - proj(T_j T_i^-1 X_i(p, d_i(p)))`` (pixels, confidence- and Huber-weighted),
+each inverse depth tied to the prior by ``sqrt(prior_weight) * log(d / d0)`` (what makes the
+result metric). Levenberg-Marquardt over world-to-camera poses (left updates), the inverse
+depths (eliminated by :mod:`recon.poses.ba.schur`) and optionally k1 (``calibrate_k1``).
+Shapes: K keyframes (poses (K, 4, 4), inverse depths (K, H, W)), E directed edges (ii, jj
+(E,), targets (E, H, W, 2) = where pixel p of ii lands in jj, weights (E, H, W)).
+More: docs/poses.md#the-dense-bundle-adjustment
 """
 
 from __future__ import annotations

@@ -1,20 +1,12 @@
 """The keyframe graph of the front end (as in DROID-SLAM's ``factor_graph``): keyframe state,
 directed flow edges, and the choice of which keyframes to connect.
 
-This module owns:
-
-* :class:`FrameGraph`: per keyframe its video frame index, flow-resolution grey image,
-  world-to-camera pose, BA-grid inverse depth, prior inverse depth and prior weight; per
-  directed edge (i, j) its flow target and confidence on the BA grid, and its kind
-  ("temporal", "proximity", "reloc");
-* :func:`induced_flow`: how far pixels of keyframe k would move in other keyframes given
-  the current poses and depths (DROID's frame distance), used to find proximity edges;
-* :func:`select_proximity`: the nearest keyframes by that distance, with temporal
-  non-maximum suppression so that one revisit does not take all the edges;
-* :func:`parallax_into`: how far pixels of keyframes would move, beyond what the rotation
-  explains, in a camera at a given pose (is a revisited place already a keyframe?);
-* :func:`predicted_flow`: the flow the geometry predicts, used to seed DIS on long edges;
-  :func:`seed_flows`: both ways between a keyframe and a frame at a given pose.
+:class:`FrameGraph` holds per keyframe its video frame, flow-resolution grey image,
+world-to-camera pose, BA-grid inverse depth and prior; per directed edge (i, j) its flow
+target and confidence on the BA grid and its kind ("temporal", "proximity", "reloc").
+The functions here measure induced flow (DROID's frame distance) to pick proximity edges
+and predict the flow that seeds DIS on long edges.
+More: docs/poses.md#the-front-ends-parts
 """
 
 from __future__ import annotations

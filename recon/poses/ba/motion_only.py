@@ -3,10 +3,8 @@
 Gauss-Newton on one world-to-camera pose per frame, batched over frames, with the
 keyframes' poses and BA inverse depth held fixed: the dense BA's residual
 (:mod:`recon.poses.ba.bundle`: flow target minus reprojection, the recorded pixels undistorted
-with k1, Huber-weighted) with the depth block and the keyframe poses removed, as DROID-SLAM's
-motion-only BA does to initialise a new frame before it joins the graph. The tracker aligns
-each new frame this way, the filler the non-keyframes at the end, the focal search its
-first keyframes.
+with k1, Huber-weighted) without the depth block, as DROID-SLAM's motion-only BA initialises
+a new frame. Used by the tracker, the filler and the focal search.
 
 Shapes: M frames, L measurements (one keyframe seen by one frame each), BA grid (H, W).
 """

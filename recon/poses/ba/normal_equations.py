@@ -1,19 +1,13 @@
 """The linearised system of the dense BA (:mod:`recon.poses.ba.bundle`): what one Gauss-Newton
 step solves.
 
-The measurements are the frame graph's flow edges (:class:`Edges`). For every edge
-(i, j) and BA pixel p the reprojection residual is linearised at the
-current poses and inverse depths (:class:`Linearisation`, a chunk of edges at a time);
-summed over the pixels, that gives per-edge 6 x 6 pose blocks, per-pixel depth terms (the
-diagonal depth block) and the pose-depth couplings the Schur complement
-(:mod:`recon.poses.ba.schur`) eliminates the depths with (:func:`normal_equations`). The
-couplings are 6 x P numbers per edge, the bulk of a large graph's memory: they are held up
-to COUPLING_HOLD_BYTES and otherwise formed again where they are used
-(:class:`EdgeCouplings`). The robust (Huber) weights are here too, shared with the
-motion-only alignment (:mod:`recon.poses.ba.motion_only`).
-
-Shapes: K keyframes, E edges, P pixels per keyframe; per-pixel terms are planes (pixels
-last, ``projective``).
+Per flow edge (:class:`Edges`) the residuals are linearised a chunk of edges at a time
+(:class:`Linearisation`) into 6 x 6 pose blocks, per-pixel depth terms and the pose-depth
+couplings that :mod:`recon.poses.ba.schur` eliminates the depths with; the couplings are
+held up to COUPLING_HOLD_BYTES, else formed again where used (:class:`EdgeCouplings`). The
+Huber weights are here too, shared with :mod:`recon.poses.ba.motion_only`.
+Shapes: K keyframes, E edges, P pixels per keyframe; per-pixel terms are planes (pixels last).
+More: docs/poses.md#the-dense-bundle-adjustment
 """
 
 from __future__ import annotations

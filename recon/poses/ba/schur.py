@@ -1,14 +1,10 @@
 """The Schur complement of the dense BA (:mod:`recon.poses.ba.bundle`): the depths eliminated.
 
-Every BA pixel has one unknown, its inverse depth, and the depth block of the Gauss-Newton
-Hessian is diagonal (a pixel's depth appears only in its own residuals). Eliminating it
-exactly leaves the reduced camera system over the poses (6 per pose, plus k1 when it is
-estimated), as in DROID-SLAM's dense BA and in COLMAP's Schur-complement solvers
-(Triggs et al., "Bundle Adjustment - A Modern Synthesis", 2000, section 6.1); after the
-pose step the depths follow by back-substitution, pixel by pixel.
-
-The input is the normal equations :mod:`recon.poses.ba.normal_equations` builds (a dict of per-edge pose
-blocks, per-pixel depth terms and pose-depth couplings; its keys are documented there).
+The depth block of the Gauss-Newton Hessian is diagonal (a pixel's inverse depth appears
+only in its own residuals), so it is eliminated exactly, leaving the reduced camera system
+(6 per pose, plus k1 when estimated); the depths follow by back-substitution (Triggs et al.,
+"Bundle Adjustment - A Modern Synthesis", 2000, section 6.1; as in DROID-SLAM and COLMAP).
+The input is what :mod:`recon.poses.ba.normal_equations` builds (its keys are documented there).
 Shapes: K keyframes, E edges (ii, jj (E,)), P pixels per keyframe, N = K (+1 with k1) nodes.
 """
 

@@ -1,23 +1,13 @@
 """Joining the stretches of a trajectory across a scale break: where one sits against the next.
 
-At a scale break (``recon.poses.checks.scale_watch``) the map after the break is at another scale,
-and, because the slip happened while tracking, also somewhere else than the stretch before
-it says. Both stretches are still right in themselves. The frames on either side of a break
-in a video see the same place, so the stretch after it can be located in the stretch
-before it the way ORB-SLAM relocalises (Mur-Artal et al., T-RO 2015): ORB matches between
-a frame of each, and the frame after the break posed by PnP against the depth of the frame
-before it (``recon.poses.matching.features``). Several frames after the break posed so give their
-orientations and camera centres in both stretches' frames of reference: the mean of the
-rotations between the two, then the scale and translation that carry the centres across
-(a similarity with its rotation fixed: over the few centimetres between such frames the
-centres alone would leave it loose), is the join, with the scale the break slipped by.
-
-A join is accepted only when its frames agree: at least ``min_views`` posed frames, their
-centres within ``max_residual`` of the similarity (relative to the scene's distance) and
-their rotations within ``max_turn_deg``. Otherwise the stretches stay apart.
-
-:func:`pose_in_before` poses one frame, :func:`join_stretches` makes and checks the join,
-:func:`recon.geometry.rigid.apply_similarity` moves a stretch's camera-to-world poses by it.
+The frames either side of a break (``recon.poses.checks.scale_watch``) see the same place, so
+the stretch after it is located in the one before as ORB-SLAM relocalises (Mur-Artal et
+al., T-RO 2015): frames after the break posed by ORB matches and PnP against the depth
+before it (``recon.poses.matching.features``) give a similarity with the scale the break
+slipped by. A join is accepted only when its frames agree (``min_views``,
+``max_residual``, ``max_turn_deg``); :func:`recon.geometry.rigid.apply_similarity` applies it.
+More: docs/poses.md#how-a-join-is-made
+why: docs/decisions.md#joining-across-a-break
 """
 
 from __future__ import annotations

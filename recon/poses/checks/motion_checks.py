@@ -1,29 +1,13 @@
-"""The checks a monocular front end makes of its own state, beside the scale watch
+"""The checks a monocular front end makes of its own motion, beside the scale watch
 (``recon.poses.checks.scale_watch``): whether the camera moved in a way its frames can measure.
 
-* **Rotation only.** Depth and the path come from parallax: the flow a camera's
-  translation induces (f |t| / Z). A camera that turns on the spot makes flow (f theta)
-  and keyframes, but almost no parallax, so the bundle adjustment's translations and the
-  map's scale rest on noise. ORB-SLAM refuses to initialise on such pairs (a homography
-  explains them as well as a fundamental matrix: Torr's model selection); here the test
-  is the share of the keyframes' flow that their translation makes, over a stretch. Such
-  a stretch is marked, not refused: its rotations are measured (and so is the focal
-  length, from them: ``rotation_focal``), its path is not.
-* **Large motion.** Dense flow follows a few tens of pixels between neighbouring frames;
-  frames farther apart than ``large_motion_share`` of the image width (images taken one
-  every few steps) are marked (the front end starts such frames from ORB matches); with
-  the focal length estimated, a run that moves that far for most of its frames is not
-  trusted.
-* **The lens at its bound.** With the focal length unknown the bundle adjustment also fits
-  the lens' radial term k1; a fit that ends on its bound (``ba.MAX_K1``) wanted more,
-  which no lens in the candidates' range does: the camera model does not explain the flow,
-  and the trajectory fitted with it is not to be trusted.
-
+* **Rotation only**: the share of the keyframes' flow their translation makes (f |t| / Z
+  against f theta; ORB-SLAM refuses such pairs by Torr's model selection). Such a stretch
+  is marked, not refused: its rotations are measured, its path is not.
+* **Large motion**: frames farther apart than ``large_motion_share`` of the image width.
+* **The lens at its bound**: k1 fitted on ``ba.MAX_K1``: the camera model does not explain the flow.
+More: docs/poses.md#motion-checks
 why: docs/decisions.md#the-checks-on-an-estimated-trajectory
-
-:func:`keyframe_motion` measures the two flows of each pair of consecutive keyframes,
-:func:`rotation_only_stretches` and :func:`large_motion_frames` judge them and
-:func:`check_motion` returns every verdict for the report and the viewer's timeline.
 """
 
 from __future__ import annotations

@@ -1,27 +1,13 @@
 """Whether the dense flow shortened the camera's steps: its translation checked against the
 images' own gradients, keyframe pair by keyframe pair.
 
-On a plain surface or along a straight edge the images measure only the flow across the
-edge (the aperture problem, Horn and Schunck's *normal flow*); DIS fills in the rest from
-its starting point and its neighbours, and on the synthetic walk-through's corridor it
-returns about half of the true flow with forward-backward and photometric agreement as
-high as on texture (docs/poses.md#plain-surfaces-the-flows-aperture-problem). The bundle adjustment fits that flow:
-the camera's steps come out short while the map's depth stays at the prior's, so the scale
-watch (``recon.poses.checks.scale_watch``) cannot see it.
-
-The check, after the global BA: for each pair of consecutive keyframes, the flow their
-poses and depth induce is split into its rotation part (points at infinity) and its
-translation part. A few Lucas-Kanade steps (:func:`gradient_flow`) from the induced flow,
-on high-passed images so that an exposure change does not move them, measure where the
-gradients say each pixel went; on an edge they move only across it. The measured
-translation flow is regressed on the induced one, each pixel weighted by its structure
-tensor (Lucas and Kanade's normal matrix: the information the texture holds in each
-direction), :func:`translation_slope`. On texture the slope is 1 whatever the flow; where
-the BA shortened the steps the gradients pull the flow across the edges farther than the
-poses put it and the slope exceeds 1. Windows of pairs whose pooled slope exceeds
-``max_slope`` are flagged (:func:`short_stretches`).
-
-why: docs/decisions.md#the-short-flow-check
+On plain surfaces DIS returns only part of the flow (the aperture problem, Horn and
+Schunck's *normal flow*) and the BA's steps come out short, unseen by the scale watch.
+Lucas-Kanade steps on high-passed images (:func:`gradient_flow`) measure where the gradients
+say each pixel went; that translation flow regressed on the induced one, weighted by the
+structure tensor (:func:`translation_slope`), has slope 1 on texture and more where the
+steps were shortened; :func:`short_stretches` flags windows over ``max_slope``.
+More: docs/poses.md#the-short-flow-check  why: docs/decisions.md#the-short-flow-check
 """
 
 from __future__ import annotations

@@ -1,27 +1,13 @@
 """Whether the metric scale that a monocular trajectory takes from the depth prior can be
 trusted: does the prior's depth follow the scene as the images measured it?
 
-A trajectory estimated from the frames alone is scale-free; its metres come from the depth
-network, as one factor (the median ratio of the prior's depth to the map's:
-``backend.metric_rescale``, SfM's scale in ``recon.poses.sfm.mapper``). That factor is only as good
-as the network is on this scene. Within what it learned, a metric network's errors are a
-smooth factor over the image, and its depth still rises where the scene's does; outside it
-(a close-up far nearer than its training set holds) the network sees another scene. Depth
-triangulated from the frames' flow alone is independent of the network, so comparing the
-two *shapes* (the part of Eigen et al. 2014's scale-invariant log error that a scale factor
-cannot remove) tells whether the network saw this scene, without knowing its true size: a
-necessary condition, not a sufficient one. why:
-docs/decisions.md#metric-scale-the-depth-prior-cannot-vouch-for
-
-:func:`triangulated_depth` gives the front end's keyframes that depth (the bundle
-adjustment's own is held near the prior where the flow says little), and
-:func:`log_depth_correlation` compares it with the prior's where it is precise;
-:func:`point_log_correlation` does the same for SfM's triangulated points;
-:func:`judge_agreement` turns the keyframes' values into the verdict that report.json
-carries and the run acts on (``recon.drivers.segments.check_metric_scale``: a warning and a
-mark by default, a stop under ``--on-break stop``). A keyframe whose measured depth barely
-varies (a wall seen face on) cannot tell a prior that follows the scene from one that does
-not, and is not counted.
+The trajectory's metres come from the depth network as one factor, only as good as the
+network is on this scene. Depth triangulated from the frames' flow (or SfM's points) is
+independent of the network, so comparing the two *shapes* (the scale-free part of Eigen et
+al. 2014's scale-invariant log error) tells whether the network saw this scene: a necessary
+condition, not a sufficient one. :func:`judge_agreement` gives the verdict report.json
+carries; keyframes whose measured depth barely varies are not counted.
+More: docs/poses.md#metric-scale-the-depth-prior-cannot-vouch-for
 """
 
 from __future__ import annotations

@@ -1,22 +1,13 @@
 """Where a monocular trajectory's scale breaks: the map's depth against the metric prior's,
 keyframe by keyframe.
 
-A monocular front end has two independent measures of how far things are: the bundle
-adjustment's depth of its keyframes (scale-free, carried from keyframe to keyframe by the
-flow) and the depth network's prior (metric, but noisy frame by frame). While tracking
-holds, their ratio wanders only by the prior's own noise; where the map's scale slips (a
-textureless stretch, a fast turn, a rotation without parallax), the ratio steps or drifts
-and stays there, because everything the map builds after that inherits the slip. The
-metric rescale (``backend.metric_rescale``) can take out one global factor, not a step:
-the trajectory then comes back with one stretch at the right size and another at a
-fraction of it. This is the check ORB-SLAM and DROID-SLAM users do by hand when they plot
-the map's depth against a depth sensor; here the depth prior stands in for the sensor.
-
-:func:`keyframe_log_ratios` measures the ratio per keyframe (robust median over its
-pixels); :func:`find_breaks` finds the steps that the prior's noise cannot explain (a
-change-point test on running medians, in the spirit of CUSUM-style monitoring) and
-:func:`watch_scale` returns both, with each keyframe's ratio against the run's median, for
-the report and the viewer's timeline.
+While tracking holds, the ratio of the BA's keyframe depth (scale-free) to the depth
+prior's (metric, noisy) wanders only by the prior's noise; where the map's scale slips it
+steps or drifts and stays there, which one global rescale cannot undo. The check ORB-SLAM
+and DROID-SLAM users do by hand against a depth sensor, with the prior as the sensor:
+:func:`keyframe_log_ratios` (robust median per keyframe), :func:`find_breaks` (a change-point
+test on running medians, in the spirit of CUSUM) and :func:`watch_scale`.
+More: docs/poses.md#scale-breaks---on-break-and---no-join
 """
 
 from __future__ import annotations

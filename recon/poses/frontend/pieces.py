@@ -1,27 +1,13 @@
 """Tracking that starts again where it lost the camera: a video tracked in pieces, each from
 where the last one lost it, returned as one estimate whose pieces are apart.
 
-Why: a hand-held video that cuts, blurs or turns away into nothing for a second loses the
-front end's map. Falling back to SfM for the whole video (what a loss otherwise does)
-throws away the stretch that tracked; stopping throws away the rest. Like ORB-SLAM's
-Atlas, which starts a new map when tracking is lost and keeps the old one, the front end
-is started again at the first lost frame (same camera: the first piece's intrinsics and
-lens), as often as the video needs. The pieces' trajectories share no frame, so the
-scale watch (``recon.poses.checks.scale_watch``) marks each restart as a break of kind "lost";
-the pipeline then tries to join the pieces like any stretches between breaks
-(``recon.drivers.segments``) and writes those it cannot join as separate reconstructions.
-
-:class:`StreamingPieces` is the streaming front end that does so as the frames come: at a
-loss it closes the piece where the camera was lost (its frames are not tracked again) and
-feeds the frames since then, which it keeps, to a new front end. :func:`merge_pieces` puts
-the pieces' estimates together, frames numbered in the whole video. A piece that loses the
-camera within ``min_frames`` of its start, or a rest of the video shorter than that, is not
-kept: its frames get no pose (the quality gate leaves them out) and the next piece starts
-where it lost the camera. A first piece that loses it so soon hands the loss back, as a
-front end without restarts would (the caller may then try SfM). A piece that ends at a loss
-also gives up the frames just before it whose tracking was already failing (the map goes
-wrong before the camera is lost: ``quality.failing_since``). Each piece without a pose
-carries its reason (``diagnostics["pieces"]``), which the caller says by video frame.
+Like ORB-SLAM's Atlas (a new map when tracking is lost, the old one kept), the front end is
+started again at the first lost frame with the same camera, as often as the video needs;
+each restart is a scale break of kind "lost", joined or written as segments downstream.
+:class:`StreamingPieces` does so as the frames come; :func:`merge_pieces` puts the pieces'
+estimates together, frames numbered in the whole video. Pieces too short (``min_frames``)
+and frames whose tracking was failing before a loss get no pose, with their reason.
+More: docs/poses.md#tracking-fast-motion-and-cuts
 """
 
 from __future__ import annotations

@@ -2,22 +2,11 @@
 drives its roles over one state a frame at a time, and :func:`estimate_poses_frontend`, the
 same fed from a whole video.
 
-The roles, after DROID-SLAM's files: ``track_state`` (the state, its ``depth_video``),
-``motion_filter`` (keyframe policy), ``tracker`` (the local window: alignment, keyframes,
-window BA, relocalisation; its ``droid_frontend``), ``backend`` (edges, global BA, lens
-calibration, metric scale; its ``droid_backend``) and ``filler`` (the non-keyframes; its
-``trajectory_filler``). Their pieces: ``flow`` (DIS + confidence), ``graph`` (keyframes,
-edges, proximity), ``ba`` (Schur-complement LM, motion-only alignment), ``calib`` (focal
-search), ``plumb_line`` (the lens from straight edges, before the search), ``vanishing``
-(the focal length from vanishing points, checked against the search), ``rotation_focal``
-(the focal length of a camera that turns, from its homographies), ``lie``,
-``projective``; the settings are ``frontend_config``'s.
-
-Resolutions: frames come at working resolution (H, W); flow runs at 1/4 and BA at 1/8
-(the flow is pooled 2x2 with confidence weights). Internally poses are world-to-camera
-(``T_cw``) as in the BA; the result is camera-to-world. The metric scale comes from the
-depth prior: BA ties inverse depth to it (weakly, in logs), and a final robust rescale
-makes the median keyframe depth agree with the prior across keyframes.
+The roles are named after DROID-SLAM's files: ``track_state``, ``motion_filter``,
+``tracker``, ``backend`` and ``filler``; the settings are ``frontend_config``'s. Frames come
+at working resolution; flow runs at 1/4, BA at 1/8. Internally poses are world-to-camera
+(``T_cw``); the result is camera-to-world, in the depth prior's metres.
+More: docs/poses.md#the-front-ends-parts
 """
 
 from __future__ import annotations

@@ -1,19 +1,13 @@
 """Do given poses agree with the frames? The epipolar check of neighbouring frames.
 
-Poses that come with a recording (a dataset's ground truth, ARKit, a pose file) are used
-as given. They can still contradict the images: motion capture timed or calibrated for
-another camera, a rolling shutter read while the camera turns (TUM fr1/rpy). MEDeA's
-consistency terms would then bend the depth to fit them, so the pipeline needs a verdict,
-and one cheap enough to run on every run.
-
-Under poses (R, t) of two frames every pixel x_a of the first must land on its epipolar
-line F x_a in the second, F = K^-T [t]x R K^-1 (Hartley and Zisserman, "Multiple View
-Geometry", ch. 9), whatever its depth. The dense flow between neighbouring frames (DIS,
-``recon.poses.matching.flow``) says where it lands; the distance from that line is the poses'
-error, depth-free. :func:`check_given_poses` takes the median over the confident flow of
-up to ``max_pairs`` neighbouring pairs spread over the run. Pairs whose flow is mostly not
-confident (wide baselines, blur) say nothing about the poses and are not judged; with too
-few judged pairs there is no verdict. why: docs/decisions.md#the-gate-on-given-poses
+Under poses (R, t) of two frames every pixel x_a must land on its epipolar line F x_a,
+F = K^-T [t]x R K^-1 (Hartley and Zisserman, "Multiple View Geometry", ch. 9), whatever its
+depth. The dense flow between neighbouring frames (``recon.poses.matching.flow``) says where
+it lands; the distance from that line is the poses' error, depth-free.
+:func:`check_given_poses` takes the median over the confident flow of up to ``max_pairs``
+pairs spread over the run; pairs with mostly unconfident flow are not judged, and with too
+few judged pairs there is no verdict. More: docs/poses.md#given-poses
+why: docs/decisions.md#the-gate-on-given-poses
 """
 
 from __future__ import annotations

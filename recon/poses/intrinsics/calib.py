@@ -1,18 +1,12 @@
 """Focal-length self-calibration for videos without intrinsics (phone clips).
 
-This module owns the search: the principal point is taken at the image centre and
-fx = fy = f; for each candidate f the first keyframes are bundle-adjusted (poses and
-depths, the same dense BA as tracking, on the flows already computed, which do not depend
-on f) and the final robust reprojection cost is the score. A lens measured beforehand from
-straight edges (``recon.poses.intrinsics.plumb_line``, which needs no focal length) is held in each
-of these BAs at its k1 for that f: an ignored barrel lens bends the flow as a longer focal
-length does, and the search would absorb it. A coarse sweep over a log grid of
-field-of-view candidates brackets the minimum, then golden-section search on log f refines
-it. Rotation is what makes f observable: the flow of a rotating camera bends with x^2 / f,
-which no choice of depths can imitate.
-
-:func:`estimate_focal` picks those keyframes (by the front end's motion filter) and scores
-f; :func:`search_focal` does the sweep and the golden section.
+The principal point at the image centre and fx = fy = f; each candidate f is scored by the
+final robust reprojection cost of a dense BA of the first keyframes (on flows that do not
+depend on f), with the plumb-line lens (``recon.poses.intrinsics.plumb_line``) held at its k1
+for that f. :func:`search_focal` sweeps a log grid of fields of view, then golden-section
+search on log f; :func:`estimate_focal` picks the keyframes and scores f. Rotation is what
+makes f observable: a turning camera's flow bends with x^2 / f, which no depths imitate.
+More: docs/poses.md#the-focal-search
 """
 
 from __future__ import annotations

@@ -1,18 +1,13 @@
 """The focal length of a camera nobody calibrated: the choice between the estimates, the
 range they leave open, and what the user is told.
 
-Two estimates come from the first frames of a video (``recon.poses.frontend.streaming`` makes them
-before tracking): the flow-based search (``calib.estimate_focal``: the focal length under
-which a bundle adjustment of the first keyframes fits best) and, in scenes built along
-three orthogonal directions, the vanishing points of the frames' straight edges
-(``vanishing.estimate_focal_vp``). :func:`choose_focal` owns the rule: vanishing points on
-which at least ``FrontendConfig.vanishing_min_share`` of the frames agree; otherwise the
-homographies of a camera that turns (``rotation_focal.estimate_focal_rotation``) where
-trusted; otherwise the search's value. The range the evidence leaves open (every focal
-length the search scored within ``FLAT_SCORE`` of its best, the vanishing points' value
-give or take ``VANISHING_ACCURACY``; every candidate where the search bracketed no minimum)
-is given in the warning when its ends differ by more than ``DISAGREEMENT`` (report.json:
-``poses.diagnostics.focal``). why: docs/decisions.md#the-focal-length-from-nothing
+:func:`choose_focal` owns the rule between the flow-based search (``calib``), the vanishing
+points (``vanishing``) and the homographies of a turning camera (``rotation_focal``):
+vanishing points on which at least ``FrontendConfig.vanishing_min_share`` of the frames agree;
+otherwise the rotation's value where trusted; otherwise the search's. The range the evidence
+leaves open is given in the warning when its ends differ by more than ``DISAGREEMENT``
+(report.json: ``poses.diagnostics.focal``). More: docs/poses.md#the-focal-length-from-nothing
+why: docs/decisions.md#the-focal-length-from-nothing
 """
 
 from __future__ import annotations

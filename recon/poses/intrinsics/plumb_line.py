@@ -1,27 +1,13 @@
 """The lens' radial distortion from straight edges: the plumb-line method.
 
-Straight lines in the world are straight in a pinhole image; a radial lens bends those
-that do not pass through the image centre (D. C. Brown, "Close-range camera calibration",
-1971; F. Devernay and O. Faugeras, "Straight lines have to be straight", MVA 2001). This
-module owns that measurement on ordinary frames, where nobody put a calibration target:
-
-1. :func:`line_support` finds edge pixels (Canny), moves each to the sub-pixel peak of the
-   gradient magnitude along the gradient, and groups them into line-support regions:
-   connected edge pixels of one gradient orientation (a line bent by a lens turns by a few
-   degrees end to end, so orientation bins of 22.5 degrees, taken twice with an offset of
-   half a bin, keep it whole). Regions shorter than ``min_length`` carry no bend.
-2. :func:`line_rms` undistorts every region for each candidate lens and measures its rms
-   distance from its total-least-squares line.
-3. :func:`estimate_lens` keeps the regions that are straight for some candidate (man-made
-   edges; curved objects never are), scores each candidate by their length-weighted,
-   capped squared rms and takes the parabola vertex around the best one.
-
-The lens is that of ``projective.undistort``: a normalised pinhole point x is recorded at
-``x (1 + k1 |x|^2)``. In pixels about the image centre that is ``r_d = r_u (1 + kappa r_u^2)``
-with ``kappa = k1 / f^2``, so the straight lines give kappa without the focal length; the
-result is expressed as the relative radial shift at the frame's corner, ``kappa R^2``
-(R the half diagonal), and ``k1(f)`` converts it for a focal length f. Only the principal
-point is assumed: the image centre, as the focal search assumes.
+Straight lines in the world are straight in a pinhole image; a radial lens bends them (D. C.
+Brown, "Close-range camera calibration", 1971; Devernay and Faugeras, "Straight lines have
+to be straight", MVA 2001). :func:`line_support` finds line-support regions of sub-pixel edge
+pixels, :func:`line_rms` measures their straightness under a candidate lens and
+:func:`estimate_lens` picks the lens that straightens them: that of ``projective.undistort``
+(x recorded at ``x (1 + k1 |x|^2)``), measured as ``kappa R^2`` (the radial shift at the
+corner) without the focal length; ``k1(f)`` converts it. Principal point: the image centre.
+More: docs/poses.md#the-lens-from-straight-edges
 """
 
 from __future__ import annotations

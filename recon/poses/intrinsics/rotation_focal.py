@@ -1,33 +1,13 @@
 """The focal length of a camera that turns: self-calibration from the homographies between
 its frames.
 
-A camera that rotates about its centre maps one frame onto another by the homography
-H = K R K^-1, whatever the scene's depth, so K^-1 H K is a rotation: that fixes the focal
-length (R. Hartley, "Self-calibration from multiple views with a rotating camera", ECCV
-1994; L. de Agapito, E. Hayman and I. Reid, "Self-calibration of rotating and zooming
-cameras", IJCV 2001). With square pixels and the principal point at the image centre (as
-the focal search and the vanishing points assume) one unknown is left, f:
-
-1. :func:`sift_features` and :func:`matched_points`: SIFT keypoints of each frame (at half
-   size), matched between frames a few apart (Lowe's ratio test).
-2. :func:`pair_homography`: per pair, a homography and a fundamental matrix fitted to the
-   matches by RANSAC (both within ``inlier_px``). A pair whose homography explains nearly
-   as many matches as the fundamental matrix does turned more than it moved: no parallax
-   tells the two models apart (P. Torr's model selection, which ORB-SLAM uses to refuse
-   such pairs for its map: here they are what measures f).
-3. :func:`rotation_cost`: for such a pair, ||M M^T - I||^2 of M = K(f)^-1 H K(f) scaled to
-   det M = 1, over a log grid of f: zero where M is a rotation. A pair that only rolls about
-   the optical axis has a flat cost and weighs nothing in the sum; a turn across the image
-   bends the cost sharply.
-4. :func:`estimate_focal_rotation`: the focal length at the minimum of the pairs' summed
-   cost, with the range of f whose summed cost is within ``flat`` of it. Trusted where most
-   pairs that moved are rotations (``min_rotation_share``), enough of them, and the range is
-   narrow (``max_range``): a camera that walks gives homographies only for its few pairs of
-   little parallax, and those leave f loose.
-
-Whether the front end takes it over the other estimates is ``recon.poses.intrinsics.focal_choice``'s
-rule. The lens' radial term is not modelled: on TUM fr1/rpy (k1 = +0.26) the estimate came
-within 1.4 % of the published focal length.
+A camera rotating about its centre maps frame onto frame by H = K R K^-1 whatever the depth,
+so K^-1 H K is a rotation, which fixes f (R. Hartley, "Self-calibration from multiple views
+with a rotating camera", ECCV 1994; de Agapito, Hayman and Reid, IJCV 2001); square pixels
+and the principal point at the image centre leave f the one unknown. SIFT matches, per pair
+a homography against a fundamental matrix (Torr's model selection), and the f that makes the
+rotating pairs' K^-1 H K most a rotation (:func:`estimate_focal_rotation`, with its range).
+More: docs/poses.md#the-homographies-of-a-turning-camera
 """
 
 from __future__ import annotations

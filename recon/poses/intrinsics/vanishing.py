@@ -1,30 +1,13 @@
 """The focal length from vanishing points: a Manhattan world's three orthogonal directions.
 
-Lines along one world direction meet, in a pinhole image, at that direction's vanishing
-point v = K d. Two vanishing points of orthogonal directions fix the focal length when the
-principal point is known: (v1 - c) . (v2 - c) = -f^2 (B. Caprile and V. Torre, "Using
-vanishing points for camera calibration", IJCV 1990). Rooms, furniture and buildings are
-mostly built along three orthogonal directions (J. Coughlan and A. Yuille, "Manhattan
-world", ICCV 1999; J. Kosecka and W. Zhang, "Video compass", ECCV 2002, who track those
-directions through a video). This module owns that estimate on ordinary frames:
-
-1. :func:`line_segments`: the straight line-support regions of ``plumb_line`` (shorter
-   ones too), undistorted with the lens measured from them, each fitted by a line.
-2. :func:`manhattan_support`: for every candidate focal length, random triples of segments
-   propose orthogonal triads (two segments give the first direction, the third one a
-   direction orthogonal to it); a triad's support is the length of the segments that point
-   at one of its three vanishing points, each weighted by how closely. A wrong focal length
-   cannot make three orthogonal directions meet the segments of two walls and the vertical
-   at once, so the support peaks at the right one. The same triples serve every candidate,
-   so the curve is smooth.
-3. :func:`estimate_focal_vp`: each frame's focal length is its curve's peak; the video's is
-   the median of the largest group of frames that agree within ``agree``. A frame that sees
-   one wall face-on has a single finite vanishing point, a flat curve and no peak; frames
-   whose peaks come from a wrong triad scatter and do not form the group.
-
-The principal point is the image centre, as the focal search assumes. The result is
-trusted only when enough frames agree; whether the front end takes it over its flow-based
-search is ``recon.poses.intrinsics.focal_choice``'s rule.
+Two vanishing points of orthogonal directions fix the focal length when the principal point
+is known: (v1 - c) . (v2 - c) = -f^2 (Caprile and Torre, IJCV 1990); rooms and buildings are
+built along three such directions (Coughlan and Yuille, "Manhattan world", ICCV 1999;
+Kosecka and Zhang, "Video compass", ECCV 2002). :func:`line_segments` fits the plumb-line
+regions, :func:`manhattan_support` scores orthogonal triads per candidate focal length and
+:func:`estimate_focal_vp` takes the median of the largest group of frames whose peaks agree.
+The principal point is the image centre; whether it is taken is ``focal_choice``'s rule.
+More: docs/poses.md#vanishing-points
 """
 
 from __future__ import annotations

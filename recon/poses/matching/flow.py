@@ -1,16 +1,9 @@
 """Dense correspondence for the pose front end: classical optical flow (OpenCV DIS) with a
 per-pixel confidence from forward-backward consistency, pooled to the BA grid.
 
-This module owns everything between images and BA targets:
-
-* ``prepare_gray``: frames -> small grey images at the flow resolution;
-* ``dis_flow`` / ``flow_pair``: DIS flow in both directions (optionally seeded with a
-  predicted flow, which is what makes long-baseline proximity edges work);
-* ``fb_confidence``: how well the backward flow returns to the start pixel;
-* ``photo_confidence``: whether the pixels the flow joins look alike;
-* ``pool_edge``: flow-resolution flow + confidence -> BA-resolution targets + weights;
-* ``flow_whitening``: which directions of the flow an image's texture measures (the
-  aperture problem), as the factor the BA whitens its residuals with.
+This module owns everything between images and BA targets: grey images at the flow
+resolution, DIS flow both ways (optionally seeded by a predicted flow), its confidences,
+the pooling to BA targets and weights, and the whitening of the aperture problem.
 
 Coordinates: flows are (H, W, 2) = (du, dv) in pixels of the grid they were computed on;
 BA targets are absolute (u, v) pixel coordinates on the BA grid of the target image.

@@ -2,20 +2,11 @@
 by image motion, the extra image pairs that close loops, and the registration check
 (``recon.poses.sfm.mapper`` runs COLMAP and the dense registration between them).
 
-* ``step_motion`` / ``select_keyframes``: a keyframe whenever the flow accumulated since
-  the last one reaches a spacing (DROID-SLAM's motion filter: mean flow, not frame
-  count), and on both sides of any step the flow cannot follow (a cut, heavy blur, a jump
-  in an already sparse sequence); the spacing grows until at most ``max_keyframes`` remain.
-* ``bow_vectors`` / ``loop_pairs``: a small bag of visual words over the keyframes' own
-  SIFT descriptors, TF-IDF weighted (Sivic & Zisserman 2003, "Video Google"; the idea
-  behind COLMAP's vocabulary-tree matching and ORB-SLAM's DBoW2 loop candidates), and for
-  each keyframe its most similar keyframes outside the sequential window: pairs for
-  COLMAP to match and verify when the path comes back to a place.
-* ``dense_candidates`` / ``registration_error``: which frames may be registered densely
-  (next to a keyframe in the model), and the one-line failure when too few are registered;
-  ``recon.geometry.lie.interpolated_pose``: the guess for the frames that are not.
-
+Keyframes follow accumulated flow (DROID-SLAM's motion filter) and steps the flow cannot
+follow; loop pairs come from a bag of visual words over the keyframes' own SIFT
+descriptors, TF-IDF weighted (Sivic and Zisserman 2003, "Video Google").
 Pure numpy / OpenCV: no COLMAP state here.
+More: docs/poses.md#how-the-sfm-fallback-runs-colmap
 """
 
 from __future__ import annotations

@@ -1,24 +1,13 @@
 """Joining the stretches of a trajectory across a break through SfM's map.
 
-Where the frames on either side of a break share too little for the ORB join
-(``recon.poses.checks.join``: PnP of a frame after the break against the depth of one before it),
-SfM can still place both stretches in one model: the incremental mapper registers each new
-image by PnP against the points the earlier ones triangulated (Schönberger and Frahm,
-CVPR 2016), over baselines of a second or two instead of the few frames next to the break.
-Views of both stretches go to COLMAP (``recon.poses.sfm.mapper``); each stretch's registered views
-then give the similarity from that stretch's frame of reference into the model's (their
-mean rotation, then the scale and translation that carry their camera centres across), and
-the join from the stretch after the break into the one before is the first similarity
-followed by the inverse of the second.
-
-A join is accepted only when both stretches sit well in the model: at least ``min_views``
-of each stretch's views registered, spread apart, their centres within ``max_residual`` of
-the similarity (RMSE as a share of the spread of those views in the model) and their
-rotations within ``max_turn_deg``. Both fits are the front end's stretches checked against
-an independent estimate, so a model that placed one side wrongly is refused rather than used.
-
-:func:`map_join` makes and checks the join; it returns ``recon.poses.checks.join.Join``, which
-:func:`recon.geometry.rigid.apply_similarity` applies.
+Where the frames either side of a break share too little for the ORB join
+(``recon.poses.checks.join``), views of both stretches go to COLMAP together
+(``recon.poses.sfm.mapper``; incremental mapping registers each by PnP, Schönberger and
+Frahm, CVPR 2016); each stretch's registered views give its similarity into the model, and
+the join is the first followed by the inverse of the second. Accepted only when both
+stretches sit well in the model (``min_views``, ``max_residual``, ``max_turn_deg``).
+:func:`map_join` returns ``recon.poses.checks.join.Join``.
+More: docs/poses.md#how-a-join-is-made
 """
 
 from __future__ import annotations

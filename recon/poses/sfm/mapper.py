@@ -1,26 +1,12 @@
 """The SfM fallback: COLMAP (via pycolmap) on keyframes chosen by motion, dense registration
 of the other frames, metric scale from the depth prior, and a check of the result.
 
-This module owns the pycolmap pipeline. Keyframes are chosen by image motion
-(``sfm_keyframes.select_keyframes``: DIS flow accumulated between frames, so a slow pan gets
-few keyframes, a fast walk or an already sparse sequence nearly every frame) and written to
-a temporary folder; SIFT features are extracted (one shared camera: SIMPLE_RADIAL, so that
-COLMAP's BA estimates the lens' radial term k1 as the front end does; the focal length is
-held when given and refined when unknown; PINHOLE without a lens term when given
-intrinsics have fx != fy, which SIMPLE_RADIAL cannot hold), matched sequentially with
-overlap, plus pairs far apart in time that look alike (a bag of words over the keyframes'
-own SIFT descriptors, ``sfm_keyframes.loop_pairs``; or exhaustively; or, with a vocabulary
-tree file, COLMAP's loop detection), and mapped incrementally (or globally, GLOMAP, when
-asked). The largest model is kept. Its scale is fixed to metres by the robust median ratio
-of prior depth to the SfM depth of the triangulated points seen in each image (a log-mean
-over images). The remaining frames (and keyframes the mapper left out) are registered by
-the front end's motion-only dense alignment (``filler.align_to_keyframes``) against the
-neighbouring registered keyframes, whose dense depth is the prior corrected by that
-keyframe's own prior / SfM depth ratios on a coarse grid; only frames next to a keyframe in
-the model are tried, so that a partial model is not padded out to the whole video. Too few
-registered frames fail with a TrackingLostError naming the range that could not be
-registered. What is read from the model (poses, per-frame evidence, depth ratios) is in
-``sfm_model``, keyframes, loop pairs and the registration check in ``sfm_keyframes``.
+This module owns the pycolmap pipeline: keyframes (``sfm_keyframes``) and their SIFT
+features on one shared SIMPLE_RADIAL camera, sequential and loop matching, incremental (or
+GLOMAP) mapping, the largest model's scale fixed to metres by the prior, and the other frames
+registered by the front end's motion-only alignment. Too few registered frames raise a
+TrackingLostError naming the range. What is read from the model is ``sfm_model``'s.
+More: docs/poses.md#how-the-sfm-fallback-runs-colmap
 """
 
 from __future__ import annotations
