@@ -2,18 +2,9 @@
 
 Owns decoding the EXR files depth sensors export (Record3D's ``depth/N.exr``): single-part
 scanline images, uncompressed or zlib-compressed (NONE, ZIPS, ZIP), with HALF, FLOAT or
-UINT channels, none subsampled. Tiled, multi-part, deep and the other compressions (RLE,
-PIZ, PXR24, B44, DWA) give a one-line ReconInputError. :func:`recon.io.depth_maps.read_depth_file`
-tries OpenCV first and falls back to this decoder for an .exr that OpenCV cannot read
-(opencv-python 5.0's wheels have no EXR codec).
-
-Layout (OpenEXR's "file layout" document): magic ``76 2f 31 01``, a version word, header
-attributes (``name\\0type\\0size value``, ended by an empty name), a table of chunk offsets
-(uint64), then chunks of ``int32 y, int32 size, data``. The data of a chunk holds each of
-its scanlines in turn, and within a scanline each channel's row (channels in header order,
-which is alphabetical). ZIP data is a zlib stream of bytes that were split into even and
-odd halves and delta-coded (a predictor) before compression; a chunk whose compressed size
-would not have been smaller is stored raw.
+UINT channels, none subsampled, after OpenEXR's "file layout" document; anything else gives
+a one-line ReconInputError. :func:`recon.io.depth_maps.read_depth_file` tries OpenCV first
+and falls back to this decoder. More: docs/input.md#record3d
 """
 
 from __future__ import annotations

@@ -1,45 +1,13 @@
 """The output folder of `recon run`: its layout, writing into it atomically, reading it back.
 
-This module owns every file name in the folder and the rule that nothing previously
-written is lost:
-
-* every file is written under a hidden temporary name in its destination folder, then
-  moved into place (``os.link`` when the name must not exist yet, ``os.replace`` when
-  overwriting is allowed), so a reader never sees half a file and a crash leaves the old
-  file intact;
-* :class:`OutputFolder` refuses an existing non-empty folder unless ``overwrite=True``;
-  with it, files of the same name are replaced and other files are left alone;
-* :func:`atomic_path` and :func:`atomic_write_bytes` refuse to replace an existing file
-  unless ``overwrite=True``;
-* with ``--overwrite``, what an earlier run wrote by its report.json and the new one did not
-  write again is removed at the end (:mod:`recon.io.earlier_run`); anything else left there
-  is named (:func:`stale_results`), not deleted: a run written as segments beside an earlier
-  single one, or fewer segments than before, would otherwise look like one result.
-
-Layout (written by :func:`recon.export.export_reconstruction` and the pipeline)::
-
-    mesh.ply          binary PLY, world coordinates (OpenCV axes, metres), vertex colours
-    mesh.glb          the same vertices in glTF axes (y up), vertex colours, a matte material
-    point_cloud.ply   optional surface points with colours
-    trajectory.txt    camera-to-world poses, TUM format (t tx ty tz qx qy qz qw), OpenCV camera axes
-    intrinsics.json   fx, fy, cx, cy, width, height of the depth maps (+ per-frame values)
-    depth/<name>.png  16-bit PNG, millimetres, 0 = invalid, valid depth clipped to [1 mm, 65.534 m]
-                      (``depth_maps.depth_png_bytes``)
-    depth/<name>.npy  float32 metres, 0 = invalid (lossless; one file per frame so frames
-                      stream to disk and can be memory-mapped back: ``np.load(p, mmap_mode="r")``)
-    recording.rrd     optional Rerun recording of the run
-    UNFINISHED.txt    there while a run writes the folder, removed when it has finished:
-                      a folder that keeps it is the remains of a run that failed or
-                      crashed, not a result (readers refuse it)
-    report.json       whatever the pipeline reports (options, timings, metrics); its
-                      ``frames.indices`` are the source frame numbers of the depth maps and
-                      poses, ``frames.names`` the depth file stems (default frame_000123)
-    eval.json         written by `recon eval`: the scores against a dataset's ground truth
-    segment_NN/       a run whose trajectory's scale broke: one folder of the above per
-                      segment (:func:`segment_name`), report.json listing them
-
-Readers (:func:`load_output` for `recon eval`, the ``read_*`` functions for `recon view`)
-take the same names, so a folder written here reads back without either side spelling one.
+This module owns every file name in the folder (and in its ``segment_NN/`` folders) and the
+rule that nothing previously written is lost: every file is written under a hidden name and
+moved into place; :class:`OutputFolder`, :func:`atomic_path` and :func:`atomic_write_bytes`
+replace nothing without ``overwrite=True``; what an earlier run left is removed only when its
+own report.json lists it (:mod:`recon.io.earlier_run`), anything else is named
+(:func:`stale_results`). Readers (:func:`load_output`, the ``read_*`` functions) take the
+same names. UNFINISHED.txt marks a folder whose run has not finished.
+More: docs/outputs.md#the-output-folder
 """
 
 from __future__ import annotations

@@ -1,21 +1,13 @@
 """The frame-source interface and what every source shares.
 
-This module owns :class:`FrameSource` (iterate ``Frame(index, timestamp, rgb)``, plus
-count, fps, working size and a description), :class:`FrameBatch`, the shared selection
-rule (:class:`Selection`: time range, stride, max frames) and resizing frames to a working
-width. The sources are in :mod:`recon.io.frames` (image folders, RGB-D datasets, and
-:func:`~recon.io.frames.open_source`, which picks the source for a path) and
-:mod:`recon.io.video` (video files).
-
-Selection rule, identical for every source: keep frames whose timestamp t, in seconds from
-the source's first frame, satisfies ``start_time <= t < end_time``; then every ``stride``-th
-of those, starting with the first; then at most ``max_frames``. The yielded ``index`` is the
-frame's position in the whole source (video frame number, image number in natural order,
-dataset frame number), never its position in the selection.
-
-Frames are read one at a time, so iterating a long video or a big folder needs memory for
-one frame only; :meth:`FrameSource.read_all` stacks everything for callers that want arrays
-(fine at working resolution: 1000 frames at 320x240 are 230 MB).
+This module owns :class:`FrameSource` (iterate ``Frame(index, timestamp, rgb)``, plus count,
+fps, working size and a description), :class:`FrameBatch`, resizing to a working width and
+the selection rule (:class:`Selection`), identical for every source: frames whose timestamp
+t (seconds from the first frame) satisfies ``start_time <= t < end_time``, then every
+``stride``-th of those from the first, then at most ``max_frames``. ``index`` is the frame's
+position in the whole source, never in the selection. Frames are read one at a time; the
+sources are in :mod:`recon.io.frames` and :mod:`recon.io.video`.
+More: docs/input.md#which-frames
 """
 
 from __future__ import annotations

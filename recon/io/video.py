@@ -3,16 +3,10 @@ writing frames to an mp4.
 
 This module owns :class:`VideoSource`: opening a video with OpenCV, honouring the rotation
 stored in its metadata (phones record portrait video as landscape pixels plus a display
-matrix), frame timestamps, the time range / stride / max-frames selection and the frame
-count estimate. Frames are decoded one at a time, so a long video never sits in memory.
-It also owns :func:`write_video`. The common interface is in :mod:`recon.io.source`;
-image folders, datasets and :func:`~recon.io.frames.open_source` are in
-:mod:`recon.io.frames`.
-
-Selection rule (shared with the other sources): frames whose timestamp t satisfies
-``start_time <= t < end_time`` (seconds from the first frame), then every ``stride``-th of
-those starting with the first, then at most ``max_frames``. The yielded index is the
-frame's position in the whole video (0-based), so outputs can be traced back to it.
+matrix), frame timestamps, the selection of :class:`recon.io.source.Selection` and the frame
+count estimate. Frames are decoded one at a time, so a long video never sits in memory; the
+yielded index is the frame's 0-based position in the whole video. It also owns
+:func:`write_video`.
 """
 
 from __future__ import annotations

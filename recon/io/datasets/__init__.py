@@ -1,15 +1,12 @@
 """RGB-D dataset readers: one record type (:class:`RGBDDataset`) for several public layouts.
 
 Owns layout detection (:func:`detect_kind`, :func:`detect_dataset`) and the single entry
-point :func:`open_dataset`. Each layout has its own module: ``tum`` (TUM RGB-D),
-``sevenscenes`` (Microsoft 7-Scenes), ``scannet`` (ScanNet SensReader exports),
-``arkitscenes`` (ARKitScenes low-res frames), ``record3d`` (Record3D iPhone LiDAR exports),
-``kitti`` (KITTI odometry sequences), ``colmap_project`` (a COLMAP project: images/ and a
-sparse model; kind ``colmap``), ``redwood`` (Open3D / Redwood RGB-D).
-
-All readers return camera-to-world poses with OpenCV camera axes, depth in metres (0 =
-invalid) and intrinsics in pixels of the images ``rgb(i)`` returns. KITTI and COLMAP
-projects have no depth.
+point :func:`open_dataset`. Each layout has its own module (``tum``, ``sevenscenes``,
+``scannet``, ``arkitscenes``, ``record3d``, ``kitti``, ``colmap_project`` of kind ``colmap``,
+``redwood``). All readers return camera-to-world poses with OpenCV camera axes, depth in
+metres (0 = invalid) and intrinsics in pixels of the images ``rgb(i)`` returns; KITTI and
+COLMAP projects have no depth.
+More: docs/input.md#dataset-layouts-in-detail
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
 """ARKitScenes low-resolution frames (``<video_id>_frames/``: ``lowres_wide/``, ``lowres_depth/``,
 ``lowres_wide_intrinsics/``, ``lowres_wide.traj``).
 
-Owns the ARKitScenes layout and its pose convention. Files are named
-``<video_id>_<timestamp>.png`` / ``.pincam``; a ``.pincam`` holds ``w h fx fy cx cy``.
-Each line of ``lowres_wide.traj`` is ``timestamp rx ry rz tx ty tz``: an axis-angle rotation
-(radians) and translation of the *world-to-camera* transform. The camera axes are already
-OpenCV's (x right, y down, z forward): ARKitScenes' own loader (``tenFpsDataLoader``)
-back-projects depth with the plain pinhole model and the inverse of this transform, and
-nerfstudio's parser flips y/z after that inversion to reach OpenGL. So camera-to-world is
-just the inverse, no axis change. File-name timestamps are the trajectory's rounded to
-1 ms, so a trajectory sample within ``max_diff`` (5 ms, the tolerance ARKitScenes' tools
-use) is taken as is; other frames are interpolated (SLERP + linear) when bracketed by
-samples at most ``max_gap`` apart.
-Depth is uint16 millimetres, 0 invalid.
+Owns the ARKitScenes layout and its pose convention: ``lowres_wide.traj`` holds axis-angle
+world-to-camera transforms already in OpenCV camera axes, so camera-to-world is their
+inverse, interpolated (SLERP + linear) to frames between samples at most ``max_gap`` apart
+and taken as is within ``max_diff``. Depth is uint16 millimetres, 0 invalid.
+More: docs/input.md#arkitscenes
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """COLMAP project folders: ``images/`` and a sparse model in ``sparse/0/`` (or ``sparse/``).
 
-Owns reading a COLMAP project as a dataset (kind ``colmap``). The model is read by
-:func:`recon.io.pose_formats.colmap.read_colmap` (binary or text; its world-to-camera poses come back
-as camera-to-world, OpenCV axes). Frames are the model's registered images whose files
-exist under ``images/``, in natural name order; images COLMAP did not register have no
-pose and are left out. A model may have one camera per image (as the automatic
-reconstruction makes for a phone video): ``frame_intrinsics`` then holds each frame's
-(fx, fy, cx, cy) and ``intrinsics`` their median. ``distortion`` is the lens distortion in
-OpenCV's (k1, k2, p1, p2, k3) order (SIMPLE_RADIAL's k is k1; the median over the images
-when they differ), None for pinhole cameras; the images are returned as stored. Camera
-models whose distortion OpenCV's pinhole model cannot express (fisheye, FOV) are refused.
-There is no depth, and COLMAP's poses are up to scale.
-
-An image folder alone (no model beside it) is not this layout: it stays a plain image folder.
+Owns reading a COLMAP project as a dataset (kind ``colmap``), the model read by
+:func:`recon.io.pose_formats.colmap.read_colmap`. Frames are the registered images whose files
+exist, in natural name order; per-image cameras give ``frame_intrinsics`` and their median
+``intrinsics``; ``distortion`` is OpenCV's (k1, k2, p1, p2, k3), None for pinhole cameras, and
+fisheye or FOV models are refused. No depth; poses up to scale. An image folder alone (no
+model beside it) stays a plain image folder.
+More: docs/input.md#colmap-projects
 """
 
 from __future__ import annotations

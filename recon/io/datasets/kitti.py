@@ -1,18 +1,11 @@
 """KITTI odometry sequences: an image folder, ``calib.txt``, ``poses.txt``, optional ``times.txt``.
 
-Owns the KITTI odometry layout. Images are rectified (no distortion) and named by frame
-number (``000000.png``); the folder is ``image_0/`` (the official left greyscale camera),
-``image_l/`` (the same camera, as some copies name it) or ``image_2/`` (left colour), tried
-in that order. Greyscale images are returned as 3-channel RGB. ``calib.txt`` holds one 3x4
-row-major projection matrix a line, ``P0: ...`` in the official files or 12 bare numbers;
-P0 belongs to image_0 and P2 to image_2, and fx = P[0,0], fy = P[1,1], cx = P[0,2],
-cy = P[1,2]. Ground truth is ``poses.txt`` beside the images, or the official
-``poses/<sequence>.txt`` two folders up: line i is frame i, the 3x4 camera-to-world of the
-left greyscale camera (camera 0) in metres, camera looking along +z (already OpenCV axes;
-:func:`recon.io.pose_formats.trajectories.read_kitti` reads it). Camera 2 sits beside camera 0 with the
-same orientation, displaced by K^-1 P2[:, 3]; its poses are moved by that offset.
-Timestamps come from ``times.txt`` (seconds, line i is frame i), else KITTI's 10 Hz.
-There is no depth.
+Owns the KITTI odometry layout: rectified images in ``image_0/``, ``image_l/`` or
+``image_2/`` (tried in that order; greyscale returned as RGB), intrinsics from the matching
+projection matrix of ``calib.txt``, ground truth of camera 0 (``poses.txt`` or the official
+``poses/<sequence>.txt``, read by :func:`recon.io.pose_formats.trajectories.read_kitti`)
+moved to camera 2 by its offset, timestamps from ``times.txt`` else 10 Hz. No depth.
+More: docs/input.md#kitti-odometry
 """
 
 from __future__ import annotations

@@ -1,16 +1,11 @@
 """Record3D exports ("EXR + JPG"): ``rgb/N.jpg``, ``depth/N.exr``, ``metadata.json``.
 
-Owns the Record3D layout and its conventions. N is the frame's index into metadata's
-per-frame arrays (``poses``, ``frameTimestamps``); an export may skip numbers, so frames
-are the colour files present, in numeric order. ``metadata.json`` holds ``K`` (3x3,
-column-major, for the ``w`` x ``h`` colour image: fx = K[0], fy = K[4], cx = K[6],
-cy = K[7]), ``poses`` (``qx qy qz qw tx ty tz`` per frame: ARKit's camera-to-world, with
-the camera looking down -z and y up, i.e. OpenGL camera axes, turned into OpenCV's by
-flipping the camera's y and z axes), ``frameTimestamps`` (seconds), ``fps``, and the depth
-size ``dw`` x ``dh``. Depth is the LiDAR's, half-float metres on a coarser grid (192x256
-for 1440x1920 colour) covering the colour camera's field of view; ``depth(i)`` scales it
-up to the colour size by nearest neighbour so that it agrees with ``K`` pixel for pixel.
-Non-finite and <= 0 depth is invalid.
+Owns the Record3D layout and its conventions: frames are the colour files present, in
+numeric order; ``metadata.json`` gives ``K`` (column-major), ARKit's camera-to-world poses
+(OpenGL camera axes, turned into OpenCV's) and timestamps. The LiDAR depth (half-float
+metres on a coarser grid) is scaled up to the colour size by nearest neighbour so that it
+agrees with ``K``; non-finite and <= 0 depth is invalid.
+More: docs/input.md#record3d
 """
 
 from __future__ import annotations

@@ -1,16 +1,11 @@
 """Microsoft 7-Scenes sequences (``frame-NNNNNN.color.png|jpg``, ``.depth.png``, ``.pose.txt``).
 
 Owns the 7-Scenes layout: frames keyed by their ``frame-NNNNNN`` stem, depth uint16
-millimetres with 0 and 65535 invalid, per-frame 4x4 camera-to-world poses, intrinsics from
-``camera-intrinsics.txt`` when present, else the published fx = fy = 585, cx = 320, cy = 240.
-
-Those intrinsics are the *depth* camera's. The colour images are not registered to the
-depth and have a shorter focal length, fx = fy ~ 525 (the value other 7-Scenes work uses
-for the RGB camera, and what colour agreement between frames under the ground-truth poses
-points to: ``benchmarks/priors.py --check-focal``). The reader reports the colour camera's
-intrinsics (the depth camera's with the focal scaled by 525/585, unless given) and
-re-registers the sensor depth into it, so that colour, depth and intrinsics agree as in
-every other layout.
+millimetres with 0 and 65535 invalid, per-frame 4x4 camera-to-world poses. The published
+intrinsics (fx = fy = 585, or ``camera-intrinsics.txt``) are the *depth* camera's: the reader
+reports the colour camera's (focal length scaled by 525/585 unless given) and re-registers
+the sensor depth into it, so that colour, depth and intrinsics agree.
+More: docs/input.md#7-scenes
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """COLMAP sparse models as pose files: reading and writing ``cameras`` / ``images``.
 
 COLMAP stores world-to-camera (``cam_from_world``) poses; everything here hands back and
-takes camera-to-world (N, 4, 4) poses with OpenCV axes, like the other pose formats of
-:mod:`recon.io.pose_formats.trajectories` (which dispatches ``fmt="colmap"`` here). Binary models need
-pycolmap (an optional dependency); text models are read and written without it.
-Images are ordered by :func:`recon.io.naming.natural_key` of their names.
-
-Camera parameters follow COLMAP's ``models.h``: focal length(s), principal point, then the
-model's distortion terms, which are handed back in OpenCV's order (k1, k2, p1, p2, k3) for
-the models that share OpenCV's pinhole distortion formula (SIMPLE_RADIAL, RADIAL, OPENCV,
-FULL_OPENCV without its rational terms); fisheye and FOV models have none in that form.
-COLMAP puts the centre of the first pixel at 0.5, the project (like OpenCV) at 0: the
-principal point loses :data:`~recon.io.pose_formats.base.PIXEL_CENTRE` as it is read and gains it
-as it is written, so that a model read and written again is unchanged.
+takes camera-to-world (N, 4, 4) poses with OpenCV axes, like the other formats of
+:mod:`recon.io.pose_formats.trajectories`. Binary models need pycolmap; text models do not.
+Images are ordered by :func:`recon.io.naming.natural_key`. Camera parameters follow COLMAP's
+``models.h``, distortion handed back in OpenCV's order; the principal point loses
+:data:`~recon.io.pose_formats.base.PIXEL_CENTRE` as it is read and gains it as it is written.
+More: docs/input.md#pose-files
 """
 
 from __future__ import annotations

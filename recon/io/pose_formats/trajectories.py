@@ -1,33 +1,13 @@
 """Camera pose files: read and write camera-to-world trajectories in common formats.
 
-This module owns the pose-file formats and their two entry points, :func:`read_poses`
-(format detection included) and :func:`write_poses`. Errors are one line naming the file
-and line (or frame) at fault; files are written atomically. What the formats share
-(:class:`~recon.io.pose_formats.base.PoseData`, parsing, checks) is in :mod:`recon.io.pose_formats.base`,
-COLMAP models in :mod:`recon.io.pose_formats.colmap`, and the pose maths (quaternions, interpolation
-in time) in :mod:`recon.geometry.rigid`.
-
-Every reader returns :class:`~recon.io.pose_formats.base.PoseData` whose ``poses`` are
-camera-to-world (N, 4, 4) float64 with OpenCV camera axes (x right, y down, z forward),
-whatever the file's own convention.
-
-Formats (the ``fmt`` names):
-
-* ``"tum"``: TUM RGB-D trajectory text, ``timestamp tx ty tz qx qy qz qw`` per line,
-  camera-to-world.
-* ``"colmap"``: a COLMAP sparse model folder (``cameras``/``images`` as .bin or .txt);
-  COLMAP stores world-to-camera (``cam_from_world``). Uses pycolmap when installed; text
-  models are also read and written without it.
-* ``"nerfstudio"``: ``transforms.json``; ``transform_matrix`` is camera-to-world with
-  OpenGL camera axes (x right, y up, z back); intrinsics ``fl_x fl_y cx cy w h`` (the first
-  pixel's centre at 0.5, as in COLMAP: see pose_files.PIXEL_CENTRE).
-* ``"matrices"``: a folder of per-frame 4x4 text files (7-Scenes ``frame-000000.pose.txt``,
-  ScanNet ``pose/0.txt``), camera-to-world; rows of -inf/nan mark an invalid pose.
-* ``"log"``: Open3D / Redwood trajectory ``.log``: per pose one line of 3 integers of
-  metadata, then the 4 rows of the camera-to-world matrix.
-* ``"kitti"``: KITTI odometry ground truth (``poses/00.txt``): per frame one line of the 12
-  numbers of the 3x4 camera-to-world matrix, row-major, no timestamps (line i is frame i).
-  KITTI's cameras look along +z with y down: already OpenCV axes.
+This module owns the pose-file formats (``fmt``: ``tum``, ``colmap``, ``nerfstudio``,
+``matrices``, ``log``, ``kitti``) and their two entry points, :func:`read_poses` (format
+detection included) and :func:`write_poses`. Every reader returns
+:class:`~recon.io.pose_formats.base.PoseData` whose ``poses`` are camera-to-world (N, 4, 4)
+float64 with OpenCV camera axes, whatever the file's convention. Errors are one line naming
+the file and line (or frame); files are written atomically. What the formats share is in
+:mod:`recon.io.pose_formats.base`, COLMAP models in :mod:`recon.io.pose_formats.colmap`.
+More: docs/input.md#pose-files
 """
 
 from __future__ import annotations
