@@ -1,20 +1,12 @@
 """The refinement, step by step: views, sweep, consistency, fill.
 
-1. **Views.** Every frame gets `num_sources` neighbours by triangulation angle and overlap,
-   measured on the input depth (:mod:`.views`).
-2. **Sweep.** At `image_scale` of the input, each pixel tries `hypotheses` depths in a band
-   of +-`band` (log) around the input depth; the winner of the patch NCC, refined by a
-   parabola, is the pixel's multi-view depth (:mod:`.sweep`).
-3. **Consistency.** A pixel is reconstructed when at least `min_consistent` sources'
-   depths agree with it (round trip within `consistency_pixels`, depth within
-   `consistency_depth`); its depth becomes the mean over them (:mod:`.consistency`). Its
-   confidence is the share of sources that agree.
-4. **Fill.** Elsewhere the input depth stays, corrected by the spread of its neighbours'
-   corrections (:mod:`.fill`), so that textureless walls keep the input's shape and never
-   get a depth the images did not support.
-
-The output is at the input depth's resolution: the input times the upsampled correction
-``exp(log(refined / input))``, so the input's edges and resolution are kept.
+Each frame gets ``num_sources`` neighbours (:mod:`.views`); each pixel sweeps ``hypotheses``
+depths in a log band of +-``band`` around its input depth, scored by patch NCC
+(:mod:`.sweep`); it is reconstructed when ``min_consistent`` sources agree, taking their mean
+depth and the share that agree as its confidence (:mod:`.consistency`); elsewhere the input
+depth stays, moved by its neighbours' corrections (:mod:`.fill`). The output is at the
+input depth's resolution: the input times the upsampled correction.
+More: docs/depth.md#how-the-refinement-works
 """
 
 from __future__ import annotations

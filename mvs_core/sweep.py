@@ -1,18 +1,12 @@
 """The plane sweep around a depth map: hypotheses, matching cost, winner.
 
-Each pixel of the reference frame tries `M` depths ``D(p) * exp(s_k)`` in a band of log
-offsets around its current depth; a hypothesis is scored by the normalised
-cross-correlation (NCC) of the reference patch with the source image sampled where the
-hypothesis sends the patch's pixels. Because every pixel of a patch moves with its own
-depth, the patch follows the current surface (its slant included) rather than a
-fronto-parallel plane, as in COLMAP's and OpenMVS's patch-based stereo, but without their
-per-pixel normal search.
-
-The score is the zero-mean NCC of the reference patch with the warped source patch, with
-a texture floor added to both patches' variances, ``cov / sqrt((var_r + f^2)(var_w + f^2))``:
-flat patches (walls, sensor noise in the dark) get small scores whatever they are matched
-with, so they never win a confident match. Box filters use integral images, so the patch
-size costs nothing; the reference's mean and variance are computed once per frame.
+Each reference pixel tries ``M`` depths ``D(p) * exp(s_k)`` in a band of log offsets around
+its current depth, scored by the zero-mean NCC of its patch with the source image sampled
+where the hypothesis sends the patch's pixels (the patch follows the current surface, as in
+COLMAP's and OpenMVS's patch-based stereo, without their normal search). A texture floor,
+``cov / sqrt((var_r + f^2)(var_w + f^2))``, keeps flat patches from winning confident
+matches. Box filters use integral images, so the patch size costs nothing.
+More: docs/depth.md#how-the-refinement-works
 """
 
 from __future__ import annotations

@@ -1,27 +1,12 @@
 """The default Rerun layout (blueprint) sent with every recon recording.
 
-Owns which views a recording opens on; :class:`viewer.RerunLogger` sends it as the active
-and default blueprint in every mode (spawn, save, serve), so a saved .rrd carries it in a
-blueprint store of its own next to the recording.
-
-Layout (rerun-sdk 0.41 ``rerun.blueprint``)::
-
-    Tabs (active: "reconstruction")
-    |- "reconstruction"  Vertical, row shares 3 : 1
-    |    |- "3D scene"   Spatial3DView of /world: mesh, trajectory, dropped cameras, the current
-    |    |               camera with its RGB in the frustum (no depth or confidence in 3D)
-    |    '- Horizontal   RGB | prior depth | MEDeA depth | refined depth | confidence | tracking
-    |                    (Spatial2DViews with their origin at the image; depth with a colormap;
-    |                    the tracking TextLog of the frame timeline)
-    '- "MEDeA losses"    Grid of one BarChartView per stage: each term's loss per epoch
-    |                    (medea/<stage>/<term>), the terms over each other
-    TimePanel on the "frame" timeline, following the newest frame; the time, blueprint and
-    selection panels collapsed (one click opens each)
-
-The losses are bar charts, not time series: a Rerun view plots against the time panel's
-timeline (views cannot pick their own, rerun issue #6828), so a plot of the per-epoch
-scalars (on the "epoch" timeline) would be empty on "frame", where the recording opens; the
-static bar charts of the same values show on every timeline.
+Owns which views a recording opens on (rerun-sdk 0.41 ``rerun.blueprint``):
+:class:`viewer.RerunLogger` sends it as the active and default blueprint in every mode
+(spawn, save, serve), so a saved .rrd carries it. Tab "reconstruction": the 3D scene of
+/world over a row of RGB, depths, confidence and the tracking log; tab "MEDeA losses": bar
+charts of each term's loss per epoch (not time series: a view plots against the time
+panel's timeline, which opens on "frame"). The time panel follows the newest frame.
+More: docs/outputs.md#what-a-recording-holds
 """
 
 from __future__ import annotations

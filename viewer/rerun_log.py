@@ -1,39 +1,13 @@
 """Rerun logging for the pipeline: frames, cameras, trajectory, mesh and MEDeA losses.
 
-Written against rerun-sdk 0.41. Every call goes to a dedicated ``rr.RecordingStream``
-(never the global one), so several loggers can live in one process. Every mode (spawn,
-save, serve) first sends the layout of :mod:`viewer.blueprint` as the active and default
-blueprint, so a saved .rrd opens on the 3D scene and the "frame" timeline.
-
-Entity paths and timelines: :mod:`viewer.entities`.
-
-Live (streamed) logging, in any order per frame::
-
-    logger.log_tracking(i, "tracked", pose)            # tracking state (TextLog)
-    logger.log_frame(i, rgb, pose=pose, intrinsics=K)  # camera + RGB, before depth exists
-    logger.log_depth(i, prior_depth=prior)             # later: depth at the same frame time,
-    logger.log_depth(i, adjusted_depth=d, refined_depth=r, confidence=c)  # RGB not re-sent
-    logger.log_mesh(vertices, triangles, colors, index=i)  # the mesh so far, at frame i
-    logger.log_cameras(indices, poses, K, (H, W))      # once the poses are final: every camera
-
-A frame whose pose or camera is not known while it is logged (a streamed estimate: the
-focal search buffers the first frames, the global BA moves every pose at the end) gets
-them from :meth:`RerunLogger.log_cameras`, which logs every frame's camera and the
-trajectory again at that frame's time: Rerun shows, at a time, the row logged last, so the
-final cameras replace what tracking logged there.
-
-Depth and confidence logged after the frame's RGB are resampled to the RGB's logged size
-(the pinhole's resolution). A mesh logged with ``index`` is shown from that frame on,
-until the next update replaces it; successive updates each store a whole mesh, so a live
-run should send one every few frames, not every frame. A static mesh (``index=None``) is
-shown at every time and hides all indexed updates of the same entity (Rerun's static
-data wins): log the final mesh of a live run at its last frame instead.
-
-Conventions are the project's: camera-to-world 4x4 poses, OpenCV camera axes (x right,
-y down, z forward), z-depth in metres with 0 = invalid, intrinsics ``fx, fy, cx, cy`` in
-pixels of the stored image with pixel centres at integer coordinates. Rerun puts the
-centre of the top-left pixel at (0.5, 0.5) (its default principal point is
-``resolution / 2``), so the principal point is logged as ``cx + 0.5, cy + 0.5``.
+Written against rerun-sdk 0.41; every call goes to a dedicated ``rr.RecordingStream``, so
+several loggers can live in one process, and every mode first sends :mod:`viewer.blueprint`.
+Live logging, in any order per frame: :meth:`RerunLogger.log_tracking`, ``log_frame``,
+``log_depth`` (later, at the frame's time), ``log_mesh(..., index=i)`` every few frames, and
+``log_cameras`` once the poses are final. Conventions are the project's (camera-to-world,
+OpenCV axes, z-depth in metres with 0 = invalid, pixel centres at integers); the principal
+point is logged as ``cx + 0.5, cy + 0.5``, Rerun's pixel centres. Entity paths:
+:mod:`viewer.entities`. More: docs/outputs.md#what-a-recording-holds
 """
 
 from __future__ import annotations

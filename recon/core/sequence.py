@@ -2,10 +2,8 @@
 
 Stages hand one :class:`Sequence` to the next instead of parallel arrays, so that leaving
 frames out (``take``), resampling them into the pinhole camera (``undistort``) or to one
-instant per frame (``unroll``, a rolling shutter) changes every per-frame array at once
-and none can fall out of step. A window of frames of a long video is a ``Sequence`` too:
-the streamed pipeline cuts windows with ``take``.
-
+instant per frame (``unroll``, a rolling shutter) changes every per-frame array at once;
+a window of a streamed run is a ``Sequence`` too, cut with ``take``.
 Conventions (README): rgb (N, H, W, 3) uint8; depth (N, H, W) metres, 0 = invalid;
 intrinsics (fx, fy, cx, cy) in pixels of ``rgb``; poses (N, 4, 4) camera-to-world, OpenCV
 axes; features (N, C, h, w) covering the whole frame at a lower resolution.

@@ -1,16 +1,12 @@
 """The streamed pipeline's second pass (:mod:`recon.drivers.streamed`): depth in windows, fused as it
 is finished.
 
-The depth frames, in overlapping windows (:func:`recon.drivers.stream_plan.plan_windows`), each
-window a :class:`~recon.core.sequence.Sequence` read back from the frame store: MEDeA (the
-paper's pairs inside the window; with given poses and ``medea_gate``, skipped when the
-first frames contradict them, as the tracking pass judged), anchored to the scale of the
-surface already fused where the window's cameras see it (else to the frames the previous
-window finished: :func:`_anchor`), then the refinement of its new frames (the shared ones
-are source views only, with the sweep the window before left them). Each finished frame's
-depth is written to disk, integrated into one TSDF volume (:class:`~recon.fusion.TsdfVolume`)
-and logged, and the mesh is re-extracted for the viewer every ``mesh_every`` frames. An
-estimate's final cameras are logged first (tracking logged the frames before they were final).
+Each window of depth frames (:func:`recon.drivers.stream_plan.plan_windows`), read back from
+the frame store as a :class:`~recon.core.sequence.Sequence`: MEDeA, anchored to the surface
+already fused (else to the previous window's frames: :func:`_anchor`), then the refinement
+of its new frames. Each finished frame's depth is written, integrated into one
+:class:`~recon.fusion.TsdfVolume` and logged; the mesh is re-extracted every ``mesh_every``.
+More: docs/running.md#how-a-streamed-run-works
 """
 
 from __future__ import annotations

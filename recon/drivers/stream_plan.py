@@ -1,20 +1,12 @@
 """The rules of the streamed pipeline that decide what to work on, as pure functions.
 
-* Depth frames by motion: of the tracked frames, the ones that get depth and are fused are
-  chosen as the video plays, by a rule that needs only the last chosen frame (no memory of
-  the video): a frame is taken when the camera has moved ``motion`` x the median depth, or
-  turned ``rotation`` degrees, since the last one taken. This is the keyframe rule of
-  KinectFusion-style and DROID-SLAM-style systems (parallax relative to scene depth), so a
-  slow pan of a long video gives few frames and a fast walk many, where a fixed frame
-  budget would keep one frame in ten of both. The defaults (2 % of the depth, 2 degrees)
-  give every 4th-5th frame of the 7-Scenes kitchen walk and every 1st-2nd of TUM fr1/rpy's
-  fast rotations: the densities the depth stages were measured at.
+* Depth frames by motion (:class:`MotionSelector`): a frame is taken when the camera has
+  moved ``motion`` x the median depth, or turned ``rotation`` degrees, since the last one
+  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems).
   why: docs/decisions.md#depth-frames-of-a-streamed-run
-* Windows: the depth frames are adjusted by MEDeA in windows of ``window`` frames of which
-  the first ``overlap`` were already adjusted by the previous window. Those shared frames
-  give the new window its context (MEDeA's pairs reach back into them) and its anchor:
-  the new window's depth is rescaled by the median ratio of the shared frames' finished
-  depth to their depth in the new window, so that the whole stays at one scale.
+* Windows (:func:`plan_windows`): ``window`` depth frames, the first ``overlap`` shared
+  with the previous window, which give the new one its context and its anchor.
+More: docs/running.md#how-a-streamed-run-works
 """
 
 from __future__ import annotations

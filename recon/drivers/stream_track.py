@@ -1,14 +1,11 @@
 """The streamed pipeline's first pass (:mod:`recon.drivers.streamed`): decode, prior, track.
 
-Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at a
-time (the streaming front end, :class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given
-poses). Each frame goes to a :class:`~recon.io.frame_store.FrameStore` on disk, and the
-frames that will get depth, chosen by motion as they come
-(:class:`recon.drivers.stream_plan.MotionSelector`), with their prior and features. The viewer
-shows each frame, its camera and the trajectory as it is tracked (an estimate's camera as
-known then; the depth pass logs every final camera again). At the end the estimate
-is closed (global BA, non-keyframes, metric scale) and passes the quality gate, exactly as
-in the one-shot run; what the depth pass needs is a :class:`TrackedVideo`.
+Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at
+a time (:class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given poses), each
+parked in a :class:`~recon.io.frame_store.FrameStore`; the depth frames
+(:class:`recon.drivers.stream_plan.MotionSelector`) with their prior and features. At the end
+the estimate is closed and passes the quality gate as in a one-shot run; what the depth
+pass needs is a :class:`TrackedVideo`. More: docs/running.md#how-a-streamed-run-works
 """
 
 from __future__ import annotations

@@ -1,23 +1,13 @@
 """The streamed pipeline: a long video flows through the stages in memory that does not grow
 with its length.
 
-Two passes, as in DROID-SLAM (tracking front end, then the backend's global optimisation
-before the dense map is trusted):
-
-``track``  (:mod:`recon.drivers.stream_track`) frames are decoded, given their prior and tracked in
-           order, parked on disk, and the frames that get depth chosen by motion as they
-           come; the trajectory is closed (global BA, metric scale, quality gate) at the end.
-``depth``  (:mod:`recon.drivers.stream_depth`) the depth frames in overlapping windows: MEDeA inside
-           each window, anchored to the scale of what is already fused, the refinement of
-           its new frames, each finished frame written, fused and logged as it comes.
-
-This module runs the two passes into an output folder and writes the mesh, trajectory and
-report at the end.
-
-What stays in memory: poses and a few numbers per frame, the front end's keyframes, one
-window of frames, the TSDF volume (the size of the scene, not of the video). Depth waits
-for the trajectory to be closed because fusing frames at poses the global BA later moves
-would bend the mesh.
+Two passes, as in DROID-SLAM (tracking, then the global optimisation before the dense map
+is trusted): ``track`` (:mod:`recon.drivers.stream_track`) decodes, gives priors, tracks and
+closes the trajectory; ``depth`` (:mod:`recon.drivers.stream_depth`) adjusts, refines and fuses
+the depth frames window by window. This module runs the two into an output folder and
+writes the mesh, trajectory and report at the end. Memory holds per-frame poses, the
+keyframes, one window and the TSDF volume.
+More: docs/running.md#how-a-streamed-run-works
 """
 
 from __future__ import annotations

@@ -1,26 +1,12 @@
 """`recon eval`: score an output folder of `recon run` against a dataset's ground truth.
 
-This module owns the three evaluations, each built from the metric modules, of an output
-folder read back by :func:`recon.io.output_folder.load_output`:
-
-* depth (DeepVideoMVS protocol, as in the MEDeA paper): ground truth resized to the output
-  depth's resolution by nearest neighbour (never blending valid and invalid pixels), pixels
-  with ground truth in ``[min_depth, max_depth]``; metric (no alignment), and median-scaled
-  per frame and per sequence. When the run resampled its frames into the pinhole camera of
-  a known lens (TUM's published distortion), the ground truth is resampled the same way
-  (:func:`in_run_camera`), for the depth scores and the reference mesh;
-* trajectory: ATE RMSE after SE(3) and Sim(3) Umeyama alignment, RPE, scale error;
-* mesh: accuracy, completeness, chamfer, precision, recall, F-score at 5 cm against a
-  reference mesh: a given mesh file, or a TSDF of the sensor depth fused with the
-  ground-truth poses over the same frames and voxel size. When the poses were estimated,
-  the mesh is first brought into the ground truth's frame by a Sim(3) fitted to the
-  camera orientations and centres (``mesh_align="auto"``; see
-  :func:`recon.eval.trajectory.pose_alignment`), optionally refined by ICP onto the
-  reference surface (``"sim3+icp"``).
-
-A dataset without sensor depth (KITTI, a COLMAP project) still scores the trajectory; the
-depth and (unless a reference mesh file is given) mesh sections are replaced by notes,
-``"depth_missing"`` and ``"mesh_missing"``, saying why.
+This module owns the three evaluations of an output folder read back by
+:func:`recon.io.output_folder.load_output`, each built from the metric modules: depth
+(DeepVideoMVS protocol, as in the MEDeA paper; the ground truth resampled into the run's
+camera by :func:`in_run_camera`), trajectory (ATE after SE(3) and Sim(3) Umeyama alignment,
+RPE, scale error) and mesh (against a reference mesh or a TSDF of the sensor depth, aligned
+per ``mesh_align``). A dataset without sensor depth gets ``"depth_missing"`` and
+``"mesh_missing"`` notes instead. More: docs/eval.md#how-the-scores-are-computed
 """
 
 from __future__ import annotations

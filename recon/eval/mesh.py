@@ -1,19 +1,11 @@
 """Mesh reconstruction metrics (NeuralRecon / TransformerFusion protocol).
 
-This module owns uniform surface sampling, optional culling to what the cameras saw, and
-the point-set metrics:
-
-* accuracy = mean distance from predicted points to the ground truth (pred -> gt);
-* completeness = mean distance from ground-truth points to the prediction (gt -> pred);
-* chamfer = (accuracy + completeness) / 2;
-* precision = fraction of pred -> gt distances below ``threshold`` (5 cm by default),
-  recall = the same for gt -> pred, F-score = 2 P R / (P + R).
-
-Both meshes are sampled with the same number of points (area-weighted triangle choice,
-uniform barycentric position) from a fixed seed, so results are reproducible; distances
-are nearest-neighbour distances with scipy's cKDTree. It also owns the registration of a
-mesh onto a reference surface by ICP (Tanks and Temples' refinement step). Import as
-``recon.eval.mesh``.
+This module owns uniform surface sampling (same point count for both meshes, fixed seed),
+optional culling to what the cameras saw, the point-set metrics (accuracy pred -> gt,
+completeness gt -> pred, chamfer, and precision, recall and F-score at ``threshold``, 5 cm by
+default; nearest-neighbour distances by scipy's cKDTree) and the registration of a mesh
+onto a reference surface by ICP (Tanks and Temples' refinement step).
+More: docs/eval.md#how-the-scores-are-computed
 """
 
 from __future__ import annotations

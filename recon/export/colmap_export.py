@@ -1,19 +1,12 @@
 """The COLMAP export's model: ``sparse/0/cameras.txt``, ``images.txt`` and ``points3D.txt``.
 
-This module owns the text of the model (the images beside it, ``images/``, are written by
-:mod:`recon.export.tools`). COLMAP's text model (https://colmap.github.io/format.html,
-"Text format"; the code is ours): cameras.txt ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``, a
-PINHOLE camera per distinct intrinsics; images.txt two lines per image, ``IMAGE_ID QW QX QY
-QZ TX TY TZ CAMERA_ID NAME`` (cam_from_world) then the 2D points, empty here (the run has
-no feature tracks) but present, as COLMAP's readers expect; points3D.txt ``POINT3D_ID X Y Z
-R G B ERROR TRACK[]`` with error 0 and empty tracks. NAME is relative to ``images/`` beside
-``sparse/``: COLMAP's project layout, which gsplat, 3D Gaussian Splatting and nerfstudio's
-colmap dataparser read.
-
-Pixel centres: recon puts them at integer coordinates (OpenCV's convention,
-intrinsics.json), COLMAP the centre of the first pixel at (0.5, 0.5): the principal point
-gains :data:`recon.io.pose_formats.base.PIXEL_CENTRE` here, and loses it again when
+This module owns the text of the model in COLMAP's text format (the images beside it,
+``images/``, are written by :mod:`recon.export.tools`): PINHOLE cameras, cam_from_world poses,
+empty 2D-point lines and tracks. Pixel centres: recon puts them at integer coordinates,
+COLMAP the first pixel's at (0.5, 0.5): the principal point gains
+:data:`recon.io.pose_formats.base.PIXEL_CENTRE` here, and loses it again when
 :mod:`recon.io.pose_formats.colmap` reads the model back.
+More: docs/export.md#colmaps-text-model
 """
 
 from __future__ import annotations

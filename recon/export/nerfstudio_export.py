@@ -1,25 +1,13 @@
 """The nerfstudio export's dataset: ``transforms.json``, ``depth/`` and ``points.ply``.
 
 This module owns those files (the images, ``images/``, are written by
-:mod:`recon.export.tools`). nerfstudio's ``transforms.json``
-(https://docs.nerf.studio/quickstart/data_conventions.html and its ``Nerfstudio``
-dataparser, nerfstudio/data/dataparsers/nerfstudio_dataparser.py; the code is ours):
-intrinsics shared by all frames at the top (``fl_x fl_y cx cy w h``, ``camera_model`` OPENCV
-with ``k1 k2 p1 p2`` zero), per frame when they differ; per frame ``file_path``,
-``transform_matrix`` (camera-to-world, OpenGL camera axes: x right, y up, z back) and
-``depth_file_path``; ``ply_file_path`` (points in the world of the poses);
-``applied_transform`` (3x4: what took the original data's coordinates to the saved ones,
-composed by the dataparser into its ``dataparser_transform``), written when the run had an
-upright transform. The dataparser asserts that ``depth_file_path`` is on every frame or on
-none, so the frames of a streamed run that got no depth get an all-zero map (0 is "no
-depth", which nerfstudio's depth losses leave out). ``depth_unit_scale_factor`` (0.001:
-millimetres to metres) is written for readers of the file; nerfstudio itself takes it from
-``--depth-unit-scale-factor``, whose default is the same.
-
-Pixel centres: recon puts them at integer coordinates (OpenCV's convention,
-intrinsics.json); nerfstudio casts the ray of pixel (0, 0) through (0.5, 0.5): the principal
-point gains :data:`recon.io.pose_formats.base.PIXEL_CENTRE` here, and loses it again when
+:mod:`recon.export.tools`), after nerfstudio's data conventions and its ``Nerfstudio``
+dataparser: camera-to-world ``transform_matrix`` in OpenGL camera axes, millimetre depth
+maps on every frame (all zero where a frame got none), ``applied_transform`` when the run was
+turned upright. The principal point gains :data:`recon.io.pose_formats.base.PIXEL_CENTRE`
+here (nerfstudio casts pixel (0, 0) through (0.5, 0.5)), and loses it again when
 :mod:`recon.io.pose_formats.trajectories` reads transforms.json back.
+More: docs/export.md#nerfstudios-transformsjson
 """
 
 from __future__ import annotations

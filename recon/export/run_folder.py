@@ -1,23 +1,13 @@
 """Reading a finished output folder back for the exports (:mod:`recon.export.tools`).
 
-This module owns what the exports take from an output folder of ``recon run``: the report,
-the trajectory, the intrinsics, which depth map belongs to which frame, the upright
-transform, the subset of the mesh's vertices written as points, and the frames themselves.
-The files are read through :mod:`recon.io.output_folder` (their names and formats are its).
-
-An output folder keeps no RGB frames, so :func:`decoded_frames` decodes them again from the
-run's input with the pipeline's own readers (:func:`recon.io.frames.open_source`, the run's
-selection and working width) and resamples them as the run resampled them: a known lens
-undone as they are decoded (``FrameSource.to_pinhole``, report.json
-``intrinsics.undistorted``), a rolling shutter unrolled (``Sequence.unroll``, with the turn
-rate of the run's trajectory: the run's own first estimate is not kept, so estimated poses
-give a close approximation), then the front end's radial term undone when the run did
-(``Sequence.undistort``). The images are thus the pinhole images the depth maps and the
-mesh were made from, and the camera model is PINHOLE.
-
-World: the run's (OpenCV-like axes, metres), turned upright when report.json has
-``upright.transform`` T: poses and points alike, world' = T @ world
-(:attr:`RunFiles.world_poses`, :meth:`RunFiles.to_world`).
+This module owns what the exports take from an output folder (read through
+:mod:`recon.io.output_folder`): the report, trajectory, intrinsics, depth maps per frame,
+upright transform and mesh points, and the frames, which the folder does not keep:
+:func:`decoded_frames` decodes them again from the run's input with the run's selection and
+resamples them as the run did, so the images are the pinhole images the depth and mesh were
+made from. World: the run's, turned upright when report.json has ``upright.transform`` T,
+world' = T @ world (:attr:`RunFiles.world_poses`, :meth:`RunFiles.to_world`).
+More: docs/export.md#what-is-written
 """
 
 from __future__ import annotations

@@ -1,28 +1,13 @@
 """Exports of a finished output folder for other tools: a COLMAP text model, a nerfstudio dataset.
 
 This module owns ``recon export OUT --to colmap|nerfstudio`` (and ``recon run --export``):
-which exports are written where, their options, the images they share and writing each
-one atomically. The rest lives beside it: reading the output folder back and decoding its
-frames again from the run's input in :mod:`recon.export.run_folder`, the COLMAP model's
-text in :mod:`recon.export.colmap_export`, nerfstudio's transforms.json, depth maps and
-point cloud in :mod:`recon.export.nerfstudio_export` (their module docstrings name the
-documents each format follows, and the format's pixel centres).
-
-Layout, by default beside the run's files (``OUT/colmap/``, ``OUT/nerfstudio/``; a run
-written as segments gets one export per segment folder, ``OUT/segment_NN/colmap/``)::
-
-    colmap/images/frame_000123.jpg       the frames, at the size of the depth maps
-    colmap/sparse/0/cameras.txt          PINHOLE camera(s)
-    colmap/sparse/0/images.txt           one world-to-camera pose per image
-    colmap/sparse/0/points3D.txt         at most max_points points of the mesh, coloured
-    nerfstudio/transforms.json
-    nerfstudio/images/frame_000123.jpg
-    nerfstudio/depth/frame_000123.png    16-bit millimetres, 0 = no depth
-    nerfstudio/points.ply                the same points (binary PLY, uchar colours)
-
-The frames are decoded once for all the formats of a folder. Every export is written into
-a hidden folder beside its destination and renamed into place when complete; an existing
-export is replaced only with ``overwrite``.
+which exports are written where (``OUT/colmap/``, ``OUT/nerfstudio/``, one per segment
+folder), their options, the images they share (decoded once for all formats) and writing
+each one atomically: into a hidden folder beside its destination, renamed into place when
+complete; an existing export is replaced only with ``overwrite``. The formats are in
+:mod:`recon.export.colmap_export` and :mod:`recon.export.nerfstudio_export`, reading the
+folder back in :mod:`recon.export.run_folder`.
+More: docs/export.md#what-is-written
 """
 
 from __future__ import annotations

@@ -1,16 +1,12 @@
 """Writing results into an output folder: meshes (PLY, GLB), trajectory, intrinsics, depth maps.
 
-The folder's layout, its file names and the atomic-write rule belong to
-:mod:`recon.io.output_folder`; this module holds the writers that need Open3D, trimesh or
-a pose format, and :func:`export_reconstruction`, which puts everything under its
-standard name. The standalone ``write_*`` functions refuse to replace an existing file
-unless ``overwrite=True``.
-
-glTF is y-up with the camera looking down -z, OpenCV is y-down looking down +z. The GLB
-applies the rotation diag(1, -1, -1) (x, -y, -z) to vertices and normals: a proper rotation
-(det = +1), so triangle winding is kept. Before it, the pipeline turns the GLB by the
-world's upright rotation (:mod:`recon.fusion.upright`: up becomes -y, so +y in glTF), and
-the floor is at the bottom in a glTF viewer whatever the first camera's pitch was.
+The folder's layout, file names and atomic-write rule belong to
+:mod:`recon.io.output_folder`; this module holds the writers that need Open3D, trimesh or a
+pose format, and :func:`export_reconstruction`, which puts everything under its standard
+name. The standalone ``write_*`` functions refuse to replace an existing file unless
+``overwrite=True``. The GLB applies diag(1, -1, -1) to vertices and normals (OpenCV axes to
+glTF's, winding kept), after the world's upright rotation (:mod:`recon.fusion.upright`).
+More: docs/fusion.md#upright-output
 """
 
 from __future__ import annotations

@@ -1,35 +1,13 @@
 """Which way is up: the rotation that stands a reconstruction upright.
 
-A run's world is the frame its poses came in: the first camera's for estimated poses, the
-dataset's for given ones, neither of them level in general (a kitchen filmed at a 15 degree
-pitch comes out 15 degrees off in a viewer). Exports for people to look at (the GLB, the
-COLMAP and nerfstudio models) are rotated so that the scene stands upright; the
-trajectory, the PLY and the depth maps stay in the run's world, where given poses are
-exactly what the user gave.
-
-The estimate has two parts:
-
-1. **The cameras**: people hold cameras without much roll and look at a scene more often
-   level than not, so the cameras' mean down axis (image y) is the first guess (the
-   "auto orient" of nerfstudio's data processing uses the same mean). It is off by the
-   recording's mean pitch: 15 degrees on a kitchen filmed looking down at its counters.
-2. **The scene's surfaces** (the Manhattan-world prior of indoor scene understanding, e.g.
-   Gupta et al., CVPR 2013): floors and table tops have their normal along up, walls,
-   doors and cupboard fronts across it. The fused surface's normals (smoothed over a few
-   grid cells, so that the mesh's noise averages out) first vote (a Hough transform over
-   the directions within ``SEARCH_DEG`` of the cameras' guess): each direction scores the
-   share of normals within ``VOTE_CONE_DEG`` of it (floors) plus the share within as much
-   of square to it (walls). The cameras' pitch can be large (7-Scenes' kitchen is filmed
-   looking down at its counters, 25 degrees below level on average), too large for a
-   cone around the guess alone. From the winner, normals within a cone of either pull the
-   estimate, the cone narrowing in rounds (``CONES_DEG``) so that slanted surfaces drop
-   out; up is the direction most along the first and most across the second (one 3x3
-   eigenproblem per round).
-
-When too little of the surface is floor or wall, the cameras' guess stands, and the result
-says which it was.
+A run's world is the frame its poses came in, not level in general; the GLB and the exports
+are rotated upright, while the trajectory, the PLY and the depth maps stay in the run's
+world. Up is the cameras' mean down axis (as nerfstudio's "auto orient"), corrected by the
+fused surface's normals under the Manhattan-world prior (e.g. Gupta et al., CVPR 2013):
+floors along up, walls across it, found by a Hough vote and refined in narrowing cones. When
+too little of the surface is floor or wall the cameras' guess stands, and the result says so.
 Conventions: world points in the run's OpenCV-like axes, up is -y once upright (the GLB's
-conversion to glTF then makes it +y).
+conversion to glTF then makes it +y). More: docs/fusion.md#upright-output
 """
 
 from __future__ import annotations

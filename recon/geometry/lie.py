@@ -1,16 +1,12 @@
 """SE(3) / SO(3) helpers for the pose front end: exponential map, logarithm, inverse, adjoint.
 
 This module owns the tangent-space convention shared by the bundle adjustment, the
-motion-only alignment and their Jacobians:
-
-* a tangent vector is ``xi = (v, w)`` (translation part first, then rotation), shape (..., 6);
-* poses are **updated on the left**: ``T <- exp(xi) @ T``. The front end optimises
-  world-to-camera poses, so a left update is a perturbation expressed in the camera frame
-  (the same choice as DROID-SLAM's ``SE3.retr``);
-* ``adjoint(T)`` maps tangent vectors through ``T``: ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``.
-
-Everything is batched torch over leading dimensions and differentiable-free (closed forms);
-small angles use Taylor expansions so that float64 stays accurate near the identity.
+motion-only alignment and their Jacobians: a tangent vector is ``xi = (v, w)`` (translation
+first), shape (..., 6); poses are **updated on the left**, ``T <- exp(xi) @ T``, which for
+the front end's world-to-camera poses is a perturbation in the camera frame (as DROID-SLAM's
+``SE3.retr``); ``adjoint(T)`` satisfies ``T exp(xi) T^-1 = exp(adjoint(T) @ xi)``.
+Everything is batched torch over leading dimensions, in closed form; small angles use Taylor
+expansions so that float64 stays accurate near the identity.
 """
 
 from __future__ import annotations

@@ -1,19 +1,12 @@
 """Pinhole projective geometry with inverse depth, and its Jacobians, for dense BA.
 
-This module owns the residual model of the front end (as DROID-SLAM's
-``geom/projective_ops``): a pixel p = (u, v) of keyframe i with inverse depth d is the
-homogeneous point ``X_i = ((u - cx) / fx, (v - cy) / fy, 1, d)`` (the 3-D point scaled by
-d, so that d -> 0 stays finite); ``X_j = T_ij X_i`` with ``T_ij = T_j T_i^-1`` of
-world-to-camera poses; its projection is ``(fx X/Z + cx, fy Y/Z + cy)``.
-
-A lens with radial distortion is one term, OpenCV's k1: the normalised pinhole point x is
-seen at ``x (1 + k1 |x|^2)``. Flow is measured between the images as recorded, so
-:func:`undistort` moves measured pixels into the pinhole image before the residual is
-taken; k1 = 0 is a plain pinhole camera.
-
-Jacobians follow ``recon.geometry.lie``: tangent ``(v, w)``, left updates of world-to-camera
-poses. Intrinsics are a (4,) tensor ``(fx, fy, cx, cy)`` in pixels of the grid being
-projected, pixel centres at integer coordinates.
+The residual model of the front end (as DROID-SLAM's ``geom/projective_ops``): a pixel
+(u, v) of keyframe i with inverse depth d is ``X_i = ((u - cx) / fx, (v - cy) / fy, 1, d)``,
+``X_j = T_ij X_i`` with ``T_ij = T_j T_i^-1`` of world-to-camera poses, projected to
+``(fx X/Z + cx, fy Y/Z + cy)``. The lens is OpenCV's k1 alone (x seen at ``x (1 + k1 |x|^2)``);
+:func:`undistort` moves measured pixels into the pinhole image. Jacobians follow
+:mod:`recon.geometry.lie` (tangent ``(v, w)``, left updates). Intrinsics are a (4,) tensor
+``(fx, fy, cx, cy)`` in pixels of the grid being projected, pixel centres at integers.
 """
 
 from __future__ import annotations

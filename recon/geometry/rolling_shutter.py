@@ -1,23 +1,13 @@
 """Rolling shutter: frames whose rows were exposed one after another, resampled to one instant.
 
-Most video cameras (phones, webcams, the Kinect's colour camera) read their rows top to
-bottom over a readout time. While the camera turns, each row sees the scene from a slightly
-different orientation: straight lines lean, and the frame is no longer one pinhole image,
-which every later stage (flow bundle adjustment, MEDeA, the plane sweep, fusion) assumes.
-The bundle adjustment then trades rotation for translation. Off unless the readout is given.
+Rotation-only, after Forssén and Ringaby ("Rectifying rolling shutter video from hand-held
+devices", CVPR 2010): row v of a frame H rows high is exposed ``t_v = (v / H - 1/2) * readout``
+after the frame's timestamp, turned by ``exp([w] t_v)``, w the body angular velocity (rad/s)
+taken from the poses by central differences; translation during the readout is ignored.
+Off unless the readout is given. Shapes: N frames of (H, W); poses (N, 4, 4)
+camera-to-world, OpenCV axes.
+More: docs/input.md#rolling-shutter
 why: docs/decisions.md#rolling-shutter
-
-The model is rotation-only, after Forssén and Ringaby ("Rectifying rolling shutter video from
-hand-held devices", CVPR 2010): row v of a frame H rows high is exposed at
-``t_v = (v / H - 1/2) * readout`` after the frame's timestamp (its middle row), when the camera
-is turned by ``exp([w] t_v)`` in its own axes, w the body angular velocity (rad/s). A pixel p
-of the frame at its timestamp shows the ray K^-1 p, which that row recorded at
-``K exp(-[w] t_v) K^-1 p``; t_v is taken at p's own row (the shift is a few pixels, the row
-barely changes). Translation during the readout is ignored: at 1-3 m it moves pixels far
-less than the turn does. The angular velocity comes from the poses (given, or a first
-estimate) by central differences, so frames far apart in time give a smoothed rate.
-
-Shapes: N frames of (H, W); poses (N, 4, 4) camera-to-world, OpenCV axes.
 """
 
 from __future__ import annotations

@@ -1,16 +1,12 @@
 """FastDepth, the default metric depth prior (Wofk et al., ICRA 2019; MIT licence).
 
-This module owns everything FastDepth-specific: loading the network (the packaged model
-or a TF.js export, see :mod:`recon.priors.weights`) through :mod:`recon.priors.tfjs`
-(cached), the preprocessing that maps an arbitrary camera onto
-what the network saw in training (NYU Depth v2), picking encoder feature layers for
-MEDeA's feature-metric loss, and the :class:`FastDepthPrior` itself.
-
-Training preprocessing (NYU, 480x640, fx ~ 519 px): resize by 250/480, centre-crop
-228x304, resize to 224x224 (a horizontal squeeze). The default feeds the whole frame
-resized so that the camera's focal lengths at the network input match the training ones
-(:data:`TRAIN_FOCAL_AT_INPUT`): same pixel scale and aspect as in training, whole field of
-view, one pass. ``benchmarks/fastdepth_preprocessing.py`` has the measurements behind it.
+This module owns everything FastDepth-specific: loading the network (the packaged model or a
+TF.js export, :mod:`recon.priors.weights`) through :mod:`recon.priors.tfjs` (cached), the
+preprocessing that maps an arbitrary camera onto what the network saw in training (NYU Depth
+v2: the whole frame resized so that its focal lengths at the input match the training ones,
+:data:`TRAIN_FOCAL_AT_INPUT`), picking encoder feature layers for MEDeA's feature-metric
+loss, and the :class:`FastDepthPrior` itself. More: docs/depth.md#the-packaged-model-file
+why: docs/decisions.md#the-priors-input-size
 """
 
 from __future__ import annotations

@@ -1,25 +1,12 @@
 """The project's own model file: a TF.js graph's topology and its weights in one ``.npz``.
 
-This module owns that format (writing and reading it) and :func:`read_graph`, which reads
-a network from either it or a TF.js ``model.json``. The default FastDepth prior (Wofk et
-al., ICRA 2019) ships in this format as ``recon/priors/models/fastdepth.npz``, converted
-once from the TF.js export by ``scripts/convert_fastdepth.py``.
-
-Layout (a plain numpy ``.npz``, readable without pickle):
-
-- ``header``: UTF-8 JSON as a uint8 array: ``format``, ``version``, ``source`` (where it
-  was converted from), ``modelTopology`` (the TF.js graph topology, verbatim) and
-  ``weights``: one ``{"key", "name", "dtype", "shape"}`` per constant, in manifest order;
-- one array per constant under its ``key`` (``w000``, ``w001``, ...): float weights as
-  float16, integer constants (Pad sizes) as they are.
-
-Float weights are stored as float16 because that is all the TF.js export holds (it was
-quantised to float16), so nothing is lost, and they are cast back to their declared dtype
-(float32) at load: the compiled network is the one the TF.js export gives.
-
-The writer fixes every zip timestamp and stores members uncompressed, so the same inputs
-give the same bytes on any machine (deflate would save only 8 % and its bytes depend on
-the zlib build).
+This module owns that format (writing and reading it) and :func:`read_graph`, which reads a
+network from either it or a TF.js ``model.json``. The default FastDepth prior ships in this
+format as ``recon/priors/models/fastdepth.npz``, converted once by
+``scripts/convert_fastdepth.py``. A plain numpy ``.npz`` readable without pickle: a JSON
+``header`` and one array per constant (float weights as float16, as the TF.js export holds
+them, cast back at load); the writer makes the same bytes from the same inputs on any machine.
+More: docs/depth.md#the-packaged-model-file
 """
 
 from __future__ import annotations

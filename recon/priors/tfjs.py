@@ -1,14 +1,11 @@
 """Compiling a TensorFlow.js graph (read by :mod:`recon.priors.tfjs_format`) into a plain
 torch module.
 
-It supports the ops that convolutional encoder-decoders such as FastDepth are exported
-with: Placeholder, Const, Pad, Conv2D, DepthwiseConv2dNative, AddV2/Add, BiasAdd, Relu,
-Relu6, ResizeNearestNeighbor, Identity. Anything else is reported, not guessed.
-
-Compilation fuses ``Pad -> Conv -> Add(bias) -> Relu/Relu6`` chains into one
-``nn.Conv2d`` with its padding, bias and activation (one kernel call and no padded
-copies: the main CPU cost of the exported graph), and replaces resize-to-a-baked-size by
-an integer nearest upsampling factor so the network is fully convolutional.
+It supports the ops that convolutional encoder-decoders such as FastDepth are exported with
+(anything else is reported, not guessed), fuses ``Pad -> Conv -> Add(bias) -> Relu/Relu6``
+chains into one ``nn.Conv2d`` and replaces resize-to-a-baked-size by an integer nearest
+upsampling factor, so the network is fully convolutional.
+More: docs/depth.md#the-packaged-model-file
 """
 
 from __future__ import annotations

@@ -1,28 +1,12 @@
 """Where model weights come from.
 
-The default FastDepth weights (Wofk et al., ICRA 2019) ship with the package, as
-``recon/priors/models/<name>.npz``: converted once from a TF.js export of the authors' model
-by ``scripts/convert_fastdepth.py`` (MIT licence, notice beside it; format in
-:mod:`recon.priors.packaged`). They are the only weights in the repository.
-
-A model named ``name`` is looked for in this order:
-
-1. an explicit path given by the caller (CLI ``--weights``): the file itself (a TF.js
-   ``model.json`` or a packaged ``.npz``), the model's folder, or a folder holding
-   ``<name>/`` (or ``<name>.npz``);
-2. ``$RECON_WEIGHTS`` (same forms);
-3. the packaged file.
-
-An explicit path that holds nothing is an error; ``$RECON_WEIGHTS`` that holds nothing
-falls through to the packaged file (``report.json`` names the file used).
-
-``../shared/weights`` next to the checkout and ``~/.cache/recon/weights`` are no longer
-searched. Before the packaged file they would make a development checkout run other files
-than a user's install does (the bug where a clone without ``../shared`` failed while
-every developer's run worked), and after it they would never be reached. Nothing ever
-wrote the cache; ``RECON_WEIGHTS=~/.cache/recon/weights`` still uses weights put there.
-
-Nothing is ever downloaded.
+The default FastDepth weights (Wofk et al., ICRA 2019; MIT licence) ship with the package as
+``recon/priors/models/<name>.npz`` (format: :mod:`recon.priors.packaged`), the only weights
+in the repository. A model named ``name`` is looked for in an explicit path (CLI
+``--weights``: the file, the model's folder, or a folder holding ``<name>/`` or
+``<name>.npz``), then ``$RECON_WEIGHTS`` (same forms), then the packaged file. An explicit
+path that holds nothing is an error; ``$RECON_WEIGHTS`` that holds nothing falls through.
+Nothing is ever downloaded. More: docs/depth.md#the-packaged-model-file
 """
 
 from __future__ import annotations

@@ -1,20 +1,12 @@
 """Floor plans of several rooms joined by corridors and doorways: axis-aligned regions of free
 space and the closed shell of walls, floors and ceilings around them.
 
-This module owns the shell geometry of recon.synthetic.walkthrough. A :class:`Region` (a
-room, a corridor, the passage of a doorway through a wall) is an axis-aligned box of free
-space, full height: floor y = 0, ceiling y = -height (y points down, as in
-recon.synthetic.room). Two regions that touch (a wall plane of one is a wall plane of the
-other and their extents overlap along it) are joined by an :class:`Opening` over that
-overlap, floor to ceiling. Walls are planes without thickness, so regions that are not
-joined must stand apart by a wall's thickness: a doorway is a passage region that spans it.
-
-The shell must be closed: a ray from anywhere inside must hit a face, or the renderer finds
-no depth. Like the single room, each face reaches OVERLAP past its edges into the solid
-behind its neighbours. Where no face can (a jamb, where a wall ends at an opening, is a
-convex edge; two floors meeting in an opening are coplanar), a closed post box stands on
-the jamb (a door frame, visible) and a skirt quad lies 1 mm behind the floor (ceiling)
-seam, where nothing but a ray slipping through the seam can reach it.
+This module owns the shell geometry of recon.synthetic.walkthrough: a :class:`Region` is an
+axis-aligned full-height box of free space (floor y = 0, ceiling y = -height, y down), two
+touching regions are joined by an :class:`Opening`, and walls have no thickness. The shell
+must be closed (a ray from inside always hits a face), which post boxes on the jambs and
+skirt quads behind seams ensure.
+More: docs/running.md#the-synthetic-scenes
 """
 
 from __future__ import annotations

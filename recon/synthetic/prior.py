@@ -1,14 +1,11 @@
 """A simulated monocular depth prior: ground truth distorted the way a per-frame network
 errs, so that MEDeA has something realistic to correct.
 
-This module owns the distortion model. Each frame i gets
-
-    D0_i = blur(D_i * s_i * exp(B(g_i))) * exp(noise_sigma * n_i)
-
-with a global scale s_i (log-normal), a smooth scale field from a coarse log-grid g_i
-(bicubically upsampled, B), a slight mask-aware Gaussian blur (a network's soft edges)
-and per-pixel multiplicative noise n_i ~ N(0, 1). The frames are therefore mutually
-inconsistent in scale and shape, like independent network predictions.
+This module owns the distortion model, per frame i
+``D0_i = blur(D_i * s_i * exp(B(g_i))) * exp(noise_sigma * n_i)``: a log-normal global
+scale, a smooth scale field from an upsampled coarse log-grid, a mask-aware blur and
+per-pixel multiplicative noise, so frames are mutually inconsistent in scale and shape.
+More: docs/running.md#the-synthetic-scenes
 """
 
 from __future__ import annotations

@@ -1,14 +1,11 @@
 """The synthetic room: its walls, furniture and materials, and their triangle mesh.
 
-This module owns the room's layout (furniture boxes against the walls, pictures, a rug
-and a coffee table in the middle), the per-material albedo parameters drawn for it, and
-the mesh and ray-casting scene made of it. All of it is deterministic from the seed.
-recon.synthetic.walkthrough furnishes several such rooms (doorways kept free) and builds
-their mesh with the same MeshBuilder.
-
-World frame: metres, **y points down** (gravity) so that a level camera looking along +z
-has the identity rotation in OpenCV axes. The room spans x in [-3, 3], z in [-2.5, 2.5];
-the floor is the plane y = 0 and the ceiling y = -2.7. Surfaces are axis-aligned boxes.
+This module owns the room's layout, the per-material albedo parameters drawn for it, and the
+mesh and ray-casting scene made of it, deterministic from the seed; the walk-through
+furnishes several such rooms with the same MeshBuilder. World frame: metres, **y points
+down** (gravity), so a level camera looking along +z has the identity rotation in OpenCV
+axes; x in [-3, 3], z in [-2.5, 2.5], floor y = 0, ceiling y = -2.7; axis-aligned boxes.
+More: docs/running.md#the-synthetic-scenes
 """
 
 from __future__ import annotations

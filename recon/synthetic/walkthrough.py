@@ -2,29 +2,11 @@
 with a textureless stretch and a fast blurred turn at known frames: the test scene for
 trajectories whose scale breaks between stretches.
 
-Why it exists: a hand-held HoloLens walk-through of several rooms made the front end
-(recon.poses) return a trajectory whose scale jumped by x0.66 and then x7 between stretches,
-with exit code 0. The single synthetic room (recon.synthetic.render) is textured everywhere
-and walked slowly, so nothing in the test suite broke that way. This scene has what such a
-walk has: a corridor with plain walls, floor and ceiling (uniform albedo, no texture: dense
-optical flow has nothing but smooth shading and a few edges to hold on to), a fast turn of
-the head (~90 degrees in ~8 frames) rendered with motion blur, and otherwise a normal walk
-(about 4.5 cm per frame at 30 fps, ~1.35 m/s) with head bob and shake. Its metadata names
-the frame ranges of each stretch and the cuts, the frames where a front end is expected to
-break (the start of the textureless stretch, of the turn out of the corridor, which begins
-with nothing to track, and of the fast turn), so a benchmark or test can look for a scale
-break or a tracking loss there (benchmarks/walkthrough_breaks.py).
-
-This module owns the scripted path (:class:`WalkPath`), the stretch and cut metadata
-(:func:`walkthrough_plan`) and the rendering with per-frame motion blur
-(:func:`render_walkthrough`); the floor plan, its materials and lights are
-recon.synthetic.walkthrough_scene's (its docstring has the plan: room A, the corridor,
-door B, room B, door C, room C).
-
-The walk: room A (looking around) -> corridor (looking along it: the textureless stretch)
--> a normal right turn through door B -> into room B -> the fast left turn -> door C ->
-room C, looking around at the end. Everything is deterministic from the seed (furniture,
-colours, textures, shake phases).
+This module owns the scripted path (:class:`WalkPath`), the metadata naming each stretch's
+frames and the cuts where a front end is expected to break (:func:`walkthrough_plan`) and the
+rendering with per-frame motion blur (:func:`render_walkthrough`); the floor plan, materials
+and lights are recon.synthetic.walkthrough_scene's. Everything is deterministic from the seed.
+More: docs/running.md#the-synthetic-scenes
 """
 
 from __future__ import annotations

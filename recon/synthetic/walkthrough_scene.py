@@ -1,18 +1,11 @@
 """The synthetic walk-through's scene (recon.synthetic.walkthrough): the floor plan of three
 furnished rooms and a corridor (built with recon.synthetic.floorplan), the plain corridor
-materials (uniform albedo: dense optical flow has only smooth shading and a few edges to
-hold on to) and the lights of every room. The rooms are recon.synthetic.room's room
-(6 x 5 x 2.7 m), each furnished from its own seed with its doorways kept free. Plan
-(metres, y down, floor y = 0, as in recon.synthetic.room), with corridor length L (default 5):
+materials (uniform albedo) and the lights of every room.
 
-    room A   x in [-3, 3],        z in [-2.5, 2.5]         (the single room's place)
-    corridor x in [-0.65, 0.65],  z in [2.5, 2.5 + L]      (plain; end wall 0.3 m past door B)
-    door B   through the corridor's right wall (x = 0.65 .. 0.95), 1 m wide
-    room B   x in [0.95, 6.95],   5 m deep, beside the corridor's far end
-    door C   through room B's far wall (0.3 m), 1 m wide
-    room C   x in [0.95, 6.95],   beyond room B
-
-Everything is deterministic from the seed (furniture, colours, textures).
+The rooms are recon.synthetic.room's (6 x 5 x 2.7 m), each furnished from its own seed with
+its doorways kept free; the plan (metres, y down, floor y = 0, corridor length L, default 5)
+is room A, the corridor, door B, room B, door C, room C. Everything is deterministic from
+the seed. More: docs/running.md#the-synthetic-scenes
 """
 
 from __future__ import annotations
