@@ -205,3 +205,34 @@ def nothing(self):
     assert contract_problems(funcs["good"]) == []
     assert contract_problems(funcs["bad"]) == ["summary line", "Args: y", "Returns"]
     assert contract_problems(funcs["nothing"]) == []
+
+
+MODULE_DOCSTRING_PACKAGES = ["recon", "medea_core", "mvs_core", "viewer"]
+MAX_MODULE_DOCSTRING_LINES = 10
+
+
+def module_docstring_lines(source: str) -> int:
+    """The number of lines of a module's docstring (0 without one), as written."""
+    doc = ast.get_docstring(ast.parse(source), clean=False)
+    return len(doc.splitlines()) if doc else 0
+
+
+def test_module_docstrings_are_short():
+    """Every module docstring says the module's contract in at most ten lines; the design,
+    measurements and file formats live in docs/, to which the docstring points."""
+    found, long = 0, {}
+    for package in MODULE_DOCSTRING_PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            found += 1
+            if (n := module_docstring_lines(path.read_text(encoding="utf-8"))) > MAX_MODULE_DOCSTRING_LINES:
+                long[path.relative_to(ROOT).as_posix()] = n
+    assert found > 100
+    assert not long
+
+
+def test_the_module_docstring_check_can_fail():
+    """The count above on made-up modules: lines as written, none without a docstring."""
+    assert module_docstring_lines('"""One line."""\nx = 1\n') == 1
+    assert module_docstring_lines('"""Summary.\n\nMore: docs/x.md#y\n"""\n') == 3
+    assert module_docstring_lines("x = 1\n") == 0
+    assert module_docstring_lines('"""' + "line\n" * 11 + '"""\n') == 11
