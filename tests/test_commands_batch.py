@@ -185,6 +185,12 @@ def test_batch_options_are_checked():
         BatchOptions(gpus_per_task=-1).validate()
     from recon.commands.batch import check_resources
 
-    with pytest.raises(ReconInputError, match="1 GPU"):
-        check_resources({"CPU": 8.0}, BatchOptions(gpus_per_task=1), local=True)
-    check_resources({"CPU": 8.0}, BatchOptions(gpus_per_task=1), local=False)  # a cluster may grow: a warning
+    nodes = [{"Resources": {"CPU": 8.0, "memory": 16.0 * 2**30}}, {"Resources": {"CPU": 1.0, "GPU": 1.0}}]
+    with pytest.raises(ReconInputError, match="1 GPU"):  # no node has both
+        check_resources(nodes, BatchOptions(gpus_per_task=1), local=True)
+    check_resources(nodes, BatchOptions(gpus_per_task=1), local=False)  # a cluster may grow: a warning
+    check_resources(nodes, BatchOptions(gpus_per_task=1, cpus_per_task=1, memory_per_task=0), local=True)
+    with pytest.raises(ReconInputError, match=r"20.0 GB memory \(--memory-per-task\) and no node .* 16.0 GB memory"):
+        check_resources(nodes, BatchOptions(memory_per_task=20), local=True)
+    with pytest.raises(ReconInputError, match="node-retries"):
+        BatchOptions(node_retries=-1).validate()
