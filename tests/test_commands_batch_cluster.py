@@ -204,3 +204,65 @@ def test_the_time_left_counts_the_parallel_tasks():
         progress.add(20.0, ran=True)
     assert progress.seconds_left() == pytest.approx(17.5 * 1)  # one left: one slot
     assert [format_duration(s) for s in (4.4, 65, 3600 + 5 * 60)] == ["4 s", "1 min 05 s", "1 h 05 min"]
+
+
+def _can_unshare() -> bool:
+    import subprocess
+
+    if shutil.which("unshare") is None:
+        return False
+    try:
+        return subprocess.run(["unshare", "-m", "--propagation", "private", "true"], capture_output=True,
+                              timeout=10).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+def test_a_node_that_does_not_see_the_output_folder_stops_the_batch(cluster, inputs, capfd):
+    """A node of its own file system at the output folder's path (a tmpfs mounted there in a
+    mount namespace of its own, as a machine without the shared file system would be): one
+    `recon: error:` line naming the path and the node, before any input runs. Needs the
+    rights to mount (root); runs last, as its node leaves the cluster afterwards."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import ray
+
+    if not _can_unshare():
+        pytest.skip("needs `unshare -m` and mount rights to give a node a file system of its own")
+    folder, clips, options = inputs
+    out = folder / "not_shared"
+    out.mkdir()
+    ray_cli = Path(sys.executable).parent / "ray"
+    start = (f"mount -t tmpfs tmpfs {out} && exec {ray_cli} start --address {cluster.address} --num-cpus 1 "
+             f"--object-store-memory {STORE} --disable-usage-stats --block")
+    node = subprocess.Popen(["unshare", "-m", "--propagation", "private", "sh", "-c", start],
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        ray.init(address=cluster.address, log_to_driver=False)
+        try:
+            deadline = time.monotonic() + 60
+            while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
+                time.sleep(0.5)
+            joined = [n["NodeID"] for n in ray.nodes() if n["Alive"] and n["NodeID"] != cluster.head_node.node_id]
+        finally:
+            ray.shutdown()
+        assert joined, "the node in its own mount namespace did not join"
+        code = main(["batch", *clips[:2], "-o", str(out), "--address", cluster.address, *options])
+        captured = capfd.readouterr()
+        err = captured.err.splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert err[0].startswith(f"recon: error: {out}: node {joined[0][:8]} (") and "does not see" in err[0]
+        assert "every node" in err[0]
+        assert not [line for line in captured.out.splitlines() if line.startswith("[")]  # no input ran
+        assert not list(out.glob(".recon-batch-probe-*")) and not (out / "clip0").exists()
+        assert [r["status"] for r in json.loads((out / "batch.json").read_text())["rows"]] == ["pending"] * 2
+    finally:
+        os.killpg(node.pid, signal.SIGTERM)  # `ray start --block` drains and stops its node
+        try:
+            node.wait(timeout=40)
+        except subprocess.TimeoutExpired:
+            os.killpg(node.pid, signal.SIGKILL)
+            node.wait()
