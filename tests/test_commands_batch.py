@@ -119,7 +119,9 @@ def test_bad_batch_options_fail_before_ray(tmp_path, capfd):
                            (["--device", "warp-drive"], ["--device", "warp-drive"]),
                            (["--intrinsics", "1,2"], ["--intrinsics"]),
                            (["--prior", "hf"], ["prior 'hf'", "--prior-path"]),
-                           (["--prior", "hf", "--prior-path", str(tmp_path)], [str(tmp_path), "no config.json"])]:
+                           (["--prior", "hf", "--prior-path", str(tmp_path)], [str(tmp_path), "no config.json"]),
+                           (["--memory-per-task", "-1"], ["--memory-per-task"]),
+                           (["-o", str(video / "out")], [str(video / "out"), "cannot write"])]:
         assert main(["batch", str(video), "-o", str(tmp_path / "out"), *options]) == 2
         err = capfd.readouterr().err.splitlines()
         assert len(err) == 1 and err[0].startswith("recon: error: "), err

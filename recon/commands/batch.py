@@ -363,7 +363,11 @@ def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOp
             todo.append(index)
         else:
             finished(index, outcome, ran=False)
-    write_batch_json(out, rows())  # creates OUT, which the cluster's nodes are checked against
+    try:
+        write_batch_json(out, rows())  # creates OUT, which the cluster's nodes are checked against
+    except OSError as error:
+        raise ReconInputError(f"{out}: cannot write the batch's record there ({type(error).__name__}: "
+                              f"{error.strerror or error})") from None
     if todo:
         with ray_session(options, out) as ray:
             progress.slots = cluster_slots(ray, options)

@@ -194,7 +194,11 @@ def check_output_root(ray, out: Path, options: BatchOptions) -> None:
     token = uuid.uuid4().hex
     name = PROBE_PREFIX + token[:12]
     probe_file = out / name
-    probe_file.write_text(token)
+    try:
+        probe_file.write_text(token)
+    except OSError as error:
+        raise ReconInputError(f"{out}: cannot write the output-folder probe there ({type(error).__name__}: "
+                              f"{error.strerror or error})") from None
     probe = ray.remote(num_cpus=0, max_retries=0)(probe_output_root)
     try:
         refs = {probe.options(scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=False))
