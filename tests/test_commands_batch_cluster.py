@@ -238,15 +238,20 @@ def test_a_node_that_does_not_see_the_output_folder_stops_the_batch(cluster, inp
     ray_cli = Path(sys.executable).parent / "ray"
     start = (f"mount -t tmpfs tmpfs {out} && exec {ray_cli} start --address {cluster.address} --num-cpus 1 "
              f"--object-store-memory {STORE} --disable-usage-stats --block")
-    node = subprocess.Popen(["unshare", "-m", "--propagation", "private", "sh", "-c", start],
-                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    node = None
     try:
         ray.init(address=cluster.address, log_to_driver=False)
         try:
+            # A worker an earlier test killed may still be listed alive for a while (the probe
+            # passes over a node that left): the node to look for is the new one.
+            before = {n["NodeID"] for n in ray.nodes()}
+            node = subprocess.Popen(["unshare", "-m", "--propagation", "private", "sh", "-c", start],
+                                    start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             deadline = time.monotonic() + 60
-            while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
+            joined = []
+            while not joined and time.monotonic() < deadline:
                 time.sleep(0.5)
-            joined = [n["NodeID"] for n in ray.nodes() if n["Alive"] and n["NodeID"] != cluster.head_node.node_id]
+                joined = [n["NodeID"] for n in ray.nodes() if n["Alive"] and n["NodeID"] not in before]
         finally:
             ray.shutdown()
         assert joined, "the node in its own mount namespace did not join"
@@ -260,9 +265,10 @@ def test_a_node_that_does_not_see_the_output_folder_stops_the_batch(cluster, inp
         assert not list(out.glob(".recon-batch-probe-*")) and not (out / "clip0").exists()
         assert [r["status"] for r in json.loads((out / "batch.json").read_text())["rows"]] == ["pending"] * 2
     finally:
-        os.killpg(node.pid, signal.SIGTERM)  # `ray start --block` drains and stops its node
-        try:
-            node.wait(timeout=40)
-        except subprocess.TimeoutExpired:
-            os.killpg(node.pid, signal.SIGKILL)
-            node.wait()
+        if node is not None:
+            os.killpg(node.pid, signal.SIGTERM)  # `ray start --block` drains and stops its node
+            try:
+                node.wait(timeout=40)
+            except subprocess.TimeoutExpired:
+                os.killpg(node.pid, signal.SIGKILL)
+                node.wait()

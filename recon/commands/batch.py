@@ -43,9 +43,11 @@ from .batch_cluster import (
     FAILED,
     PENDING,
     SKIPPED,
+    BatchOptions,
     Progress,
     check_resources,
     cluster_slots,
+    default_gpus_per_task,
     format_progress,
     format_table,
     import_ray,
@@ -60,49 +62,6 @@ log = logging.getLogger(__name__)
 
 BATCH_JSON = "batch.json"
 
-# A one-shot run of 100 frames at 640x480 needs 2.3-3.5 GB (docs/benchmarks.md table D);
-# longer inputs are streamed within the frame budget.
-DEFAULT_MEMORY_GB = 3.0
-
-
-@dataclass
-class BatchOptions:
-    """Where the tasks run and what each asks Ray for.
-
-    address: an existing Ray cluster to join ("auto", "HOST:6379", "ray://HOST:10001");
-    None starts a local Ray instance with num_cpus CPUs (None: all of this machine's).
-    cpus_per_task, gpus_per_task, memory_per_task (GiB, 0 or None: no reservation): Ray
-    resources of each input's task; torch uses cpus_per_task threads in it.
-    node_retries: how many times an input whose node left the cluster is run again.
-    """
-
-    address: str | None = None
-    num_cpus: int | None = None
-    cpus_per_task: int = 2
-    gpus_per_task: float = 0.0
-    memory_per_task: float | None = DEFAULT_MEMORY_GB
-    node_retries: int = 2
-
-    def validate(self) -> None:
-        if self.address is not None and self.num_cpus is not None:
-            raise ReconInputError("--num-cpus sizes the local Ray instance; a cluster joined with --address has "
-                                  "its own CPUs")
-        if self.cpus_per_task < 1:
-            raise ReconInputError(f"--cpus-per-task must be >= 1, got {self.cpus_per_task}")
-        if self.gpus_per_task < 0:
-            raise ReconInputError(f"--gpus-per-task must be >= 0, got {self.gpus_per_task}")
-        if self.memory_per_task is not None and self.memory_per_task < 0:
-            raise ReconInputError(f"--memory-per-task must be >= 0 GB, got {self.memory_per_task}")
-        if self.node_retries < 0:
-            raise ReconInputError(f"--node-retries must be >= 0, got {self.node_retries}")
-        if self.num_cpus is not None and self.num_cpus < self.cpus_per_task:
-            raise ReconInputError(f"--num-cpus {self.num_cpus} is fewer than one task's --cpus-per-task "
-                                  f"{self.cpus_per_task}")
-
-
-def default_gpus_per_task(device: str) -> float:
-    """One GPU per task when the device asks for CUDA, else none."""
-    return 1.0 if device.startswith("cuda") else 0.0
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """`recon batch` on Ray: joining a cluster, what is checked before any input runs, lost nodes,
 and the progress line.
 
+* :class:`BatchOptions`: where the tasks run and what each asks of a node;
 * :func:`ray_session` connects to the cluster at ``--address`` (or starts a local instance)
   and, on a cluster, checks that every node able to run an input sees the output root and
   can write there (:func:`check_output_root`) before any input is scheduled: outputs are
@@ -23,13 +24,11 @@ import logging
 import socket
 import uuid
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import Iterator
 
 from ..errors import ReconInputError
-
-if TYPE_CHECKING:
-    from .batch import BatchOptions, Outcome
 
 log = logging.getLogger("recon.commands.batch")
 
@@ -43,6 +42,51 @@ PROBE_SECONDS = 120.0
 PROBE_PREFIX = ".recon-batch-probe-"
 
 DONE, SKIPPED, FAILED, PENDING = "done", "skipped", "failed", "pending"
+
+
+# A one-shot run of 100 frames at 640x480 needs 2.3-3.5 GB (docs/benchmarks.md table D);
+# longer inputs are streamed within the frame budget.
+DEFAULT_MEMORY_GB = 3.0
+
+
+@dataclass
+class BatchOptions:
+    """Where the tasks run and what each asks Ray for.
+
+    address: an existing Ray cluster to join ("auto", "HOST:6379", "ray://HOST:10001");
+    None starts a local Ray instance with num_cpus CPUs (None: all of this machine's).
+    cpus_per_task, gpus_per_task, memory_per_task (GiB, 0 or None: no reservation): Ray
+    resources of each input's task; torch uses cpus_per_task threads in it.
+    node_retries: how many times an input whose node left the cluster is run again.
+    """
+
+    address: str | None = None
+    num_cpus: int | None = None
+    cpus_per_task: int = 2
+    gpus_per_task: float = 0.0
+    memory_per_task: float | None = DEFAULT_MEMORY_GB
+    node_retries: int = 2
+
+    def validate(self) -> None:
+        if self.address is not None and self.num_cpus is not None:
+            raise ReconInputError("--num-cpus sizes the local Ray instance; a cluster joined with --address has "
+                                  "its own CPUs")
+        if self.cpus_per_task < 1:
+            raise ReconInputError(f"--cpus-per-task must be >= 1, got {self.cpus_per_task}")
+        if self.gpus_per_task < 0:
+            raise ReconInputError(f"--gpus-per-task must be >= 0, got {self.gpus_per_task}")
+        if self.memory_per_task is not None and self.memory_per_task < 0:
+            raise ReconInputError(f"--memory-per-task must be >= 0 GB, got {self.memory_per_task}")
+        if self.node_retries < 0:
+            raise ReconInputError(f"--node-retries must be >= 0, got {self.node_retries}")
+        if self.num_cpus is not None and self.num_cpus < self.cpus_per_task:
+            raise ReconInputError(f"--num-cpus {self.num_cpus} is fewer than one task's --cpus-per-task "
+                                  f"{self.cpus_per_task}")
+
+
+def default_gpus_per_task(device: str) -> float:
+    """One GPU per task when the device asks for CUDA, else none."""
+    return 1.0 if device.startswith("cuda") else 0.0
 
 
 def import_ray():
@@ -213,6 +257,8 @@ def check_output_root(ray, out: Path, options: BatchOptions) -> None:
         for ref in ready:
             try:
                 node_id, host, problem = ray.get(ref)
+            except (ray.exceptions.TaskUnschedulableError, ray.exceptions.NodeDiedError):
+                continue  # the node left the cluster after ray.nodes() listed it: it runs no input either
             except ray.exceptions.RayError as error:
                 node = refs[ref]
                 node_id, host = node["NodeID"], node.get("NodeManagerHostname")
@@ -299,9 +345,10 @@ def _seconds(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
 
-def format_progress(outcome: Outcome, progress: Progress) -> str:
-    """The line printed as an input finishes: [k/n, time left] input, status, seconds, the node
-    that ran it, nodes lost under it (and the error)."""
+def format_progress(outcome, progress: Progress) -> str:
+    """The line printed as an input finishes (outcome: a recon.commands.batch.Outcome):
+    [k/n, time left] input, status, seconds, the node that ran it, nodes lost under it (and
+    the error)."""
     left = progress.seconds_left()
     count = f"{progress.finished}/{progress.total}"
     if left is not None and progress.finished < progress.total:
@@ -322,8 +369,9 @@ def _first_line(text: str | None) -> str:
     return (str(text or "").strip().splitlines() or [""])[0]
 
 
-def format_table(rows: list[Outcome]) -> str:
-    """The closing summary: input, frames, seconds, mesh size, node and result per input."""
+def format_table(rows: list) -> str:
+    """The closing summary of the Outcome rows: input, frames, seconds, mesh size, node and
+    result per input."""
     header = ("input", "frames", "seconds", "mesh (vertices / triangles)", "node", "result")
     lines = [header]
     for r in rows:
@@ -340,13 +388,16 @@ def format_table(rows: list[Outcome]) -> str:
 
 
 __all__ = [
+    "DEFAULT_MEMORY_GB",
     "DONE",
     "FAILED",
     "PENDING",
     "SKIPPED",
+    "BatchOptions",
     "Progress",
     "check_output_root",
     "check_resources",
+    "default_gpus_per_task",
     "format_duration",
     "format_progress",
     "format_table",
