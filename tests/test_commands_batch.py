@@ -119,7 +119,9 @@ def test_bad_batch_options_fail_before_ray(tmp_path, capfd):
                            (["--device", "warp-drive"], ["--device", "warp-drive"]),
                            (["--intrinsics", "1,2"], ["--intrinsics"]),
                            (["--prior", "hf"], ["prior 'hf'", "--prior-path"]),
-                           (["--prior", "hf", "--prior-path", str(tmp_path)], [str(tmp_path), "no config.json"])]:
+                           (["--prior", "hf", "--prior-path", str(tmp_path)], [str(tmp_path), "no config.json"]),
+                           (["--memory-per-task", "-1"], ["--memory-per-task"]),
+                           (["-o", str(video / "out")], [str(video / "out"), "cannot write"])]:
         assert main(["batch", str(video), "-o", str(tmp_path / "out"), *options]) == 2
         err = capfd.readouterr().err.splitlines()
         assert len(err) == 1 and err[0].startswith("recon: error: "), err
@@ -185,6 +187,12 @@ def test_batch_options_are_checked():
         BatchOptions(gpus_per_task=-1).validate()
     from recon.commands.batch import check_resources
 
-    with pytest.raises(ReconInputError, match="1 GPU"):
-        check_resources({"CPU": 8.0}, BatchOptions(gpus_per_task=1), local=True)
-    check_resources({"CPU": 8.0}, BatchOptions(gpus_per_task=1), local=False)  # a cluster may grow: a warning
+    nodes = [{"Resources": {"CPU": 8.0, "memory": 16.0 * 2**30}}, {"Resources": {"CPU": 1.0, "GPU": 1.0}}]
+    with pytest.raises(ReconInputError, match="1 GPU"):  # no node has both
+        check_resources(nodes, BatchOptions(gpus_per_task=1), local=True)
+    check_resources(nodes, BatchOptions(gpus_per_task=1), local=False)  # a cluster may grow: a warning
+    check_resources(nodes, BatchOptions(gpus_per_task=1, cpus_per_task=1, memory_per_task=0), local=True)
+    with pytest.raises(ReconInputError, match=r"20.0 GB memory \(--memory-per-task\) and no node .* 16.0 GB memory"):
+        check_resources(nodes, BatchOptions(memory_per_task=20), local=True)
+    with pytest.raises(ReconInputError, match="node-retries"):
+        BatchOptions(node_retries=-1).validate()

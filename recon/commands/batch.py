@@ -10,12 +10,16 @@ This module owns what a batch adds to `recon run`:
   it was left by a failed or killed run: it is ours, and the input is run again into it
   with ``overwrite``;
 * the Ray task that runs one input (its CPUs, GPUs and memory as Ray resources, torch's
-  threads set to its CPUs) and hands back an :class:`Outcome` instead of raising, so one
-  bad input never stops the others; a task whose worker dies comes back as a failure too;
-* what the user reads: one line per input as it finishes, the summary table, and
-  ``OUT/batch.json`` with the same rows.
+  threads set to its CPUs) and hands back an :class:`Outcome` (with the node that ran it)
+  instead of raising, so one bad input never stops the others; a task whose worker dies
+  comes back as a failure too, a task whose node left the cluster is run again elsewhere;
+* what the user reads: one line per input as it finishes (its node, the count, the time
+  left), the summary table, and ``OUT/batch.json`` with the same rows, rewritten as each
+  input finishes (the inputs not finished yet as "pending").
 
-Ray is imported only when a batch runs (:func:`import_ray`), so the rest of recon needs none.
+Joining a cluster, the checks before any input runs and the progress count are in
+recon.commands.batch_cluster. Ray is imported only when a batch runs (:func:`import_ray`), so
+the rest of recon needs none.
 The command line's options become the :class:`~recon.core.config.PipelineConfig` template in
 recon.commands.cli; every input gets a copy with its own input and output.
 """
@@ -26,61 +30,38 @@ import logging
 import socket
 import time
 import traceback
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 from ..choices import POSE_CHOICES
 from ..core.config import PipelineConfig, device_index
 from ..errors import ReconInputError
 from ..io.output_folder import REPORT_JSON, atomic_write_bytes, json_bytes, read_report
+from .batch_cluster import (
+    DONE,
+    FAILED,
+    PENDING,
+    SKIPPED,
+    BatchOptions,
+    Progress,
+    check_resources,
+    cluster_slots,
+    default_gpus_per_task,
+    format_progress,
+    format_table,
+    import_ray,
+    lost_node_id,
+    node_label,
+    node_lost,
+    ray_session,
+    task_resources,
+)
 
 log = logging.getLogger(__name__)
 
 BATCH_JSON = "batch.json"
-RAY_MISSING = "recon batch needs Ray: pip install -e .[batch]"
-# The tasks pass only configurations and outcomes (kilobytes) through Ray's object store;
-# a small store leaves the local machine's memory to the pipelines.
-LOCAL_OBJECT_STORE_BYTES = 128 * 2**20
 
-DONE, SKIPPED, FAILED = "done", "skipped", "failed"
-
-
-@dataclass
-class BatchOptions:
-    """Where the tasks run and what each asks Ray for.
-
-    address: an existing Ray cluster to join ("auto", "HOST:6379", "ray://HOST:10001");
-    None starts a local Ray instance with num_cpus CPUs (None: all of this machine's).
-    cpus_per_task, gpus_per_task, memory_per_task (GiB, None: no reservation): Ray
-    resources of each input's task; torch uses cpus_per_task threads in it.
-    """
-
-    address: str | None = None
-    num_cpus: int | None = None
-    cpus_per_task: int = 2
-    gpus_per_task: float = 0.0
-    memory_per_task: float | None = None
-
-    def validate(self) -> None:
-        if self.address is not None and self.num_cpus is not None:
-            raise ReconInputError("--num-cpus sizes the local Ray instance; a cluster joined with --address has "
-                                  "its own CPUs")
-        if self.cpus_per_task < 1:
-            raise ReconInputError(f"--cpus-per-task must be >= 1, got {self.cpus_per_task}")
-        if self.gpus_per_task < 0:
-            raise ReconInputError(f"--gpus-per-task must be >= 0, got {self.gpus_per_task}")
-        if self.memory_per_task is not None and self.memory_per_task <= 0:
-            raise ReconInputError(f"--memory-per-task must be > 0 GB, got {self.memory_per_task}")
-        if self.num_cpus is not None and self.num_cpus < self.cpus_per_task:
-            raise ReconInputError(f"--num-cpus {self.num_cpus} is fewer than one task's --cpus-per-task "
-                                  f"{self.cpus_per_task}")
-
-
-def default_gpus_per_task(device: str) -> float:
-    """One GPU per task when the device asks for CUDA, else none."""
-    return 1.0 if device.startswith("cuda") else 0.0
 
 
 @dataclass
@@ -96,10 +77,12 @@ class Job:
 class Outcome:
     """What became of one input: a row of the summary and of batch.json.
 
-    status: "done" (run now), "skipped" (done by an earlier run) or "failed"; seconds: this
-    run's wall time (None when skipped); frames, vertices, triangles: from the run or the
-    earlier report; error: one line; detail: the traceback of an unexpected error;
-    warnings: what recon warned about while running it.
+    status: "done" (run now), "skipped" (done by an earlier run), "failed", or "pending" (in
+    batch.json while the batch runs); seconds: this run's wall time (None when skipped);
+    frames, vertices, triangles: from the run or the earlier report; error: one line;
+    detail: the traceback of an unexpected error; warnings: what recon warned about while
+    running it; node, host: the Ray node id and host name that ran it; attempts: tasks
+    started for it; lost_nodes: the nodes that left the cluster while running it.
     """
 
     input: str
@@ -112,6 +95,10 @@ class Outcome:
     error: str | None = None
     detail: str | None = None
     warnings: list[str] = field(default_factory=list)
+    node: str | None = None
+    host: str | None = None
+    attempts: int = 0
+    lost_nodes: list[str] = field(default_factory=list)
 
     @property
     def result(self) -> str:
@@ -245,8 +232,18 @@ def _failure(job_input: str, output: str, error: BaseException, start: float) ->
                    error=f"{type(error).__name__}: {error}", detail=traceback.format_exc())
 
 
+def _this_node() -> str | None:
+    try:
+        import ray
+
+        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
+    except ImportError:
+        return None
+
+
 def run_input(label: str, config: PipelineConfig, threads: int, gpus: float) -> Outcome:
-    """Run one input (the body of a Ray task); every error comes back in the Outcome."""
+    """Run one input (the body of a Ray task); every error comes back in the Outcome, with
+    the node that ran it."""
     import cv2
     import torch
 
@@ -270,6 +267,7 @@ def run_input(label: str, config: PipelineConfig, threads: int, gpus: float) -> 
     finally:
         recon_log.removeHandler(warnings)
     outcome.warnings = warnings.messages
+    outcome.node, outcome.host = _this_node(), socket.gethostname()
     return outcome
 
 
@@ -282,91 +280,15 @@ def lost_task(job: Job, error: Exception) -> Outcome:
                    error=f"task lost: {type(cause).__name__}: {first_line}", detail=str(error))
 
 
-# --------------------------------------------------------------------------- Ray
-
-
-def import_ray():
-    try:
-        import ray
-    except ImportError:
-        raise ReconInputError(RAY_MISSING) from None
-    return ray
-
-
-@contextmanager
-def ray_session(options: BatchOptions) -> Iterator[object]:
-    """Ray, connected: to the cluster at options.address, else to a new local instance that
-    is shut down afterwards. A Ray the caller already started (Python API) is used as it is."""
-    ray = import_ray()
-    if ray.is_initialized():
-        yield ray
-        return
-    local = options.address is None
-    # Ray's own logging stays off the terminal (the user reads recon's lines): no dashboard,
-    # workers' output left in Ray's session logs, only Ray's errors shown.
-    settings = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
-    if local:
-        # "local": a new instance even when RAY_ADDRESS or an earlier `ray start` names one.
-        settings.update(address="local", num_cpus=options.num_cpus, object_store_memory=LOCAL_OBJECT_STORE_BYTES)
-    else:
-        check_reachable(options.address)
-        settings.update(address=options.address)
-    try:
-        ray.init(**settings)
-    except ConnectionError as error:
-        # Also what a cluster with token authentication answers a driver without its token.
-        raise ReconInputError(f"--address {options.address}: cannot join a Ray cluster there ({error}; a cluster "
-                              f"with token authentication needs RAY_AUTH_MODE=token and its token here too)") from None
-    try:
-        check_resources(ray.cluster_resources(), options, local)
-        yield ray
-    finally:
-        ray.shutdown()
-
-
-def check_reachable(address: str) -> None:
-    """Ray keeps trying an address where nothing answers for minutes, with warnings of its
-    own; a plain HOST:PORT that accepts no connection is refused at once instead."""
-    host, _, port = address.rpartition(":")
-    if "://" in address or not host or not port.isdigit():
-        return  # "auto", "ray://HOST:PORT" (Ray Client): Ray's own checks
-    try:
-        socket.create_connection((host, int(port)), timeout=10).close()
-    except OSError as error:
-        raise ReconInputError(f"--address {address}: no Ray cluster answers there ({error})") from None
-
-
-def check_resources(available: dict, options: BatchOptions, local: bool) -> None:
-    """A task asking for more than the cluster has would wait forever: refuse on the local
-    instance; on a joined cluster (which may grow) say so once."""
-    wanted = {"CPU": options.cpus_per_task, "GPU": options.gpus_per_task}
-    for name, amount in wanted.items():
-        have = available.get(name, 0)
-        if amount > have:
-            flag = f"--{name.lower()}s-per-task"
-            text = f"each task asks for {amount:g} {name} ({flag}); the Ray cluster has {have:g}"
-            if local:
-                raise ReconInputError(text)
-            log.warning("%s: tasks wait until such a node joins", text)
-
-
-def _remote_runner(ray, options: BatchOptions):
-    resources = dict(num_cpus=options.cpus_per_task, num_gpus=options.gpus_per_task,
-                     # A dead worker (out of memory, a native crash) would most likely die again;
-                     # the next `recon batch` retries the input anyway.
-                     max_retries=0)
-    if options.memory_per_task:
-        resources["memory"] = int(options.memory_per_task * 2**30)
-    return ray.remote(**resources)(run_input)
-
-
 # --------------------------------------------------------------------------- the batch
 
 
 def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOptions,
-              on_done: Callable[[Outcome, int, int], None] | None = None) -> list[Outcome]:
-    """Run every input on Ray; returns one Outcome per input, in input order, and writes them
-    to OUT/batch.json. on_done(outcome, k, n) is called as each input finishes (k of n).
+              on_done: Callable[[Outcome, Progress], None] | None = None) -> list[Outcome]:
+    """Run every input on Ray; returns one Outcome per input, in input order. OUT/batch.json
+    holds the same rows, rewritten as each input finishes (those not finished yet: "pending"),
+    so that a killed driver leaves a true record. on_done(outcome, progress) is called as each
+    input finishes (progress: the count k of n and the time left).
 
     Missing inputs and completed outputs start no task; all other inputs run as Ray tasks.
     """
@@ -380,11 +302,18 @@ def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOp
         raise ReconInputError(f"{out}: output path exists and is not a folder")
     jobs = plan_jobs(inputs, out)
     outcomes: dict[int, Outcome] = {}
+    progress = Progress(len(jobs))
 
-    def finished(index: int, outcome: Outcome) -> None:
+    def rows() -> list[Outcome]:
+        return [outcomes.get(i) or Outcome(job.label, str(job.output), PENDING) for i, job in enumerate(jobs)]
+
+    def finished(index: int, outcome: Outcome, ran: bool) -> None:
         outcomes[index] = outcome
+        progress.add(outcome.seconds, ran)
+        if ran:
+            write_batch_json(out, rows())
         if on_done is not None:
-            on_done(outcome, len(outcomes), len(jobs))
+            on_done(outcome, progress)
 
     todo = []
     for index, job in enumerate(jobs):
@@ -392,84 +321,106 @@ def run_batch(inputs: list[str], out, template: PipelineConfig, options: BatchOp
         if outcome is None:
             todo.append(index)
         else:
-            finished(index, outcome)
+            finished(index, outcome, ran=False)
+    try:
+        write_batch_json(out, rows())  # creates OUT, which the cluster's nodes are checked against
+    except OSError as error:
+        raise ReconInputError(f"{out}: cannot write the batch's record there ({type(error).__name__}: "
+                              f"{error.strerror or error})") from None
     if todo:
-        with ray_session(options) as ray:
-            _run_tasks(ray, jobs, todo, template, options, finished)
-    rows = [outcomes[i] for i in range(len(jobs))]
-    write_batch_json(out, rows)
-    return rows
+        with ray_session(options, out) as ray:
+            progress.slots = cluster_slots(ray, options)
+            _run_tasks(ray, jobs, todo, template, options, finished, progress)
+    return rows()
+
+
+def _remote_runner(ray, options: BatchOptions):
+    resources = {"num_cpus": options.cpus_per_task, "num_gpus": options.gpus_per_task,
+                 # Ray retries nothing: a dead worker (out of memory, a native crash) would most
+                 # likely die again (the next `recon batch` retries the input anyway), and an input
+                 # whose node left the cluster is run again by _run_tasks.
+                 "max_retries": 0}
+    if "memory" in task_resources(options):
+        resources["memory"] = int(task_resources(options)["memory"])
+    return ray.remote(**resources)(run_input)
 
 
 def _run_tasks(ray, jobs: list[Job], todo: list[int], template: PipelineConfig, options: BatchOptions,
-               finished: Callable[[int, Outcome], None]) -> None:
+               finished: Callable[[int, Outcome, bool], None], progress: Progress) -> None:
     runner = _remote_runner(ray, options)
     threads = max(1, int(options.cpus_per_task))
-    pending = {runner.remote(jobs[i].label, job_config(template, jobs[i]), threads, options.gpus_per_task): i
-               for i in todo}
+    lost: dict[int, list[str]] = {i: [] for i in todo}
+
+    def submit(index: int):
+        # job_config again on a retry: the lost node's partial folder is this batch's to overwrite.
+        return runner.remote(jobs[index].label, job_config(template, jobs[index]), threads, options.gpus_per_task)
+
+    pending = {submit(i): i for i in todo}
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)
         for ref in ready:
             index = pending.pop(ref)
+            job = jobs[index]
             try:
-                outcome = ray.get(ref)
+                outcome = _checked(ray.get(ref), job)
             except ray.exceptions.RayError as error:
-                outcome = lost_task(jobs[index], error)
-            finished(index, outcome)
+                if not node_lost(ray, error) or len(lost[index]) >= options.node_retries:
+                    outcome = lost_task(job, error)
+                else:
+                    node = lost_node_id(error)
+                    lost[index].append(node or "unknown")
+                    progress.slots = cluster_slots(ray, options)
+                    outcome = _after_lost_node(job, node)
+                    if outcome is None:
+                        log.warning("%s: %s left the cluster while running it; running it again", job.label,
+                                    node_label(node, None))
+                        pending[submit(index)] = index
+                        continue
+            # Tasks started for it: the lost ones, and the one that came back (none when the
+            # lost node had written report.json before it went away).
+            outcome.attempts = len(lost[index]) + (outcome.node is None or outcome.node not in lost[index])
+            outcome.lost_nodes = list(lost[index])
+            finished(index, outcome, True)
+
+
+def _checked(outcome: Outcome, job: Job) -> Outcome:
+    """A task's outcome as the driver sees it: "done" only when report.json is there too (a node
+    writing to a folder of its own that this machine does not see is a failure)."""
+    if outcome.status == DONE and not (job.output / REPORT_JSON).is_file():
+        outcome.status = FAILED
+        outcome.error = (f"{job.output / REPORT_JSON}: not found here although {node_label(outcome.node, outcome.host)}"
+                         f" finished the input; the output folder must be a path every node sees (a shared file "
+                         f"system)")
+    return outcome
+
+
+def _after_lost_node(job: Job, node: str | None) -> Outcome | None:
+    """An input whose node left the cluster: done after all (on that node) when its report.json
+    was written before the node went away, else None (run it again)."""
+    earlier = earlier_outcome(job)
+    if earlier is None:
+        return None
+    if earlier.status == SKIPPED:
+        earlier.status, earlier.node = DONE, node
+    return earlier
 
 
 def write_batch_json(out: Path, rows: list[Outcome]) -> Path:
     """OUT/batch.json: counts and one row per input (atomic: a reader sees the old or the new one)."""
     out.mkdir(parents=True, exist_ok=True)
-    counts = {status: sum(r.status == status for r in rows) for status in (DONE, SKIPPED, FAILED)}
+    counts = {status: sum(r.status == status for r in rows) for status in (DONE, SKIPPED, FAILED, PENDING)}
     return atomic_write_bytes(out / BATCH_JSON, json_bytes({"inputs": len(rows), **counts,
                                                             "rows": [asdict(r) for r in rows]}), overwrite=True)
-
-
-# --------------------------------------------------------------------------- what the user reads
-
-
-def _seconds(value: float | None) -> str:
-    return "-" if value is None else f"{value:.1f}"
-
-
-def format_progress(outcome: Outcome, k: int, n: int) -> str:
-    """The line printed as an input finishes: [k/n] input, status, seconds (and the error)."""
-    line = f"[{k}/{n}] {outcome.input}: {outcome.status}"
-    if outcome.seconds is not None:
-        line += f" in {outcome.seconds:.1f} s"
-    if outcome.status == FAILED:
-        line += f": {_first_line(outcome.error)}"
-    return line
-
-
-def _first_line(text: str | None) -> str:
-    return (str(text or "").strip().splitlines() or [""])[0]
-
-
-def format_table(rows: list[Outcome]) -> str:
-    """The closing summary: input, frames, seconds, mesh size and result per input."""
-    header = ("input", "frames", "seconds", "mesh (vertices / triangles)", "result")
-    lines = [header]
-    for r in rows:
-        mesh = "-" if r.vertices is None else f"{r.vertices} / {r.triangles}"
-        frames = "-" if r.frames is None else str(r.frames)
-        lines.append((r.input, frames, _seconds(r.seconds), mesh, _first_line(r.result)))
-    widths = [max(len(line[c]) for line in lines) for c in range(len(header) - 1)]
-    right = (False, True, True, True)  # numbers right-aligned
-    out = []
-    for line in lines:
-        cells = [cell.rjust(w) if r else cell.ljust(w) for cell, w, r in zip(line, widths, right)]
-        out.append("  ".join([*cells, line[-1]]))
-    return "\n".join(out)
 
 
 __all__ = [
     "BATCH_JSON",
     "DONE",
     "FAILED",
+    "PENDING",
     "SKIPPED",
     "BatchOptions",
+    "check_resources",
     "Job",
     "Outcome",
     "default_gpus_per_task",

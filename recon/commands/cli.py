@@ -86,13 +86,13 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     template = dataclasses.replace(pipeline_config_from_args(run_args, build_parser()), device=args.device)
     gpus = default_gpus_per_task(args.device) if args.gpus_per_task is None else args.gpus_per_task
     options = BatchOptions(address=args.address, num_cpus=args.num_cpus, cpus_per_task=args.cpus_per_task,
-                           gpus_per_task=gpus, memory_per_task=args.memory_per_task)
+                           gpus_per_task=gpus, memory_per_task=args.memory_per_task, node_retries=args.node_retries)
 
-    def on_done(outcome, k: int, n: int) -> None:
+    def on_done(outcome, progress) -> None:
         for message in outcome.warnings:  # the task's warnings, as `recon run` would have shown them
             logging.getLogger("recon.commands.batch").warning("%s: %s", outcome.input, message)
         if not args.quiet:
-            print(format_progress(outcome, k, n), flush=True)
+            print(format_progress(outcome, progress), flush=True)
 
     rows = run_batch(args.inputs, args.output, template, options, on_done)
     print(format_table(rows))

@@ -365,17 +365,21 @@ def build_parser() -> argparse.ArgumentParser:
     batch = sub.add_parser(
         "batch", help="many videos / folders -> one output folder each, run in parallel on Ray",
         description="Run the pipeline on every input as a Ray task (a local Ray instance, or a cluster joined with "
-                    "--address): OUT/<input name without suffix>/ per input, one line per input as it finishes, "
-                    "a summary table and OUT/batch.json. Inputs whose output is complete (report.json) are skipped, "
+                    "--address): OUT/<input name without suffix>/ per input, one line per input as it finishes "
+                    "(the node that ran it, the count, the time left), a summary table and OUT/batch.json "
+                    "(rewritten as each input finishes). Inputs whose output is complete (report.json) are skipped, "
                     "so running the same command again resumes; a failed input does not stop the others (exit code "
-                    "2 when any failed). The run options are those of `recon run`, the same for every input. "
-                    "Needs Ray: pip install -e .[batch].",
+                    "2 when any failed); an input whose node leaves the cluster is run again on another. The run "
+                    "options are those of `recon run`, the same for every input. On a cluster, the inputs and the "
+                    "output folder must be paths every node sees (a shared file system): each node is checked "
+                    "before any input runs. Needs Ray: pip install -e .[batch].",
     )
     batch.add_argument("inputs", nargs="+", metavar="INPUT",
                        help="video files, image folders or RGB-D dataset folders (as for `recon run`)")
     batch.add_argument("-o", "--output", required=True,
                        help="folder of the results: OUT/<input name>/ per input (a name taken by an earlier input "
-                            "gets -2, -3, ...), OUT/batch.json")
+                            "gets -2, -3, ...), OUT/batch.json; on a cluster a path every node sees and can write "
+                            "(a shared file system, or object storage mounted at the same path on every node)")
     batch.add_argument("--address", help="join this Ray cluster (auto: the one `ray start` made here; HOST:6379; "
                                          "ray://HOST:10001); default: start a local Ray instance")
     batch.add_argument("--num-cpus", type=int, help="CPUs of the local Ray instance (default: all of this machine's)")
@@ -384,8 +388,13 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--gpus-per-task", type=float,
                        help="GPUs Ray reserves for each input, may be a fraction (default: 1 with --device cuda, "
                             "else 0)")
-    batch.add_argument("--memory-per-task", type=float, metavar="GB",
-                       help="memory Ray reserves for each input (default: none reserved)")
+    batch.add_argument("--memory-per-task", type=float, metavar="GB", default=3.0,
+                       help="memory Ray reserves for each input, so that no more inputs share a node than fit in "
+                            "its memory (default %(default)s: a one-shot run of 100 frames at 640x480; longer inputs "
+                            "stream within --frame-budget; 0: none reserved)")
+    batch.add_argument("--node-retries", type=int, default=2, metavar="N",
+                       help="times an input whose node left the cluster is run again on another node (default "
+                            "%(default)s; an input whose worker died on a live node is reported failed)")
     batch.add_argument("--save-recording", action="store_true",
                        help="write OUT/<name>/recording.rrd for each input (Rerun is otherwise off)")
     add_device_arguments(batch)
