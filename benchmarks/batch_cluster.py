@@ -45,7 +45,7 @@ STORE = 100 * 2**20
 def make_inputs(folder: Path, count: int, frames: int, width: int, height: int) -> tuple[list[str], list[str]]:
     """count copies of one synthetic video, and the run options that go with them."""
     from recon.io.output_folder import frame_name
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.io.video import write_video
     from recon.synthetic import render_sequence
 

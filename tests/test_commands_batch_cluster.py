@@ -53,7 +53,7 @@ def inputs(tmp_path_factory):
     """Six copies of the same 8-frame synthetic video (clip0.mp4 ...), one pose file and one
     prior folder for all, and the options of a fast run with one CPU per input."""
     from recon.io.output_folder import frame_name
-    from recon.io.trajectories import write_poses
+    from recon.io.pose_formats.trajectories import write_poses
     from recon.io.video import write_video
     from recon.synthetic import render_sequence
 
