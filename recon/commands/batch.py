@@ -1,27 +1,13 @@
 """`recon batch`: many inputs through the pipeline on Ray, one output folder each.
 
-This module owns what a batch adds to `recon run`:
-
-* the output folder of each input, ``OUT/<input name without suffix>`` (a name taken by an
-  earlier input becomes name-2, name-3, ...: the same inputs in the same order always get
-  the same folders);
-* what a second run skips: an input whose folder holds ``report.json`` (the pipeline writes
-  it last, so its presence means the rest is there) of that same input. A folder without
-  it was left by a failed or killed run: it is ours, and the input is run again into it
-  with ``overwrite``;
-* the Ray task that runs one input (its CPUs, GPUs and memory as Ray resources, torch's
-  threads set to its CPUs) and hands back an :class:`Outcome` (with the node that ran it)
-  instead of raising, so one bad input never stops the others; a task whose worker dies
-  comes back as a failure too, a task whose node left the cluster is run again elsewhere;
-* what the user reads: one line per input as it finishes (its node, the count, the time
-  left), the summary table, and ``OUT/batch.json`` with the same rows, rewritten as each
-  input finishes (the inputs not finished yet as "pending").
-
-Joining a cluster, the checks before any input runs and the progress count are in
-recon.commands.batch_cluster. Ray is imported only when a batch runs (:func:`import_ray`), so
-the rest of recon needs none.
-The command line's options become the :class:`~recon.core.config.PipelineConfig` template in
-recon.commands.cli; every input gets a copy with its own input and output.
+This module owns what a batch adds to `recon run`: each input's folder
+``OUT/<input name without suffix>`` (name-2, name-3, ... in input order), skipping an input
+whose folder holds its ``report.json`` (a folder without one is run again into), the Ray task
+per input (its resources as Ray resources, an :class:`Outcome` naming its node instead of an
+exception, so one bad input never stops the others) and the rows of ``OUT/batch.json``,
+rewritten as each input finishes. Joining a cluster, the checks before any input runs, lost
+nodes and the progress line: recon.commands.batch_cluster.
+More: docs/running.md#many-videos-recon-batch
 """
 
 from __future__ import annotations

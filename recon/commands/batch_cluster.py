@@ -1,21 +1,13 @@
 """`recon batch` on Ray: joining a cluster, what is checked before any input runs, lost nodes,
 and the progress line.
 
-* :class:`BatchOptions`: where the tasks run and what each asks of a node;
-* :func:`ray_session` connects to the cluster at ``--address`` (or starts a local instance)
-  and, on a cluster, checks that every node able to run an input sees the output root and
-  can write there (:func:`check_output_root`) before any input is scheduled: outputs are
-  written by the node that runs the input, and the driver reads them back (what a second run
-  skips), so the output root must be one folder every node sees at the same path;
-* :func:`check_resources` refuses (local instance) or warns about (cluster) a task that no
-  node can hold;
-* :func:`node_lost` tells an input whose node left the cluster (run again elsewhere) from one
-  whose worker died on a live node (reported failed, as before);
-* :class:`Progress` counts the finished inputs and estimates the time left; what the user
-  reads (:func:`format_progress`, one line per finished input with the node that ran it, and
-  :func:`format_table`, the closing summary) is here too.
-
-Ray is imported only inside these functions: the rest of recon needs none.
+:func:`ray_session` joins the cluster at ``--address`` (or starts a local instance) and, on a
+cluster, checks that every node able to run an input can write to the output root
+(:func:`check_output_root`) before any input is scheduled; :func:`node_lost` tells an input
+whose node left (run again elsewhere) from one whose worker died (reported failed);
+:class:`Progress` counts finished inputs and estimates the time left. Ray is imported only
+inside these functions: the rest of recon needs none.
+More: docs/running.md#on-a-ray-cluster
 """
 
 from __future__ import annotations
