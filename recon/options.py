@@ -1,15 +1,20 @@
 """`KEY=VALUE` settings from the command line, typed like the dataclass field they set.
 
-One rule for every config the CLI exposes this way (``--pose-option``, ``--refine-option``):
-numbers, true/false (also yes/no, on/off, 1/0), ``none`` where the field may be None, and
-comma-separated numbers for tuples.
+One rule for every config the CLI exposes this way (``--pose-option``, ``--set``): numbers,
+true/false (also yes/no, on/off, 1/0), ``none`` where the field may be None, and
+comma-separated numbers for tuples. A field's meaning is its attribute docstring (the string
+right after it), read by ``field_docs``: the one text that the flags' help is made from.
 """
 
 from __future__ import annotations
 
+import ast
+import inspect
+import textwrap
 import types
 import typing
 from dataclasses import MISSING, fields, is_dataclass
+from functools import cache
 
 from .errors import ReconInputError
 
@@ -83,4 +88,38 @@ def option_table(cls) -> str:
     return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d}" for n, t, d in rows)
 
 
-__all__ = ["option_table", "parse_field_option", "scalar_fields", "split_option", "type_name", "typed_value"]
+@cache
+def field_docs(cls) -> dict[str, str]:
+    """The attribute docstrings of dataclass `cls`: the string literal right after a field.
+
+    Args:
+        cls: a dataclass whose source Python can read.
+
+    Returns:
+        {field name: its docstring, dedented}; fields without one are left out.
+    """
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    docs = {}
+    for node, after in zip(body, body[1:]):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+            docs[node.target.id] = inspect.cleandoc(after.value.value)
+    return docs
+
+
+def field_summary(cls, name: str) -> str:
+    """The first paragraph of field `name`'s docstring on one line (the flag's help text).
+
+    Args:
+        cls: the dataclass that has the field.
+        name: the field's name.
+
+    Returns:
+        The summary; KeyError when the field has no docstring.
+    """
+    return " ".join(field_docs(cls)[name].split("\n\n")[0].split())
+
+
+__all__ = ["field_docs", "field_summary", "option_table", "parse_field_option", "scalar_fields", "split_option",
+           "type_name", "typed_value"]
