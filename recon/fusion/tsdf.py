@@ -412,7 +412,7 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
             "fused (0 fuses every pixel; camera motion between frames gives the refinement its evidence)"
             if confidence_used and options.min_confidence else "")
     log.warning("TSDF fusion: the mesh is empty (%d frames fused): no surface within --max-depth %.2f m was seen "
-                "by more than --weight-threshold %g frames%s; mesh.ply and mesh.glb are not written",
+                "by more than fusion.weight_threshold %g frames%s; mesh.ply and mesh.glb are not written",
                 volume.frames_fused, volume.max_depth, options.weight_threshold, gate)
 
 
