@@ -67,27 +67,6 @@ def split_option(text: str, what: str) -> tuple[str, str]:
     return key, raw
 
 
-def parse_field_option(text: str, cls, what: str) -> tuple[str, object]:
-    """KEY=VALUE for a scalar field of dataclass `cls`, typed like the field.
-    `what` names the option in messages ("refine option")."""
-    key, raw = split_option(text, what)
-    table = scalar_fields(cls)
-    if key not in table:
-        raise ReconInputError(f"unknown {what} {key!r} (known: {', '.join(sorted(table))})")
-    kind = table[key][0]
-    try:
-        return key, typed_value(raw, kind)
-    except ValueError:
-        raise ReconInputError(f"{what} {key}: {raw!r} is not a valid {type_name(kind)}") from None
-
-
-def option_table(cls) -> str:
-    """The scalar fields of dataclass `cls` with type and default, a line each."""
-    rows = [(name, type_name(kind), repr(default)) for name, (kind, default) in sorted(scalar_fields(cls).items())]
-    widths = [max(len(r[i]) for r in rows) for i in range(2)]
-    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d}" for n, t, d in rows)
-
-
 @cache
 def field_docs(cls) -> dict[str, str]:
     """The attribute docstrings of dataclass `cls`: the string literal right after a field.
@@ -121,5 +100,4 @@ def field_summary(cls, name: str) -> str:
     return " ".join(field_docs(cls)[name].split("\n\n")[0].split())
 
 
-__all__ = ["field_docs", "field_summary", "option_table", "parse_field_option", "scalar_fields", "split_option",
-           "type_name", "typed_value"]
+__all__ = ["field_docs", "field_summary", "scalar_fields", "split_option", "type_name", "typed_value"]

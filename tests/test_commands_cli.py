@@ -501,6 +501,19 @@ def test_run_help_is_short_and_says_where_the_other_settings_are():
         assert gone not in text
 
 
+def test_batch_takes_set_and_config_like_run():
+    """`recon batch` has the run flags and --set/--config, so a setting without a flag reaches
+    every input's config as it reaches `recon run`'s."""
+    import argparse
+
+    parser = build_parser()
+    args = parser.parse_args(["batch", "a.mp4", "b.mp4", "-o", "out", "--set", "medea.stage1.epochs=7",
+                              "--set", "fusion.block_count=1000", "--device", "cpu"])
+    run_args = argparse.Namespace(**{**vars(args), "input": ".", "output": ".", "overwrite": False, "rerun": ["off"]})
+    config = pipeline_config_from_args(run_args, parser)
+    assert config.medea.stage1.epochs == 7 and config.fusion.block_count == 1000
+
+
 def test_flag_help_is_the_field_docstring():
     """A flag that sets a setting has no help of its own: its help is the summary of that
     setting's field docstring (recon.options.field_summary), and every setting of RUN_FLAGS has one."""

@@ -123,7 +123,7 @@ class _SetAction(_ListableAction):
 
     def table(self, parser: argparse.ArgumentParser) -> str:
         from ..core.config_file import settings_listing
-        # A bare `recon run IN -o OUT`'s settings, parsed by the run command's own parser.
+        # A bare `recon run IN -o OUT`'s settings (also for `recon batch`, whose parser has no IN).
         return settings_listing(bare_config(build_parser(), "IN", "OUT"))
 
 
