@@ -20,6 +20,7 @@ from medea_core import MedeaConfig
 
 from ..choices import (
     ON_BREAK_CHOICES,
+    POSE_CHOICES,
     POSE_METHODS,
     PRIOR_ALIGN_CHOICES,
     PRIOR_CHOICES,
@@ -128,6 +129,7 @@ def bare_config(parser: argparse.ArgumentParser, input_path, output):
 
 def config_from_flags(args: argparse.Namespace):
     """The PipelineConfig the parsed flags of `recon run` make (the settings of RUN_FLAGS)."""
+    from ..core.config_file import with_values
     from ..pipeline import PipelineConfig
 
     medea = medea_config_from_args(args)
@@ -137,8 +139,6 @@ def config_from_flags(args: argparse.Namespace):
         pose_options=pose_options_from_args(args), adjust=not args.no_medea, medea=medea,
         rerun=mode, rerun_path=path, device=medea.device, progress=not args.quiet,
     )
-    from ..core.config_file import with_values
-
     return with_values(config, {flag.setting: flag.value(args) for _, _, flags in RUN_FLAGS for flag in flags})
 
 
@@ -205,7 +205,7 @@ RUN_FLAGS: list[tuple[str, str, list[Flag]]] = [
         Flag("--rolling-shutter", "rolling_shutter", {"type": float, "metavar": "MS"}),
     ]),
     ("poses", "docs/poses.md", [
-        Flag("--poses", "poses", {"metavar": "{auto,gt,estimate}|PATH"}),
+        Flag("--poses", "poses", {"metavar": "{%s}|PATH" % ",".join(POSE_CHOICES)}),
         Flag("--pose-method", "pose_method", {"choices": POSE_METHODS}),
         Flag("--on-break", "on_break", {"choices": ON_BREAK_CHOICES}),
         Flag("--no-join", "join_segments", {"action": "store_false", "dest": "join_segments"}),
