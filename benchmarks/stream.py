@@ -101,9 +101,9 @@ def main() -> None:
     longest = max(args.lengths + args.batch_lengths + args.all_frames_lengths + args.estimate_lengths
                   + args.batch_estimate_lengths)
     video, poses = ping_pong_video(args.work / f"pingpong_{longest}.mp4", longest, args.dataset)
-    # Given poses (the ground truth as a pose file) and no polish, so that stream and batch
-    # do the same work; estimated poses in rows of their own.
-    given = ["--poses", str(poses), "--intrinsics", "525,525,320,240", "--no-polish", *args.extra.split()]
+    # Given poses (the ground truth as a pose file) and no polish (the default), so that stream
+    # and batch do the same work; estimated poses in rows of their own.
+    given = ["--poses", str(poses), "--intrinsics", "525,525,320,240", "--set", "polish=false", *args.extra.split()]
     plan = [("stream", n, "on", given) for n in args.lengths]
     plan += [("batch", n, "off", [*given, "--frame-budget", str(n)]) for n in args.batch_lengths]
     estimated = ["--poses", "estimate", "--intrinsics", "525,525,320,240", *args.extra.split()]

@@ -17,18 +17,31 @@ class StageConfig:
     """Optimiser schedule of one stage (Adam with exponential learning-rate decay)."""
 
     epochs: int
+    """The most epochs of the stage (it stops earlier when the loss stops falling)."""
     gamma: float
+    """The learning rate's decay per epoch."""
     patience: int
+    """Epochs without enough improvement (min_rel_improvement) before the stage stops."""
     lr: float = 0.1
-    # Early stop when the epoch loss has not dropped by at least this fraction of the
-    # best loss so far for `patience` consecutive epochs ("1% throughout 40 epochs").
+    """Adam's learning rate."""
     min_rel_improvement: float = 0.01
-    # Adam's epsilon (torch's default; the paper does not give one). A larger one damps the
-    # grid cells the data barely constrains. why: docs/decisions.md#medea-on-cpu-and-cuda
+    """The fraction of the best loss so far an epoch must gain to count as improvement.
+
+    The paper's "1% throughout 40 epochs".
+    """
     adam_eps: float = 1e-8
+    """Adam's epsilon (torch's default; the paper does not give one).
+
+    A larger one damps the grid cells the data barely constrains.
+    why: docs/decisions.md#medea-on-cpu-and-cuda
+    """
 
     def checks(self) -> dict[str, bool]:
-        """Each setting's name -> whether its value can work."""
+        """Each setting's name -> whether its value can work.
+
+        Returns:
+            dict of setting name -> True when its value is in range.
+        """
         return {"epochs": self.epochs >= 0, "gamma": 0 < self.gamma <= 1, "patience": self.patience >= 1,
                 "lr": self.lr > 0, "min_rel_improvement": self.min_rel_improvement >= 0, "adam_eps": self.adam_eps > 0}
 
@@ -37,49 +50,66 @@ class StageConfig:
 class MedeaConfig:
     """All MEDeA options. Defaults reproduce the paper (MEDeA-S with feature loss S)."""
 
-    # Depth deformation model: log-scale grid (h, w) for landscape frames; portrait
-    # frames use the transpose (10, 8).
     grid_size: tuple[int, int] = (8, 10)
-    # Images, priors and features are optimised at this fraction of the input size.
+    """The log-scale deformation grid (h, w) of a landscape frame; portrait frames use the transpose."""
     image_scale: float = 0.25
+    """The working resolution of images, priors and features relative to the input."""
     batch_pairs: int = 128
-    # Score every k-th pixel of view i per step, at a random phase (1: every pixel, as
-    # in the paper). Frame j is still sampled at full resolution. A speed knob: the
-    # 8x10 grid is estimated from far more pixels than it needs.
+    """Frame pairs per optimiser step."""
     pixel_stride: int = 1
-    # The same for the feature term, on the features' own grid.
+    """Score every k-th pixel of view i per step, at a random phase (1: every pixel, the paper's).
+
+    Frame j is still sampled at full resolution. A speed knob: the 8x10 grid is estimated
+    from far more pixels than it needs.
+    """
     feature_stride: int = 1
-    # Keep only this many feature channels, those with the largest variance over the
-    # sequence (None: all, as in the paper). Warping cost grows with the channel count,
-    # and pruned or near-constant channels carry no matching signal.
+    """The same as pixel_stride for the feature term, on the features' own grid."""
     feature_channels: int | None = None
+    """Keep only this many feature channels, those of largest variance over the sequence (none: all, the paper's).
+
+    Warping cost grows with the channel count, and pruned or near-constant channels carry no
+    matching signal.
+    """
     stage1: StageConfig = field(default_factory=lambda: StageConfig(epochs=600, gamma=0.996, patience=40))
+    """Stage I's schedule (keyframes)."""
     stage2: StageConfig = field(default_factory=lambda: StageConfig(epochs=60, gamma=0.96, patience=4))
-    # Pairs(a, b) levels: Stage I on keyframe pairs Pairs(3, 6), Stage II on Pairs(0, 2).
+    """Stage II's schedule (all frames)."""
     stage1_levels: tuple[int, int] = (3, 6)
+    """The Pairs(a, b) levels of Stage I: keyframe pairs Pairs(3, 6)."""
     stage2_levels: tuple[int, int] = (0, 2)
+    """The Pairs(a, b) levels of Stage II: Pairs(0, 2)."""
     run_stage1: bool = True
+    """Run Stage I (false: Stage II optimises every frame from scale 1)."""
     run_stage2: bool = True
-    # Initialise non-keyframe grids from the nearest keyframe before Stage II.
+    """Run Stage II."""
     propagate_scale: bool = True
+    """Start the non-keyframe grids of Stage II from the nearest keyframe's (false: from scale 1)."""
     use_photometric: bool = True
+    """Use the photometric loss."""
     use_depth: bool = True
-    # The feature term is used only when features are given.
+    """Use the depth consistency loss."""
     use_features: bool = True
-    # "S": |Fi - Fj->i| / |Fi + Fj->i| (MEDeA-S); "M": negative mean dot product (MEDeA-M).
+    """Use the feature-metric loss (only when features are given)."""
     feature_loss: Literal["S", "M"] = "S"
-    # Weights of the loss terms; the paper sums them unweighted.
+    """The feature loss: S, |Fi - Fj->i| / |Fi + Fj->i| (MEDeA-S), or M, the negative mean dot product (MEDeA-M)."""
     photometric_weight: float = 1.0
+    """The photometric loss's weight (the paper sums the terms unweighted)."""
     depth_weight: float = 1.0
+    """The depth consistency loss's weight."""
     feature_weight: float = 1.0
+    """The feature-metric loss's weight."""
     seed: int = 0
+    """The random seed (pair batches, pixel phases)."""
     device: str = "cpu"
-    # Added to the S-form's denominator |Fi + Fj->i| (the paper has none): the features are
-    # ReLU outputs, often 0, and where both sides are near 0 the bare ratio and its gradient
-    # jump. why: docs/decisions.md#medea-on-cpu-and-cuda
+    """The torch device of the optimisation."""
     feature_eps: float = 0.01
-    # A warped pixel counts only if its bilinear footprint lies on valid depth in frame j.
+    """Added to the S-form's denominator |Fi + Fj->i| (the paper has none).
+
+    The features are ReLU outputs, often 0, and where both sides are near 0 the bare ratio
+    and its gradient jump. why: docs/decisions.md#medea-on-cpu-and-cuda
+    """
     min_sample_validity: float = 0.999
+    """A warped pixel counts only if this share of its bilinear footprint lies on valid depth in frame j."""
 
     @classmethod
     def fast(cls, **overrides) -> "MedeaConfig":
@@ -91,6 +121,12 @@ class MedeaConfig:
         - Stage I at most 150 epochs (paper 600).
 
         why: docs/decisions.md#the-fast-preset
+
+        Args:
+            **overrides: fields set after the preset (name=value).
+
+        Returns:
+            The preset configuration.
         """
         config = cls(pixel_stride=2, feature_stride=2)
         config.stage1.epochs = 150
@@ -125,9 +161,22 @@ class MedeaConfig:
                 raise ValueError(f"MEDeA setting {name}={attrgetter(name)(self)!r} is out of range")
 
     def grid_for(self, height: int, width: int) -> tuple[int, int]:
-        """Grid (h, w) for a frame of this size: (8, 10) landscape, (10, 8) portrait."""
+        """The grid (h, w) for a frame of this size: (8, 10) landscape, (10, 8) portrait.
+
+        Args:
+            height: frame height in pixels.
+            width: frame width in pixels.
+
+        Returns:
+            (h, w) grid cells.
+        """
         h, w = sorted(self.grid_size)
         return (w, h) if height > width else (h, w)
 
     def to_dict(self) -> dict:
+        """The configuration as nested plain values (report.json's ``options.medea``).
+
+        Returns:
+            dict of field name -> value, nested configs as dicts.
+        """
         return asdict(self)

@@ -1,15 +1,20 @@
 """`KEY=VALUE` settings from the command line, typed like the dataclass field they set.
 
-One rule for every config the CLI exposes this way (``--pose-option``, ``--refine-option``):
-numbers, true/false (also yes/no, on/off, 1/0), ``none`` where the field may be None, and
-comma-separated numbers for tuples.
+One rule for every config the CLI exposes this way (``--pose-option``, ``--set``): numbers,
+true/false (also yes/no, on/off, 1/0), ``none`` where the field may be None, and
+comma-separated numbers for tuples. A field's meaning is its attribute docstring (the string
+right after it), read by ``field_docs``: the one text that the flags' help is made from.
 """
 
 from __future__ import annotations
 
+import ast
+import inspect
+import textwrap
 import types
 import typing
 from dataclasses import MISSING, fields, is_dataclass
+from functools import cache
 
 from .errors import ReconInputError
 
@@ -62,25 +67,37 @@ def split_option(text: str, what: str) -> tuple[str, str]:
     return key, raw
 
 
-def parse_field_option(text: str, cls, what: str) -> tuple[str, object]:
-    """KEY=VALUE for a scalar field of dataclass `cls`, typed like the field.
-    `what` names the option in messages ("refine option")."""
-    key, raw = split_option(text, what)
-    table = scalar_fields(cls)
-    if key not in table:
-        raise ReconInputError(f"unknown {what} {key!r} (known: {', '.join(sorted(table))})")
-    kind = table[key][0]
-    try:
-        return key, typed_value(raw, kind)
-    except ValueError:
-        raise ReconInputError(f"{what} {key}: {raw!r} is not a valid {type_name(kind)}") from None
+@cache
+def field_docs(cls) -> dict[str, str]:
+    """The attribute docstrings of dataclass `cls`: the string literal right after a field.
+
+    Args:
+        cls: a dataclass whose source Python can read.
+
+    Returns:
+        {field name: its docstring, dedented}; fields without one are left out.
+    """
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body
+    docs = {}
+    for node, after in zip(body, body[1:]):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+            docs[node.target.id] = inspect.cleandoc(after.value.value)
+    return docs
 
 
-def option_table(cls) -> str:
-    """The scalar fields of dataclass `cls` with type and default, a line each."""
-    rows = [(name, type_name(kind), repr(default)) for name, (kind, default) in sorted(scalar_fields(cls).items())]
-    widths = [max(len(r[i]) for r in rows) for i in range(2)]
-    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d}" for n, t, d in rows)
+def field_summary(cls, name: str) -> str:
+    """The first paragraph of field `name`'s docstring on one line (the flag's help text).
+
+    Args:
+        cls: the dataclass that has the field.
+        name: the field's name.
+
+    Returns:
+        The summary; KeyError when the field has no docstring.
+    """
+    return " ".join(field_docs(cls)[name].split("\n\n")[0].split())
 
 
-__all__ = ["option_table", "parse_field_option", "scalar_fields", "split_option", "type_name", "typed_value"]
+__all__ = ["field_docs", "field_summary", "scalar_fields", "split_option", "type_name", "typed_value"]

@@ -259,11 +259,11 @@ def test_bad_options(tmp_path, capsys):
     _run_fails(capsys, ["run", str(video), "-o", out, "--stride", "0"], "stride")
     _run_fails(capsys, ["run", str(video), "-o", out, "--prior", "folder"], "--prior-path")
     _run_fails(capsys, ["run", str(video), "-o", out, "--voxel-size", "-1"], "voxel_size")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--batch-pairs", "0"], "batch_pairs=0")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--lr", "-0.1"], "lr=-0.1")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--image-scale", "0"], "image_scale=0.0")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--mesh-every", "-3"], "mesh every", "-3")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--depth-motion", "0"], "depth motion", "> 0")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "medea.batch_pairs=0"], "batch_pairs=0")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "medea.stage2.lr=-0.1"], "stage2.lr=-0.1")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "medea.image_scale=0"], "image_scale=0.0")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "mesh_every=-3"], "mesh every", "-3")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "depth_motion=0"], "depth motion", "> 0")
     _run_fails(capsys, ["run", str(video), "-o", out, "--device", "gpu0"], "--device gpu0", "cuda:N")
     _run_fails(capsys, ["run", str(video), "-o", out, "--rolling-shutter", "150"], "rolling-shutter readout", "150")
     _run_fails(capsys, ["view", str(tmp_path / "nothing")], "no such file")
@@ -480,30 +480,75 @@ def test_help_texts():
         sub = parser._subparsers._group_actions[0].choices[name]
         texts[name] = sub.format_help()
     for option in ("--poses", "--prior", "--intrinsics", "--fov", "--stride", "--width", "--voxel-size", "--device",
-                   "--pose-option", "--rerun", "--preset", "--no-medea", "--stage1-epochs", "--overwrite", "examples:",
+                   "--pose-option", "--rerun", "--preset", "--no-medea", "--set", "--overwrite", "examples:",
                    "--prior-path", "--prior-align"):
         assert option in texts["run"], option
     assert "--frames" in texts["demo"] and "--poses" in texts["demo"] and "--pose-option" in texts["demo"]
     assert "recording.rrd" in texts["view"]
 
 
-def test_refine_option_errors_and_list(tmp_path, capsys):
+def _run_parser():
+    return build_parser()._subparsers._group_actions[0].choices["run"]
+
+
+def test_run_help_is_short_and_says_where_the_other_settings_are():
+    """`recon run --help` lists at most 45 options; its epilog sends the rest to --set/--config."""
+    text = _run_parser().format_help()
+    options = [line for line in text.splitlines() if line.startswith("  -")]
+    assert len(options) <= 45, len(options)
+    assert "--set NAME=VALUE or --config FILE" in " ".join(text.split())
+    for gone in ("--stage1-epochs", "--no-photometric", "--window-overlap", "--block-count", "--refine-option"):
+        assert gone not in text
+
+
+def test_batch_takes_set_and_config_like_run():
+    """`recon batch` has the run flags and --set/--config, so a setting without a flag reaches
+    every input's config as it reaches `recon run`'s."""
+    import argparse
+
+    parser = build_parser()
+    args = parser.parse_args(["batch", "a.mp4", "b.mp4", "-o", "out", "--set", "medea.stage1.epochs=7",
+                              "--set", "fusion.block_count=1000", "--device", "cpu"])
+    run_args = argparse.Namespace(**{**vars(args), "input": ".", "output": ".", "overwrite": False, "rerun": ["off"]})
+    config = pipeline_config_from_args(run_args, parser)
+    assert config.medea.stage1.epochs == 7 and config.fusion.block_count == 1000
+
+
+def test_flag_help_is_the_field_docstring():
+    """A flag that sets a setting has no help of its own: its help is the summary of that
+    setting's field docstring (recon.options.field_summary), and every setting of RUN_FLAGS has one."""
+    from recon.commands.cli_config import RUN_FLAGS, setting_field
+    from recon.core.config import PipelineConfig
+    from recon.options import field_summary
+
+    helps = {a.option_strings[0]: a.help for a in _run_parser()._actions if a.option_strings}
+    flags = [flag for _, _, group in RUN_FLAGS for flag in group]
+    assert len(flags) >= 30
+    for flag in flags:
+        summary = field_summary(*setting_field(flag.setting))
+        assert summary and helps[flag.option].startswith(summary.replace("%", "%%")), flag.option
+    assert helps["--no-medea"].startswith(field_summary(PipelineConfig, "adjust"))
+
+
+def test_refine_setting_errors_and_list(tmp_path, capsys):
+    """The refinement's settings are reached with --set mvs.NAME: misspelt, mistyped and
+    out-of-range values stop the run in one line, and `--set list` names them all."""
     from mvs_core import MvsConfig
 
     video = _video(tmp_path / "clip.mp4", 4)
     out = str(tmp_path / "out")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "hypothesis=3"], "unknown refine option",
-               "hypothesis")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "hypotheses=many"], "hypotheses", "int")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "band=-1"], "band")
-    _run_fails(capsys, ["run", str(video), "-o", out, "--refine-option", "keep_best=9"], "keep_best")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "mvs.hypothesis=3"], "no such setting",
+               "mvs.hypotheses")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "mvs.hypotheses=many"], "hypotheses", "int")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "mvs.band=-1"], "band")
+    _run_fails(capsys, ["run", str(video), "-o", out, "--set", "mvs.keep_best=9"], "keep_best")
     _run_fails(capsys, ["run", str(video), "-o", out, "--min-confidence", "2"], "min_confidence")
     assert not Path(out).exists()
     with pytest.raises(SystemExit) as exit_info:
-        main(["run", "--refine-option", "list"])
+        main(["run", "--set", "list"])
     assert exit_info.value.code == 0
     rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
-    assert rows["hypotheses"][1:3] == ["int", str(MvsConfig().hypotheses)]
+    assert rows["mvs.hypotheses"][1:3] == ["int", str(MvsConfig().hypotheses)]
 
 
 def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
@@ -520,7 +565,7 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     assert "polish" not in report["poses"] and report["options"]["refine"] == "none"
     refined = tmp_path / "refined"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(refined), *common,
-                 "--refine-option", "num_sources=3"]) == 0
+                 "--set", "mvs.num_sources=3"]) == 0
     report = json.loads((refined / "report.json").read_text())
     assert report["options"]["mvs"]["num_sources"] == 3 and len(report["refine"]["sources"][0]) == 3
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
@@ -551,7 +596,7 @@ def test_given_poses_the_frames_contradict_are_said_and_gated_on_request(demo, t
     if mode == "one-shot":
         common += ["--stream", "off"]
     else:  # two windows at least, to see that the verdict holds for the next
-        common += ["--stream", "on", "--depth-frames", "all", "--window", "6", "--window-overlap", "2"]
+        common += ["--stream", "on", "--depth-frames", "all", "--window", "6", "--set", "window_overlap=2"]
     said = tmp_path / "said"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(said), *common]) == 0
     report = json.loads((said / "report.json").read_text())
@@ -892,7 +937,7 @@ def test_hf_prior_metric_model_streamed_with_medea(rgbd_room, tmp_path):
     pytest.importorskip("transformers", reason="the hf prior needs the optional extra 'hf' (transformers)")
     model = save_tiny_depth_anything(tmp_path / "da")
     report = _hf_run(rgbd_room, model, tmp_path / "out", "--stream", "on", "--depth-frames", "all",
-                     "--stage1-epochs", "2", "--stage2-epochs", "2", "--refine", "none")
+                     "--set", "medea.stage1.epochs=2", "--set", "medea.stage2.epochs=2", "--refine", "none")
     prior = report["prior"]
     assert report["streamed"] and prior["name"] == "hf" and prior["info"]["path"] == str(model)
     assert prior["info"]["model_type"] == "depth_anything" and prior["info"]["output"] == "metric"

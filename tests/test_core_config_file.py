@@ -14,8 +14,8 @@ from recon.core.config import PipelineConfig
 
 RICH = ["--stride", "2", "--max-frames", "40", "--stream", "off", "--fov", "62.5", "--distortion", "0.1,-0.02,0,0",
         "--poses", "given.txt", "--pose-option", "window=6", "--prior", "sensor", "--preset", "paper",
-        "--stage1-epochs", "30", "--refine-option", "num_sources=3", "--voxel-size", "0.01", "--max-triangles", "5000",
-        "--no-npy", "--on-break", "stop", "--quiet"]
+        "--set", "medea.stage1.epochs=30", "--set", "mvs.num_sources=3", "--voxel-size", "0.01",
+        "--max-triangles", "5000", "--no-npy", "--on-break", "stop", "--quiet"]
 
 
 def _config(*argv: str) -> PipelineConfig:
@@ -137,13 +137,73 @@ def test_the_command_line_of_a_config_makes_that_config(tmp_path):
 
 @pytest.mark.parametrize("name", ["fast", "paper"])
 def test_presets_are_shipped_config_files(name, tmp_path):
-    """--preset NAME reads recon/core/presets/NAME.yaml (a medea section, nothing else), which
+    """--preset NAME reads recon/core/presets/NAME.yaml (inherit: defaults, and a medea section), which
     is medea_core's preset of that name; the same file works as --config."""
+    import yaml
+
     from medea_core import MedeaConfig
-    from recon.core.config_file import preset_path, read_config_file
+    from recon.core.config_file import preset_path
 
     path = preset_path(name)
-    assert set(read_config_file(path)) == {"medea"}
+    assert set(yaml.safe_load(path.read_text())) == {"inherit", "medea"}  # the rest: defaults.yaml's
     expected = MedeaConfig.fast() if name == "fast" else MedeaConfig()
     assert _config("in.mp4", "-o", "out", "--preset", name).medea == expected
     assert _config("in.mp4", "-o", "out", "--config", str(path)).medea == expected
+    # The other settings of the file are a bare run's: --config PRESET changes MEDeA only.
+    bare = _config("in.mp4", "-o", "out", "--preset", name)
+    assert _config("in.mp4", "-o", "out", "--config", str(path)) == bare
+
+
+def test_defaults_yaml_is_written_from_the_dataclasses():
+    """presets/defaults.yaml is what write_defaults writes now (a default or a field docstring
+    changed without `python scripts/write_defaults.py` fails here), and read back it is
+    PipelineConfig's defaults, every setting but the command line's own named."""
+    import yaml
+
+    from recon.core.config_file import DEFAULTS, NOT_IN_DEFAULTS, defaults_yaml, read_config_file, setting_types
+    from recon.core.config_file import updated as with_file
+
+    assert DEFAULTS.read_text() == defaults_yaml(), "run: python scripts/write_defaults.py"
+    defaults = PipelineConfig(Path("IN"), Path("OUT"))
+    assert with_file(defaults, read_config_file(DEFAULTS)) == defaults
+    changed = with_file(defaults, {"medea": {"stage1": {"epochs": 3}}})
+    assert with_file(changed, read_config_file(DEFAULTS)) == defaults  # every MEDeA setting is in it
+
+    def names(values: dict, prefix: str = "") -> set[str]:
+        return {n for k, v in values.items()
+                for n in (names(v, f"{prefix}{k}.") if isinstance(v, dict) and k != "pose_options" else {prefix + k})}
+
+    listed = {n for n in setting_types(defaults) if not NOT_IN_DEFAULTS & set(n.split("."))}
+    assert names(yaml.safe_load(DEFAULTS.read_text())) == listed
+
+
+def test_inherit_reads_the_named_file_first(tmp_path, capsys):
+    """`inherit: PATH` (relative to the file) or a preset's name: the file's settings over the
+    other's, section by section; a loop is one line."""
+    (tmp_path / "base.yaml").write_text("stride: 3\nmedea:\n  pixel_stride: 4\n  stage1:\n    epochs: 12\n")
+    (tmp_path / "run.yaml").write_text("inherit: base.yaml\nmedea:\n  stage1:\n    epochs: 20\n")
+    config = _config("in.mp4", "-o", "out", "--config", str(tmp_path / "run.yaml"))
+    assert config.stride == 3 and config.medea.pixel_stride == 4 and config.medea.stage1.epochs == 20
+    (tmp_path / "paper.yaml").write_text("inherit: paper\nfov: 70\n")
+    config = _config("in.mp4", "-o", "out", "--config", str(tmp_path / "paper.yaml"))
+    assert config.fov == 70.0 and config.medea.stage1.epochs == 600
+    (tmp_path / "loop.yaml").write_text("inherit: loop.yaml\n")
+    _fails_in_one_line(tmp_path, capsys, "inherits from itself", "--config", str(tmp_path / "loop.yaml"))
+
+
+def test_every_setting_has_one_description():
+    """Each setting --set reaches is documented by its field's docstring (recon.options.field_docs),
+    the text `recon run --help` and defaults.yaml are made from."""
+    from dataclasses import fields, is_dataclass
+
+    from recon.options import field_docs
+
+    def undocumented(config, prefix: str = "") -> list[str]:
+        docs = field_docs(type(config))
+        missing = [prefix + f.name for f in fields(config) if not docs.get(f.name, "").strip()]
+        for f in fields(config):
+            if is_dataclass(getattr(config, f.name)):
+                missing += undocumented(getattr(config, f.name), f"{prefix}{f.name}.")
+        return missing
+
+    assert undocumented(PipelineConfig(Path("IN"), Path("OUT"))) == []

@@ -141,7 +141,7 @@ def test_readme_is_short():
 def test_parser_walk_finds_the_subcommands():
     options = long_options(build_parser())
     assert {"run", "batch", "demo", "view", "eval"} <= set(options)
-    assert {"--stride", "--on-break", "--max-triangles", "--seed"} <= options["run"]
+    assert {"--stride", "--on-break", "--max-triangles", "--set"} <= options["run"]
     assert "--help" not in options["run"]
 
 

@@ -1,19 +1,12 @@
-"""The `recon` command line: `recon run` (the pipeline), `recon batch` (many inputs on Ray),
-`recon demo` (the synthetic sample end to end), `recon view` (Rerun inspection of a result),
-`recon eval` (scores against a dataset's ground truth) and `recon export` (a COLMAP model or
-a nerfstudio dataset of a result, recon.export.tools).
+"""The `recon` command line: `recon run`, `recon batch`, `recon demo`, `recon view`, `recon eval`
+and `recon export`.
 
-This module runs the commands; their options, which mirror the typed configs
-(recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions), are parsed by
-recon.commands.cli_args and turned into those configs by recon.commands.cli_config.
-
-What the user reads: results and stage names on stdout; on stderr, progress bars (unless
---quiet) and one line per message. The library never prints: its warnings go through the
-``recon`` logger, which `main` gives one handler that writes each as ``recon: warning:
-...``. INFO records of the library (TSDF sizes, SfM keyframes)
-are details for Python callers who configure logging; the command line does not show them.
-Bad input raises ReconInputError anywhere below; `main` prints it as the single line
-``recon: error: ...`` and exits with code 2, without a traceback.
+This module runs the commands; their options, which mirror the typed configs, are parsed by
+recon.commands.cli_args and turned into those configs by recon.commands.cli_config. The
+library never prints: `main` gives the ``recon`` logger one handler (``recon: warning: ...``
+on stderr) and prints a ReconInputError raised anywhere below as the single line
+``recon: error: ...``, exit code 2, no traceback.
+More: docs/outputs.md#errors-and-exit-codes
 """
 
 from __future__ import annotations

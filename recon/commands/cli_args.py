@@ -1,8 +1,9 @@
 """The `recon` command line's arguments: the parser (`build_parser`: the sub-commands run,
-batch, demo, view, eval and export) and its option groups mirroring the typed configs
-(recon.pipeline.PipelineConfig, MedeaConfig, FusionOptions, mvs_core.MvsConfig, the pose
-options). Named choices come from recon.choices; turning parsed arguments into those
-configs is recon.commands.cli_config's, running them recon.commands.cli's.
+batch, demo, view, eval and export). The flags of `recon run` that set a setting are made
+from recon.commands.cli_config.RUN_FLAGS, their help from the settings' field docstrings;
+every other setting is reached with --set or --config. Named choices come from
+recon.choices; turning parsed arguments into configs is recon.commands.cli_config's,
+running them recon.commands.cli's.
 """
 
 from __future__ import annotations
@@ -10,56 +11,42 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from medea_core import MedeaConfig
+from ..choices import DEMO_PRIORS, DEVICE_SPELLINGS, POSE_CHOICES
+from .cli_config import RUN_FLAGS, Flag, bare_config, setting_field
 
-from ..choices import (
-    DEMO_PRIORS,
-    DEVICE_SPELLINGS,
-    ON_BREAK_CHOICES,
-    POSE_CHOICES,
-    POSE_METHODS,
-    PRIOR_ALIGN_CHOICES,
-    PRIOR_CHOICES,
-    REFINE_CHOICES,
-    STREAM_CHOICES,
-)
-from .cli_config import config_from_flags
+
+def flag_help(flag: Flag) -> str:
+    """The help of `flag`: its setting's field summary (recon.options.field_summary), with
+    the default for a flag that takes a value, and what an inverting flag (--no-X) does."""
+    from ..core.config_file import setting_default
+    from ..options import field_summary
+
+    owner, name = setting_field(flag.setting)
+    text = field_summary(owner, name).replace("%", "%%")
+    action = flag.parse.get("action")
+    if action == "store_false" or (action == "store_true" and flag.convert is not None):
+        return f"{text} This flag turns it off ({flag.setting}=false)."
+    if action is None and setting_default(flag.setting) is not None:
+        return f"{text} Default: %(default)s."
+    return text
+
+
+def _add_flag(group, flag: Flag) -> None:
+    from ..core.config_file import setting_default
+
+    extra = {} if "action" in flag.parse else {"default": setting_default(flag.setting)}
+    group.add_argument(flag.option, help=flag_help(flag), **extra, **flag.parse)
 
 
 def add_medea_arguments(parser: argparse.ArgumentParser, preset: str = "fast") -> None:
-    """Options mirroring MedeaConfig. Unset options keep the preset's value."""
-    d, fast = MedeaConfig(), MedeaConfig.fast()
-    g = parser.add_argument_group("MEDeA depth adjustment")
+    """--preset (MEDeA's settings from a shipped config file) and --no-medea."""
     from ..core.config_file import PRESETS, preset_names
 
+    g = parser.add_argument_group("MEDeA depth adjustment", "docs/depth.md; every MEDeA setting: --set medea.NAME")
     g.add_argument("--preset", choices=preset_names(), default=preset,
-                   help=f"MEDeA's settings from a shipped config file ({PRESETS.name}/NAME.yaml beside "
-                        f"recon/core/config_file.py; the flags below change them): paper, the paper's; fast, pixel "
-                        f"stride {fast.pixel_stride}, Stage II lr {fast.stage2.lr:g} and Stage I at most "
-                        f"{fast.stage1.epochs} epochs, about 2x faster at equal accuracy on our benchmarks "
-                        "(default %(default)s)")
-    g.add_argument("--no-medea", action="store_true", help="skip MEDeA: fuse the raw depth prior")
-    g.add_argument("--image-scale", type=float,
-                   help=f"working resolution relative to the input (paper {d.image_scale})")
-    g.add_argument("--batch-pairs", type=int, help=f"frame pairs per optimiser step (paper {d.batch_pairs})")
-    g.add_argument("--pixel-stride", type=int, help="score every k-th pixel per step (paper 1)")
-    g.add_argument("--feature-stride", type=int, help="the same on the feature grid (paper 1)")
-    g.add_argument("--feature-channels", type=int,
-                   help="keep only the N most varying feature channels (paper: all); warping cost grows with N")
-    g.add_argument("--stage1-epochs", type=int, help=f"max epochs of Stage I, keyframes (paper {d.stage1.epochs}, "
-                                                       f"fast preset {fast.stage1.epochs})")
-    g.add_argument("--stage2-epochs", type=int, help=f"max epochs of Stage II, all frames (paper {d.stage2.epochs})")
-    g.add_argument("--lr", type=float, help=f"Adam learning rate of both stages (paper {d.stage1.lr})")
-    g.add_argument("--no-stage1", action="store_true", help="skip Stage I (then Stage II optimises every frame)")
-    g.add_argument("--no-stage2", action="store_true", help="skip Stage II")
-    g.add_argument("--no-propagation", action="store_true",
-                   help="start Stage II from scale 1 instead of the keyframes' scale")
-    g.add_argument("--no-photometric", action="store_true", help="drop the photometric loss")
-    g.add_argument("--no-depth-loss", action="store_true", help="drop the depth consistency loss")
-    g.add_argument("--no-feature-loss", action="store_true", help="drop the feature-metric loss")
-    g.add_argument("--feature-loss", choices=["S", "M"],
-                   help="S: normalised L1 (MEDeA-S, paper default), M: dot product (MEDeA-M)")
-    g.add_argument("--seed", type=int, default=d.seed, help="random seed (default %(default)s)")
+                   help=f"MEDeA's settings from a shipped config file, {PRESETS.name}/NAME.yaml: fast, about 2x "
+                        "faster than the paper's at equal accuracy, or paper (default %(default)s).")
+    _add_flag(g, Flag("--no-medea", "adjust", {"action": "store_true"}, convert=lambda no: not no))
 
 
 # --------------------------------------------------------------------------- shared options
@@ -83,154 +70,22 @@ def add_rerun_argument(parser: argparse.ArgumentParser, default: str | None, wha
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..fusion import FusionOptions, tsdf
-    from ..pipeline import PipelineConfig
-
-    d, fd = PipelineConfig(Path(), Path()), FusionOptions()
-    g = parser.add_argument_group("frames")
-    g.add_argument("--stride", type=int, help="use every k-th frame (default: 1, raised to stay within --frame-budget)")
-    g.add_argument("--max-frames", type=int, help="use at most this many frames")
-    g.add_argument("--start", type=float, dest="start_time", help="first second of the video to use")
-    g.add_argument("--end", type=float, dest="end_time", help="stop at this second of the video")
-    g.add_argument("--frame-budget", type=int, default=d.frame_budget,
-                   help="the most frames a one-shot run holds in memory, counted at 640x480 (larger frames count "
-                        "for more; 150 holds a one-shot run to about 3 GB); longer inputs are streamed (see "
-                        "--stream) (default %(default)s)")
-    g.add_argument("--stream", choices=STREAM_CHOICES, default=d.stream,
-                   help="stream the frames through the stages in bounded memory, MEDeA on overlapping windows, the "
-                        "mesh growing as it goes: auto = when the input has more frames than --frame-budget, and "
-                        "for a video whose poses are estimated (depth for the frames the camera moved to reach; "
-                        "run again at once, where SfM can be tried, if the front end loses the camera); off gives "
-                        "every frame depth and raises the stride to fit the budget (default %(default)s)")
-    g.add_argument("--depth-frames", default=d.depth_frames, metavar="{motion,all,K}",
-                   help="streamed runs: the tracked frames that get depth and are fused: motion = one each time the "
-                        f"camera moved {d.depth_motion:g} x the median depth or turned {d.depth_rotation:g} degrees, "
-                        "all, or every K-th (default %(default)s)")
-    g.add_argument("--depth-motion", type=float, default=d.depth_motion,
-                   help="streamed runs, --depth-frames motion: the camera's movement that takes a frame, as a fraction "
-                        "of the median depth (default %(default)s)")
-    g.add_argument("--depth-rotation", type=float, default=d.depth_rotation,
-                   help="streamed runs, --depth-frames motion: the turn in degrees that takes a frame "
-                        "(default %(default)s)")
-    g.add_argument("--window", type=int, default=d.window,
-                   help="streamed runs: frames per MEDeA window, counted at 640x480 like --frame-budget (default "
-                        "%(default)s)")
-    g.add_argument("--window-overlap", type=int, default=d.window_overlap,
-                   help="streamed runs: frames shared by consecutive windows (default %(default)s)")
-    g.add_argument("--mesh-every", type=int, default=d.mesh_every,
-                   help="streamed runs: re-extract the mesh for live Rerun every this many fused frames; 0 = only at "
-                        "the end (default %(default)s)")
-    g.add_argument("--width", type=int, default=d.width,
-                   help="working width in pixels, aspect kept; 0 keeps the input's size (default %(default)s)")
-    g.add_argument("--fps", type=float, help="frame rate of an image folder (default 30), for --start/--end")
-
-    g = parser.add_argument_group("camera")
-    g.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
-                   help="pinhole intrinsics in pixels of the input as decoded (pixel centres at integers)")
-    g.add_argument("--fov", type=float, help="horizontal field of view in degrees (when intrinsics are unknown)")
-    g.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]",
-                   help="the lens' distortion, OpenCV's model, for the camera of --intrinsics or --fov (default: "
-                        "a dataset's published coefficients with its calibration, else none); the frames are "
-                        "resampled into the pinhole camera before any other stage")
-    g.add_argument("--rolling-shutter", type=float, default=d.rolling_shutter, metavar="MS",
-                   help="the camera's rolling-shutter readout time in milliseconds (phones and webcams: about 10-30; "
-                        "0: a global shutter, default). Each frame is resampled to one instant with the camera's "
-                        "turn rate from the poses (estimated poses: estimated again on the resampled frames, "
-                        "so such a video is not streamed by --stream auto; a streamed run applies it to given "
-                        "poses only)")
-
-    g = parser.add_argument_group("poses")
-    g.add_argument("--poses", default="auto", metavar="{%s}|PATH" % ",".join(POSE_CHOICES),
-                   help="auto (dataset ground truth if any, else estimate), gt, estimate, or a pose file/folder "
-                        "(TUM, COLMAP, nerfstudio transforms.json, per-frame 4x4 matrices, Open3D .log); "
-                        "default %(default)s")
-    g.add_argument("--pose-method", choices=POSE_METHODS, default=d.pose_method,
-                   help="pose estimator (default %(default)s)")
-    g.add_argument("--on-break", choices=ON_BREAK_CHOICES, default=d.on_break,
-                   help="where an estimated trajectory's scale breaks or the camera is lost (report.json "
-                        "poses.scale_watch): segments (tracking starts again where the camera was lost; each "
-                        "stretch reconstructed on its own in OUT/segment_NN/), stop (one line naming the "
-                        "frames, exit 2) or keep (one trajectory, warned); keep also returns a trajectory the "
-                        "front end's motion checks distrust (poses.motion_checks). A metric scale the depth prior "
-                        "cannot vouch for because its depth does not follow the scene's (a close-up, an outdoor "
-                        "view: poses.metric_scale) is written and marked, except under stop, which refuses it. "
-                        "Default %(default)s")
-    g.add_argument("--no-join", dest="join_segments", action="store_false",
-                   help="do not try to join the stretches on either side of a scale break (by ORB matches and "
-                        "PnP across it) before --on-break applies")
-    add_pose_option_argument(g)
-
-    g = parser.add_argument_group("depth prior")
-    g.add_argument("--prior", choices=PRIOR_CHOICES, default=d.prior,
-                   help="fastdepth (network, default), sensor (an RGB-D dataset's depth), folder (depth maps in "
-                        "--prior-path), hf (a local Hugging Face depth model in --prior-path; needs transformers: "
-                        "pip install -e .[hf])")
-    g.add_argument("--prior-path", type=Path, metavar="PATH",
-                   help="folder: one depth map per frame (.npy/.png/.exr/.tiff, metres; 16-bit PNG in millimetres; "
-                        "0, NaN and inf: no depth), matched by frame name. hf: the model folder (config.json, "
-                        "weights, preprocessor_config.json, as save_pretrained writes them); nothing is downloaded")
-    g.add_argument("--prior-align", choices=PRIOR_ALIGN_CHOICES, default=d.prior_align,
-                   help="hf: a model that predicts affine-invariant disparity (DPT/MiDaS, relative Depth Anything; "
-                        "read from its config.json) is fitted per frame (scale and shift) to the metric depth of "
-                        "fastdepth (FastDepth on the same frames, --weights) or sensor (an RGB-D dataset's depth); "
-                        "metric models (ZoeDepth, GLPN, Depth Pro, metric Depth Anything) are used as they are "
-                        "(default %(default)s)")
-    g.add_argument("--weights", type=Path, help="FastDepth weights (model.json, .npz or a folder); default: "
-                                                "$RECON_WEIGHTS, then the model packaged with recon")
-    g.add_argument("--no-features", action="store_true", help="do not give MEDeA the prior's encoder features")
-
-    g = parser.add_argument_group("multi-view stereo refinement (after MEDeA)")
-    g.add_argument("--refine", choices=REFINE_CHOICES, default=d.refine,
-                   help="mvs: per-pixel depth from the frames around MEDeA's depth, with a confidence; only the "
-                        "pixels it reconstructs are fused. none: MEDeA's depth, the paper's pipeline "
-                        "(default %(default)s)")
-    g.add_argument("--refine-option", action=_RefineOptionAction, default=[], metavar="KEY=VALUE",
-                   help="change a refinement setting (mvs_core.MvsConfig), e.g. num_sources=4, hypotheses=16 "
-                        "(repeatable); `--refine-option list` prints every setting with its default")
-    polish = g.add_mutually_exclusive_group()
-    polish.add_argument("--polish", action="store_true",
-                        help="polish given poses (dataset, pose file) against the frames before MEDeA when refining "
-                             "(recon.poses.given.polish; one-shot runs); off by default: given poses are used as given")
-    polish.add_argument("--no-polish", action="store_true",
-                        help="use given poses as they are (the default; kept for scripts that say so)")
-    g.add_argument("--polish-option", action=_PolishOptionAction, default=[], metavar="KEY=VALUE",
-                   help="change a setting of the polish (recon.poses.given.polish.PolishConfig), "
-                        "e.g. calibrate_lens=true (repeatable); `--polish-option list` prints every setting with its "
-                        "default")
-    gate = g.add_mutually_exclusive_group()
-    gate.add_argument("--medea-gate", action="store_true",
-                      help="skip MEDeA, and refine from the prior's depth, when the given poses contradict the "
-                           "frames (every run with given poses checks them and warns; off by default: on TUM's "
-                           "motion capture it made the mesh better and the depth worse)")
-    gate.add_argument("--no-medea-gate", action="store_true", help="run MEDeA whatever the check says (the default)")
-
-    g = parser.add_argument_group("TSDF fusion")
-    g.add_argument("--voxel-size", type=float,
-                   help=f"metres (default: median depth / {1 / tsdf.VOXEL_PER_DEPTH:g}, clamped to "
-                        f"{tsdf.MIN_VOXEL * 1000:g} mm - {tsdf.MAX_VOXEL * 100:g} cm)")
-    g.add_argument("--trunc", type=float, help=f"truncation in metres (default {fd.trunc_voxels:g} voxels)")
-    g.add_argument("--max-depth", type=float,
-                   help=f"ignore depth beyond this many metres (default: {tsdf.MAX_DEPTH_MARGIN:g} x the "
-                        f"{tsdf.MAX_DEPTH_PERCENTILE:g}th percentile)")
-    g.add_argument("--weight-threshold", type=float, default=fd.weight_threshold,
-                   help="frames that must see a voxel for it to be meshed (default %(default)s)")
-    g.add_argument("--min-fragment", type=int, default=fd.min_fragment_triangles,
-                   help="drop mesh pieces with fewer triangles (default %(default)s; 0 keeps all)")
-    g.add_argument("--block-count", type=int, default=fd.block_count,
-                   help="memory budget in voxel blocks (10 KiB each); the voxel grows to fit (default %(default)s)")
-    g.add_argument("--min-confidence", type=float, default=fd.min_confidence,
-                   help="with the refinement, fuse only pixels of at least this confidence (reconstructed pixels: "
-                        "the share of source views that agree, >= 1/3; filled pixels: 0.1 x the share of "
-                        "reconstructed pixels around them; 0 fuses all). Default: 0.1 (reconstructed pixels only) "
-                        "with given poses, 0.01 (also filled pixels near evidence) with estimated poses")
-    g.add_argument("--max-triangles", type=int, default=fd.max_triangles,
-                   help="the mesh's triangle budget: a larger mesh is thinned (vertex clustering, colours "
-                        "kept) to 80-100 %% of this many triangles (default %(default)s; 0 keeps the full mesh)")
-    g.add_argument("--point-cloud", action="store_true", help="also write point_cloud.ply")
-
-    g = parser.add_argument_group("output")
-    g.add_argument("--no-npy", action="store_true", help="write depth maps as 16-bit PNG only (no float .npy)")
-    g.add_argument("--no-glb", action="store_true", help="do not write mesh.glb")
+    """The options of `recon run` (and `recon batch`) that make its PipelineConfig: --config,
+    --set, and a group per stage of the flags of RUN_FLAGS, with --pose-option among the poses'."""
+    parser.add_argument("--config", type=Path, metavar="FILE",
+                        help="Settings from a YAML or JSON file, a section per stage as in report.json's options "
+                             "(or a report.json, to run a result again); flags given with other values than their "
+                             "defaults override it. docs/running.md#settings-in-a-file---config---preset---set")
+    parser.add_argument("--set", action=_SetAction, metavar="NAME=VALUE", default=[], dest="settings",
+                        help="One setting by its dotted name, over the flags and --config (repeatable), e.g. "
+                             "--set medea.stage1.epochs=200; `--set list` prints every name with its type and "
+                             "default.")
+    for title, docs, flags in RUN_FLAGS:
+        g = parser.add_argument_group(title, docs)
+        for flag in flags:
+            _add_flag(g, flag)
+        if title == "poses":
+            add_pose_option_argument(g)
 
 
 class _ListableAction(argparse.Action):
@@ -268,49 +123,14 @@ class _SetAction(_ListableAction):
 
     def table(self, parser: argparse.ArgumentParser) -> str:
         from ..core.config_file import settings_listing
-        # A bare `recon run IN -o OUT`'s settings, parsed by the run command's own parser.
-        return settings_listing(config_from_flags(parser.parse_args(["IN", "-o", "OUT"])))
-
-
-class _FieldOptionAction(_ListableAction):
-    """The KEY=VALUE options of one config's fields: subclasses name the config (``config()``)."""
-
-    @staticmethod
-    def config():
-        raise NotImplementedError
-
-    def table(self, parser: argparse.ArgumentParser) -> str:
-        from ..options import option_table
-
-        return option_table(self.config())
-
-
-class _RefineOptionAction(_FieldOptionAction):
-    heading = ("refinement options (--refine-option KEY=VALUE): name, type, default; their meaning is in the "
-               "docstring of mvs_core.MvsConfig")
-
-    @staticmethod
-    def config():
-        from mvs_core import MvsConfig
-
-        return MvsConfig
-
-
-class _PolishOptionAction(_FieldOptionAction):
-    heading = ("pose polish options (--polish-option KEY=VALUE, with --polish): name, type, default; their meaning "
-               "is in the docstring of recon.poses.given.polish.PolishConfig")
-
-    @staticmethod
-    def config():
-        from ..poses.given.polish import PolishConfig
-
-        return PolishConfig
+        # A bare `recon run IN -o OUT`'s settings (also for `recon batch`, whose parser has no IN).
+        return settings_listing(bare_config(build_parser(), "IN", "OUT"))
 
 
 def add_pose_option_argument(parser) -> None:
     parser.add_argument("--pose-option", action=_PoseOptionAction, default=[], metavar="KEY=VALUE",
-                        help="change a pose estimator setting, e.g. keyframe_flow=12, window=6, calibrate_lens=false "
-                             "(repeatable); `--pose-option list` prints every setting with its default")
+                        help="Change a pose estimator setting, e.g. keyframe_flow=12 (repeatable); `--pose-option "
+                             "list` prints them. docs/poses.md#settings---pose-option")
 
 
 # --------------------------------------------------------------------------- parser
@@ -324,6 +144,10 @@ RUN_EXAMPLES = """examples:
                                                        a local Hugging Face depth model (aligned to FastDepth)
   recon run my_video.mp4 -o out/ --rerun save          also write out/recording.rrd
   recon view out/                                      inspect the result in Rerun
+
+Every setting, with a flag or without one (MEDeA's ablations, the streaming and TSDF internals,
+the refinement's and the polish's settings), is reached with --set NAME=VALUE or --config FILE;
+`recon run --set list` names them all. docs/running.md#settings-in-a-file---config---preset---set
 """
 
 
@@ -347,14 +171,6 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", required=True, help="output folder (must be empty unless --overwrite)")
     run.add_argument("--overwrite", action="store_true", help="write into a non-empty output folder")
     add_rerun_argument(run, None, "the run")
-    run.add_argument("--config", type=Path, metavar="FILE",
-                     help="settings from a YAML or JSON file: PipelineConfig's fields by name, a section per stage "
-                          "(medea, mvs, fusion, polish_config), as report.json's options, or a report.json itself to "
-                          "run a result again; flags given with other values than their defaults override it")
-    run.add_argument("--set", action=_SetAction, metavar="NAME=VALUE", default=[], dest="settings",
-                     help="one setting by its config name, typed like its field, over the flags and --config "
-                          "(repeatable): --set medea.stage1.epochs=200 --set fusion.voxel_size=0.02 --set "
-                          "frame_budget=100; `--set list` prints every name with its type and default")
     run.add_argument("--export", metavar="FORMATS",
                      help="when the run is done, export the output folder for other tools: colmap, nerfstudio or "
                           "colmap,nerfstudio, into OUT/colmap/ and OUT/nerfstudio/ (as `recon export OUT --to ...`)")
@@ -413,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--width", type=int, default=640, help="rendered width (default %(default)s)")
     demo.add_argument("--height", type=int, default=480, help="rendered height (default %(default)s)")
     demo.add_argument("--scene-seed", type=int, default=0, help="seed of the synthetic scene and prior")
+    demo.add_argument("--seed", type=int, help="MEDeA's random seed (default: the preset's)")
     demo.add_argument("--poses", choices=POSE_CHOICES, default="auto",
                       help="estimate (pose front end), gt (rendered trajectory), auto: estimate when the estimator "
                            "is installed, else gt with a note (default %(default)s)")

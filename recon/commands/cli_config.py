@@ -1,42 +1,41 @@
 """Parsed `recon` arguments -> the typed configs they mirror: recon.pipeline.PipelineConfig
-(over a --config file and --set), MedeaConfig (over a shipped preset), FusionOptions,
-mvs_core.MvsConfig, PolishConfig and the pose options; the device, the Rerun mode, and the
-`recon run` command line that makes a config (``command_line``). The arguments themselves
-are recon.commands.cli_args' (its parser is passed in where a bare run's settings are
-needed, so that this module does not import it).
+(over a --config file and --set), MedeaConfig (over a shipped preset) and the pose options;
+the device, the Rerun mode, and the `recon run` command line that makes a config
+(``command_line``). ``RUN_FLAGS`` names the setting each flag of `recon run` sets: the
+parser (recon.commands.cli_args) is made from it, help texts from the settings' field
+docstrings, and ``config_from_flags`` reads the parsed flags back through it.
 """
 
 from __future__ import annotations
 
 import argparse
+import typing
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import torch
 
 from medea_core import MedeaConfig
 
-from ..choices import RERUN_MODES
+from ..choices import (
+    ON_BREAK_CHOICES,
+    POSE_CHOICES,
+    POSE_METHODS,
+    PRIOR_ALIGN_CHOICES,
+    PRIOR_CHOICES,
+    REFINE_CHOICES,
+    RERUN_MODES,
+    STREAM_CHOICES,
+)
 from ..errors import ReconInputError
 
 
 def medea_config_from_args(args: argparse.Namespace) -> MedeaConfig:
+    """MEDeA's settings: the preset of --preset, the seed of --seed (`recon demo`), the device."""
     config = preset_medea(args.preset)
-    for name in ("image_scale", "batch_pairs", "pixel_stride", "feature_stride", "feature_channels", "feature_loss"):
-        if getattr(args, name) is not None:
-            setattr(config, name, getattr(args, name))
-    if args.stage1_epochs is not None:
-        config.stage1.epochs = args.stage1_epochs
-    if args.stage2_epochs is not None:
-        config.stage2.epochs = args.stage2_epochs
-    if args.lr is not None:
-        config.stage1.lr = config.stage2.lr = args.lr
-    config.run_stage1 = not args.no_stage1
-    config.run_stage2 = not args.no_stage2
-    config.propagate_scale = not args.no_propagation
-    config.use_photometric = not args.no_photometric
-    config.use_depth = not args.no_depth_loss
-    config.use_features = not args.no_feature_loss
-    config.seed = args.seed
+    if getattr(args, "seed", None) is not None:
+        config.seed = args.seed
     config.device = resolve_device(args.device)
     return config
 
@@ -91,42 +90,6 @@ def rerun_mode(args: argparse.Namespace, default: str) -> tuple[str, Path | None
     return mode, Path(rest[0]) if rest else None
 
 
-def fusion_options_from_args(args: argparse.Namespace):
-    from ..fusion import FusionOptions
-
-    return FusionOptions(
-        voxel_size=args.voxel_size, trunc=args.trunc, max_depth=args.max_depth, weight_threshold=args.weight_threshold,
-        min_fragment_triangles=args.min_fragment, block_count=args.block_count, point_cloud=args.point_cloud,
-        min_confidence=args.min_confidence, max_triangles=args.max_triangles,
-    )
-
-
-def polish_config_from_args(args: argparse.Namespace):
-    from dataclasses import replace
-
-    from ..options import parse_field_option
-    from ..poses.given.polish import PolishConfig
-
-    values = dict(parse_field_option(text, PolishConfig, "polish option") for text in args.polish_option)
-    return replace(PolishConfig(), **values)
-
-
-def mvs_config_from_args(args: argparse.Namespace):
-    from dataclasses import replace
-
-    from mvs_core import MvsConfig
-
-    from ..options import parse_field_option
-
-    values = dict(parse_field_option(text, MvsConfig, "refine option") for text in args.refine_option)
-    config = replace(MvsConfig(), **values)
-    try:
-        config.validate()
-    except ValueError as error:
-        raise ReconInputError(f"--refine-option: {error}") from None
-    return config
-
-
 def pose_options_from_args(args: argparse.Namespace) -> dict:
     from ..poses.options import parse_pose_option
 
@@ -165,34 +128,120 @@ def bare_config(parser: argparse.ArgumentParser, input_path, output):
 
 
 def config_from_flags(args: argparse.Namespace):
-    """The PipelineConfig the parsed flags of `recon run` make."""
+    """The PipelineConfig the parsed flags of `recon run` make (the settings of RUN_FLAGS)."""
+    from ..core.config_file import with_values
     from ..pipeline import PipelineConfig
 
     medea = medea_config_from_args(args)
     mode, path = rerun_mode(args, default_rerun_mode())
-    return PipelineConfig(
-        input=Path(args.input), output=Path(args.output), overwrite=args.overwrite, stride=args.stride,
-        max_frames=args.max_frames, start_time=args.start_time, end_time=args.end_time, frame_budget=args.frame_budget,
-        stream=args.stream, depth_frames=args.depth_frames, depth_motion=args.depth_motion,
-        depth_rotation=args.depth_rotation, window=args.window, window_overlap=args.window_overlap,
-        mesh_every=args.mesh_every,
-        width=args.width or None, fps=args.fps,
-        intrinsics=_numbers(args.intrinsics, 4, "--intrinsics") if args.intrinsics else None, fov=args.fov,
-        distortion=_numbers(args.distortion, (4, 5), "--distortion") if args.distortion else None,
-        rolling_shutter=args.rolling_shutter,
-        poses=args.poses, pose_method=args.pose_method, pose_options=pose_options_from_args(args),
-        on_break=args.on_break, join_segments=args.join_segments,
-        prior=args.prior, prior_path=args.prior_path, prior_align=args.prior_align,
-        weights=args.weights, features=not args.no_features, adjust=not args.no_medea, medea=medea,
-        refine=args.refine, mvs=mvs_config_from_args(args),
-        polish=args.polish, polish_config=polish_config_from_args(args),
-        medea_gate=args.medea_gate,
-        fusion=fusion_options_from_args(args), rerun=mode, rerun_path=path, device=medea.device,
-        progress=not args.quiet, depth_npy=not args.no_npy, glb=not args.no_glb,
+    config = PipelineConfig(
+        input=Path(args.input), output=Path(args.output), overwrite=args.overwrite,
+        pose_options=pose_options_from_args(args), adjust=not args.no_medea, medea=medea,
+        rerun=mode, rerun_path=path, device=medea.device, progress=not args.quiet,
     )
+    return with_values(config, {flag.setting: flag.value(args) for _, _, flags in RUN_FLAGS for flag in flags})
 
 
 def default_rerun_mode() -> str:
     from viewer import default_mode
 
     return default_mode()
+
+
+# --------------------------------------------------------------------------- the flags of `recon run`
+
+
+@dataclass(frozen=True)
+class Flag:
+    """A flag of `recon run` that sets one setting, whose field docstring is its help.
+
+    option: the flag ("--stride"). setting: the dotted setting it sets ("fusion.voxel_size").
+    parse: argparse's keywords (type, choices, metavar, action, dest); a flag that takes a
+    value defaults to the setting's default. convert: the parsed value -> the setting's.
+    """
+
+    option: str
+    setting: str
+    parse: dict = field(default_factory=dict)
+    convert: Callable | None = None
+
+    @property
+    def dest(self) -> str:
+        return self.parse.get("dest") or self.option.lstrip("-").replace("-", "_")
+
+    def value(self, args: argparse.Namespace):
+        """The setting's value in the parsed arguments `args`."""
+        value = getattr(args, self.dest)
+        return value if self.convert is None else self.convert(value)
+
+
+def _off(value: bool) -> bool:
+    return not value
+
+
+def _numbers_of(option: str, count):
+    return lambda text: None if text is None else _numbers(text, count, option)
+
+
+# (group title, where the docs explain it, its flags) in the order of `recon run --help`.
+RUN_FLAGS: list[tuple[str, str, list[Flag]]] = [
+    ("frames", "docs/running.md#long-videos-streaming", [
+        Flag("--stride", "stride", {"type": int}),
+        Flag("--max-frames", "max_frames", {"type": int}),
+        Flag("--start", "start_time", {"type": float}),
+        Flag("--end", "end_time", {"type": float}),
+        Flag("--frame-budget", "frame_budget", {"type": int}),
+        Flag("--stream", "stream", {"choices": STREAM_CHOICES}),
+        Flag("--depth-frames", "depth_frames", {"metavar": "{motion,all,K}"}),
+        Flag("--window", "window", {"type": int}),
+        Flag("--width", "width", {"type": int}, convert=lambda width: width or None),
+        Flag("--fps", "fps", {"type": float}),
+    ]),
+    ("camera", "docs/poses.md", [
+        Flag("--intrinsics", "intrinsics", {"metavar": "FX,FY,CX,CY"}, convert=_numbers_of("--intrinsics", 4)),
+        Flag("--fov", "fov", {"type": float}),
+        Flag("--distortion", "distortion", {"metavar": "K1,K2,P1,P2[,K3]"},
+             convert=_numbers_of("--distortion", (4, 5))),
+        Flag("--rolling-shutter", "rolling_shutter", {"type": float, "metavar": "MS"}),
+    ]),
+    ("poses", "docs/poses.md", [
+        Flag("--poses", "poses", {"metavar": "{%s}|PATH" % ",".join(POSE_CHOICES)}),
+        Flag("--pose-method", "pose_method", {"choices": POSE_METHODS}),
+        Flag("--on-break", "on_break", {"choices": ON_BREAK_CHOICES}),
+        Flag("--no-join", "join_segments", {"action": "store_false", "dest": "join_segments"}),
+    ]),
+    ("depth prior", "docs/depth.md#the-depth-prior---prior", [
+        Flag("--prior", "prior", {"choices": PRIOR_CHOICES}),
+        Flag("--prior-path", "prior_path", {"type": Path, "metavar": "PATH"}),
+        Flag("--prior-align", "prior_align", {"choices": PRIOR_ALIGN_CHOICES}),
+        Flag("--weights", "weights", {"type": Path}),
+        Flag("--no-features", "features", {"action": "store_true"}, convert=_off),
+    ]),
+    ("multi-view stereo refinement (after MEDeA)", "docs/depth.md#the-multi-view-stereo-refinement---refine", [
+        Flag("--refine", "refine", {"choices": REFINE_CHOICES}),
+        Flag("--polish", "polish", {"action": "store_true"}),
+        Flag("--medea-gate", "medea_gate", {"action": "store_true"}),
+    ]),
+    ("TSDF fusion", "docs/fusion.md", [
+        Flag("--voxel-size", "fusion.voxel_size", {"type": float}),
+        Flag("--max-depth", "fusion.max_depth", {"type": float}),
+        Flag("--min-confidence", "fusion.min_confidence", {"type": float}),
+        Flag("--max-triangles", "fusion.max_triangles", {"type": int}),
+        Flag("--point-cloud", "fusion.point_cloud", {"action": "store_true"}),
+    ]),
+    ("output", "docs/outputs.md", [
+        Flag("--no-npy", "depth_npy", {"action": "store_true"}, convert=_off),
+        Flag("--no-glb", "glb", {"action": "store_true"}, convert=_off),
+    ]),
+]
+
+
+def setting_field(name: str) -> tuple[type, str]:
+    """(the dataclass that has the setting, its field name) of a dotted setting of PipelineConfig."""
+    from ..pipeline import PipelineConfig
+
+    owner, *path = [PipelineConfig, *name.split(".")]
+    for part in path[:-1]:
+        owner = typing.get_type_hints(owner)[part]
+    return owner, path[-1]
+

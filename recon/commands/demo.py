@@ -1,23 +1,12 @@
 """The built-in sample, end to end: render the synthetic room to a video file, run the
 whole pipeline on it (`recon run`), and score the result against the scene's ground truth.
 
-The demo writes its inputs next to the results, so the run can be repeated by hand::
-
-    OUT/input/synthetic.mp4        the rendered frames (mp4v, 30 fps)
-    OUT/input/prior/frame_*.npy    the simulated monocular prior (float32 metres), one per frame
-    OUT/input/poses_gt.txt         ground-truth camera-to-world poses (TUM format)
-
-and then everything `recon run` writes (mesh.ply, mesh.glb, recording.rrd, depth/,
-trajectory.txt, intrinsics.json, report.json). ``report.json`` gets an ``evaluation``
-block: depth error of the prior, of MEDeA's output and of the refined depth (when the
-refinement ran) against the rendered depth, and mesh accuracy / completeness / F-score at
-5 cm against the ground-truth mesh (both meshes restricted to what the cameras saw), for the
-mesh the pipeline wrote and for MEDeA's depth and the raw prior fused the same way.
-
-Poses: ``"estimate"`` runs the pose front end on the video (``recon.poses``), ``"gt"``
-uses the rendered trajectory, ``"auto"`` estimates when the estimator is installed and
-falls back to ground truth with a logged warning otherwise. Estimated trajectories are
-aligned to the ground truth (similarity, Umeyama) before the mesh is scored.
+The demo writes its inputs under ``OUT/input/`` (the video, the simulated prior, the
+ground-truth poses) so the run can be repeated by hand, and adds an ``evaluation`` block to
+report.json (depth errors and the mesh against the ground-truth mesh). Poses:
+``"estimate"`` (the front end), ``"gt"`` (the rendered trajectory) or ``"auto"`` (estimate
+when the estimator is installed, else ground truth with a warning).
+More: docs/running.md#the-demo-recon-demo
 """
 
 from __future__ import annotations

@@ -50,127 +50,191 @@ def device_index(name: str) -> int | None:
 class PipelineConfig:
     """Everything `recon run` can be told; defaults suit a phone video on a CPU.
 
-    input, output: paths. overwrite: write into a non-empty output folder.
-    stride, max_frames, start_time, end_time: frame selection (see recon.io.source.Selection).
-    frame_budget: the most frames a one-shot run holds in memory, counted at 640x480 (a
-        frame of more pixels counts for more: recon.core.stages.budget_capacity). A one-shot run
-        needs about 1.1 GB and 14 MB a frame at 640x480. why:
-        docs/decisions.md#the-frame-budget. stream: "auto" streams inputs with more frames than
-        the budget holds (recon.drivers.streamed: frames flow through the stages, memory flat in the
-        video's length) and videos whose poses are estimated (recon.pipeline.stream_reason),
-        "on" always, "off" never (then, with no stride given, the stride is raised so that
-        the frames fit the budget).
-    depth_frames: which tracked frames get depth and are fused in a streamed run: "motion"
-        (a frame each time the camera moved depth_motion x the median depth or turned
-        depth_rotation degrees since the last one), "all", or "K" (every K-th frame).
-    window, window_overlap: frames per MEDeA window of a streamed run (counted at 640x480
-        like frame_budget: recon.core.stages.window_frames) and frames shared by
-        consecutive windows. mesh_every: re-extract the mesh for live Rerun every this many
-        fused frames (0: only at the end).
-    width: working width in pixels (None: the input's own); fps: frame rate of an image folder.
-    intrinsics: (fx, fy, cx, cy) in pixels of the input as decoded; fov: horizontal field
-        of view in degrees (used when intrinsics are not given). Given intrinsics are used as
-        given: no lens is estimated on top of them (``FrontendConfig.calibrate_lens``).
-    distortion: the lens of those intrinsics (or of the fov's camera), OpenCV's k1, k2, p1,
-        p2[, k3]; None: a dataset's published coefficients when its calibration is used,
-        else a pinhole camera. The frames are resampled into the pinhole camera as they are
-        decoded (recon.io.source.FrameSource.to_pinhole).
-    poses: "auto", "gt" (dataset ground truth), "estimate", or a pose file / folder
-        (TUM, COLMAP, nerfstudio, 7-Scenes/ScanNet matrices, Open3D .log).
-    rolling_shutter: the camera's rolling-shutter readout time in milliseconds (0: a global
-        shutter). The frames are resampled to one instant each, with the angular velocity of
-        the given poses or of a first estimate (then estimated again on the resampled frames):
-        recon.geometry.rolling_shutter. A streamed run resamples its depth frames with given poses
-        and leaves the frames as recorded with estimated ones (it tracks only once).
-    pose_method: estimator, "auto" | "frontend" | "sfm".
-    pose_options: fields of the estimators' configs (``recon.poses.config.FrontendConfig``,
-        ``recon.poses.sfm.mapper.SfMConfig``) to change, e.g. {"keyframe_flow": 12.0}.
-    on_break: what an estimated trajectory becomes where its scale breaks (the front end's
-        map against the depth prior, ``recon.poses.checks.scale_watch``): "segments" (each stretch
-        reconstructed on its own, ``OUT/segment_NN/``, with one summary), "stop" (the run
-        stops with one line naming the frames) or "keep" (one trajectory, with a warning).
-        Whatever it is, a trajectory the front end's motion checks distrust as a whole
-        (``recon.poses.checks.motion_checks``) is not returned, except under "keep"; nor is one whose
-        metric scale the depth prior cannot vouch for (its depth does not follow the scene's,
-        ``recon.poses.checks.prior_agreement``), which "keep" returns with a warning.
-    join_segments: before that, try to join the stretches on either side of each break
-        (``recon.poses.checks.join``: the frames after it posed by PnP in the stretch before it, a
-        similarity between the two); joined stretches are one trajectory again.
-    join_through_map: where that finds nothing, join through one SfM model of views of
-        both stretches (``recon.poses.sfm.map_join``: COLMAP registers each by PnP on the
-        points of the others; needs pycolmap).
-    prior: "fastdepth", "sensor" (a dataset's depth), "folder" (prior_path holds one
-        depth map per frame, matched by name) or "hf" (prior_path is a local Hugging Face
-        depth model folder; recon.priors.hf). weights: FastDepth weights location.
-    prior_align: what an "hf" model that predicts affine-invariant disparity (its kind is
-        read from its config, recon.priors.hf.model_kind) is fitted to, per frame, to make
-        it metric: "fastdepth" (FastDepth on the same frames) or "sensor" (an RGB-D
-        dataset's depth). Metric models are used as they are.
-    features: give MEDeA FastDepth's encoder features (the feature-metric loss).
-    adjust: run MEDeA (False fuses the raw prior). medea: MEDeA's configuration.
-    medea_gate: skip MEDeA, and give the refinement the prior's depth, when given poses
-        contradict the frames (recon.poses.given.pose_check, run on every run with given poses:
-        one warning either way). Off by default: skipping MEDeA trades depth accuracy for
-        the mesh. why: docs/decisions.md#the-gate-on-given-poses
-    refine: "mvs" (multi-view stereo refinement after MEDeA, mvs_core) or "none";
-        mvs: its configuration (mvs_core.MvsConfig).
-    polish: polish given poses against the frames before MEDeA when refining (one-shot
-        runs; recon.poses.given.polish); off: given poses are used as given.
-        why: docs/decisions.md#given-poses-are-used-as-given. polish_config: its settings.
-    fusion: TSDF options (voxel size, truncation, depth clipping, fragment removal, ...).
-    rerun: "spawn", "save", "serve" or "off"; rerun_path: .rrd for "save" (default
-        OUT/recording.rrd); rerun_max_width: images wider than this are logged downscaled.
-    device: "cpu", "cuda", "cuda:N" for prior, MEDeA and fusion.
-    depth_npy: also write float32 .npy depth maps; glb: also write mesh.glb.
+    Each field's docstring is its one description: `recon run --help` is made from it
+    (recon.commands.cli_args) and so is ``presets/defaults.yaml`` (recon.core.config_file).
     """
 
     input: Path
+    """The video file, image folder or RGB-D dataset folder to reconstruct."""
     output: Path
+    """The folder that receives the results (mesh, trajectory, depth maps, report.json)."""
     overwrite: bool = False
+    """Write into a non-empty output folder, removing what an earlier run of recon wrote there."""
     stride: int | None = None
+    """Use every k-th frame (none: 1, raised to stay within frame_budget when not streamed).
+
+    Frame selection: recon.io.source.Selection.
+    """
     max_frames: int | None = None
+    """Use at most this many frames."""
     start_time: float | None = None
+    """The first second of the video to use."""
     end_time: float | None = None
+    """Stop at this second of the video."""
     frame_budget: int = 150
+    """The most frames a one-shot run holds in memory, counted at 640x480 (150: about 3.2 GB).
+
+    A frame of more pixels counts for more (recon.core.stages.budget_capacity); longer inputs
+    are streamed (``stream``). why: docs/running.md#memory
+    """
     stream: str = "auto"
+    """Stream the frames through the stages in bounded memory: auto, on or off.
+
+    auto streams inputs with more frames than frame_budget holds, and videos whose poses are
+    estimated (recon.pipeline.stream_reason; depth for the frames the camera moved to reach; run
+    again at once, where SfM can be tried, if the front end loses the camera). MEDeA then runs
+    on overlapping windows and the mesh grows as it goes (recon.drivers.streamed). off gives
+    every frame depth and raises the stride, when none is given, to fit the budget.
+    """
     depth_frames: str = "motion"
+    """Which tracked frames of a streamed run get depth and are fused: motion, all, or every K-th.
+
+    motion: a frame each time the camera moved depth_motion x the median depth or turned
+    depth_rotation degrees since the last one.
+    """
     depth_motion: float = 0.02
+    """Streamed runs, depth_frames motion: the camera's movement that takes a frame, as a
+    fraction of the median depth."""
     depth_rotation: float = 2.0
+    """Streamed runs, depth_frames motion: the turn in degrees that takes a frame."""
     window: int = 48
+    """Frames per MEDeA window of a streamed run, counted at 640x480 like frame_budget.
+
+    recon.core.stages.window_frames.
+    """
     window_overlap: int = 8
+    """Frames shared by consecutive windows of a streamed run."""
     mesh_every: int = 200
+    """Re-extract the mesh for live Rerun every this many fused frames of a streamed run (0: only at the end)."""
     width: int | None = 640
+    """The working width in pixels, aspect kept (none, or 0 on the command line: the input's own)."""
     fps: float | None = None
+    """The frame rate of an image folder (none: 30), for start_time and end_time."""
     intrinsics: tuple[float, float, float, float] | None = None
+    """Pinhole intrinsics fx, fy, cx, cy in pixels of the input as decoded (pixel centres at integers).
+
+    Given intrinsics are used as given: no lens is estimated on top of them
+    (``FrontendConfig.calibrate_lens``).
+    """
     fov: float | None = None
+    """The horizontal field of view in degrees, used when the intrinsics are not given."""
     distortion: tuple[float, ...] | None = None
+    """The lens of the intrinsics or fov, OpenCV's k1, k2, p1, p2[, k3] (none: a dataset's
+    published coefficients with its calibration, else none).
+
+    The frames are resampled into the pinhole camera as they are decoded, before any other
+    stage (recon.io.source.FrameSource.to_pinhole).
+    """
     rolling_shutter: float = 0.0
+    """The camera's rolling-shutter readout time in milliseconds (0: a global shutter; phones and webcams: 10-30).
+
+    The frames are resampled to one instant each, with the angular velocity of the given
+    poses or of a first estimate (then estimated again on the resampled frames, so such a
+    video is not streamed by stream auto): recon.geometry.rolling_shutter. A streamed run
+    resamples its depth frames with given poses and leaves the frames as recorded with
+    estimated ones (it tracks only once).
+    """
     poses: str = "auto"
+    """Where the poses come from: auto (a dataset's ground truth, else estimated), gt,
+    estimate, or a pose file or folder.
+
+    Pose files: TUM, COLMAP, nerfstudio transforms.json, per-frame 4x4 matrices (7-Scenes,
+    ScanNet), Open3D .log.
+    """
     pose_method: str = "auto"
+    """The pose estimator: auto, frontend or sfm."""
     pose_options: dict[str, Any] = field(default_factory=dict)
+    """Settings of the pose estimators by name, e.g. {"keyframe_flow": 12.0}.
+
+    The fields of ``recon.poses.config.FrontendConfig`` and
+    ``recon.poses.sfm.mapper.SfMConfig``; ``recon run --pose-option list`` prints them.
+    """
     on_break: str = "segments"
+    """Where an estimated trajectory's scale breaks or the camera is lost: segments, stop or keep.
+
+    segments: each stretch reconstructed on its own (``OUT/segment_NN/``, one summary);
+    stop: the run stops with one line naming the frames (exit 2); keep: one trajectory, with
+    a warning (recon.poses.checks.scale_watch). Whatever it is, a trajectory the front end's motion
+    checks distrust as a whole (recon.poses.checks.motion_checks) is not returned, except under
+    keep; nor is one whose metric scale the depth prior cannot vouch for (its depth does not
+    follow the scene's, recon.poses.checks.prior_agreement), which keep returns with a warning.
+    """
     join_segments: bool = True
+    """Try to join the stretches on either side of a scale break before on_break applies.
+
+    recon.poses.checks.join: the frames after it posed by PnP in the stretch before it, a
+    similarity between the two; joined stretches are one trajectory again.
+    """
     join_through_map: bool = True
+    """Where join_segments finds nothing, join through one SfM model of views of both stretches.
+
+    recon.poses.sfm.map_join: COLMAP registers each by PnP on the points of the others; needs
+    pycolmap.
+    """
     prior: str = "fastdepth"
+    """The depth prior: fastdepth (the network), sensor (an RGB-D dataset's depth), folder or hf (prior_path).
+
+    folder: prior_path holds one depth map per frame, matched by name; hf: prior_path is a
+    local Hugging Face depth model folder (recon.priors.hf; needs transformers).
+    """
     prior_path: Path | None = None
+    """The prior's files: a folder of depth maps (prior folder) or a Hugging Face model folder (prior hf).
+
+    Depth maps: .npy/.png/.exr/.tiff in metres (16-bit PNG in millimetres; 0, NaN and inf:
+    no depth). A model folder: config.json, weights, preprocessor_config.json, as
+    save_pretrained writes them; nothing is downloaded.
+    """
     prior_align: str = "fastdepth"
+    """What an hf model predicting affine-invariant disparity is fitted to per frame: fastdepth or sensor.
+
+    Its kind is read from its config (recon.priors.hf.model_kind); metric models are used as
+    they are.
+    """
     weights: Path | None = None
+    """The FastDepth weights (model.json, .npz or a folder; none: $RECON_WEIGHTS, then the packaged model)."""
     features: bool = True
+    """Give MEDeA the prior's encoder features (the feature-metric loss)."""
     adjust: bool = True
+    """Run MEDeA (false: fuse the raw depth prior)."""
     medea_gate: bool = False
+    """Skip MEDeA, and refine from the prior's depth, when the given poses contradict the frames.
+
+    Every run with given poses checks them (recon.poses.given.pose_check) and warns either way.
+    why: docs/poses.md#given-poses
+    """
     medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
+    """MEDeA's settings (medea_core.MedeaConfig; the fast preset)."""
     refine: str = "mvs"
+    """The multi-view stereo refinement after MEDeA: mvs, or none (MEDeA's depth, the paper's pipeline).
+
+    mvs: per-pixel depth from the frames around MEDeA's depth, with a confidence; only the
+    pixels it reconstructs are fused (mvs_core).
+    """
     mvs: MvsConfig = field(default_factory=MvsConfig)
+    """The refinement's settings (mvs_core.MvsConfig)."""
     polish: bool = False
+    """Polish given poses against the frames before MEDeA when refining (one-shot runs; off: used as given).
+
+    recon.poses.given.polish. why: docs/poses.md#given-poses
+    """
     polish_config: PolishConfig = field(default_factory=PolishConfig)
+    """The polish's settings (recon.poses.given.polish.PolishConfig)."""
     fusion: FusionOptions = field(default_factory=FusionOptions)
+    """TSDF fusion's settings (recon.fusion.FusionOptions)."""
     rerun: str = "off"
+    """Rerun inspection: spawn, save, serve or off."""
     rerun_path: Path | None = None
+    """The .rrd file of rerun save (none: OUT/recording.rrd)."""
     rerun_max_width: int | None = 320
+    """Images wider than this are logged to Rerun downscaled."""
     device: str = "cpu"
+    """The torch device of prior, MEDeA and fusion: cpu, cuda or cuda:N."""
     progress: bool = True
+    """Show progress bars."""
     depth_npy: bool = True
+    """Also write float32 .npy depth maps beside the 16-bit PNGs."""
     glb: bool = True
+    """Also write mesh.glb."""
 
     def validate(self) -> None:
         """One-line ReconInputError for options that cannot work (they come from the CLI)."""

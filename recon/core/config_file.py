@@ -2,34 +2,37 @@
 `--preset NAME` (a shipped config file, ``presets/NAME.yaml`` beside this module) and
 `--set SECTION.KEY=VALUE` (one setting, typed like its field).
 
-The file holds :class:`recon.core.config.PipelineConfig`'s fields by name, a section (a mapping)
-for each nested config (``medea``, ``mvs``, ``fusion``, ``polish_config``): the same
-names and layout as ``report.json``'s ``options``, so a report itself (or its
-``options``) can be given to run a result again with exactly its settings. Keys the config
-does not have are refused with their name. The command line's input and output always
-win; any other flag given with a value other than its default overrides the file, and
-every ``--set`` overrides both. The names ``--set`` takes are the file's, dotted
-(``medea.stage1.epochs``, ``fusion.voxel_size``, ``frame_budget``): ``recon run --set list``
-prints them all with their types and defaults.
+The file holds :class:`recon.core.config.PipelineConfig`'s fields by name, a section per
+nested config: the layout of report.json's ``options``, so a report runs a result again.
+Unknown keys are refused by name; ``inherit: NAME|PATH`` starts from another file
+(``presets/defaults.yaml``: every setting at its default). Input and output always win; a flag
+given with a non-default value overrides the file, and every ``--set`` overrides both.
+More: docs/running.md#settings-in-a-file---config---preset---set
 """
 
 from __future__ import annotations
 
 import difflib
 import json
+import textwrap
 import types
 import typing
 from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 
 from ..errors import ReconInputError
-from ..options import split_option, type_name, typed_value
+from ..options import field_docs, split_option, type_name, typed_value
 
 PRESETS = Path(__file__).with_name("presets")
+DEFAULTS = PRESETS / "defaults.yaml"
+# Settings the invocation or the machine decides, not a config file: left out of defaults.yaml
+# (a file that named them would pin, say, the device of whoever wrote it).
+NOT_IN_DEFAULTS = frozenset({"input", "output", "overwrite", "rerun", "rerun_path", "device", "progress"})
 
 
-def read_config_file(path: Path) -> dict:
-    """The settings mapping of a YAML or JSON file (a report.json: its ``options``)."""
+def read_config_file(path: Path, _seen: tuple = ()) -> dict:
+    """The settings mapping of a YAML or JSON file (a report.json: its ``options``), over
+    the file it names with ``inherit:`` if any."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -50,7 +53,35 @@ def read_config_file(path: Path) -> dict:
         data = data["options"]  # a report.json
     if not isinstance(data, dict):
         raise ReconInputError(f"{path}: a config file holds a mapping of settings, got {type(data).__name__}")
+    if "inherit" in data:
+        data = dict(data)
+        parent = _inherited(path, data.pop("inherit"))
+        if parent.resolve() in _seen:
+            raise ReconInputError(f"{path}: inherit: {parent} inherits from itself")
+        data = _deep_merged(read_config_file(parent, (*_seen, path.resolve(), parent.resolve())), data)
     return data
+
+
+def _inherited(path: Path, name) -> Path:
+    """The file `inherit: name` of the config file `path` names: a shipped preset's, or a
+    path relative to `path`."""
+    if not isinstance(name, str) or not name:
+        raise ReconInputError(f"{path}: inherit: expected a preset name or a file, got {name!r}")
+    shipped = PRESETS / f"{name}.yaml"
+    if "/" not in name and not name.endswith((".yaml", ".yml", ".json")) and shipped.is_file():
+        return shipped
+    return path.parent / name
+
+
+def _deep_merged(base: dict, over: dict) -> dict:
+    """`base` with `over`'s settings over it, sections merged key by key."""
+    merged_values = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(base.get(key), dict) and key != "pose_options":
+            merged_values[key] = _deep_merged(base[key], value)
+        else:
+            merged_values[key] = value
+    return merged_values
 
 
 def _typed(kind, value, where: str):
@@ -124,7 +155,63 @@ def preset_path(name: str) -> Path:
 
 
 def preset_names() -> list[str]:
-    return sorted(p.stem for p in PRESETS.glob("*.yaml"))
+    """The shipped MEDeA presets (``presets/*.yaml`` but defaults.yaml, which they inherit)."""
+    return sorted(p.stem for p in PRESETS.glob("*.yaml") if p != DEFAULTS)
+
+
+# --------------------------------------------------------------------------- defaults.yaml
+
+
+def defaults_yaml() -> str:
+    """The text of ``presets/defaults.yaml``: every setting of PipelineConfig at its default
+    (but NOT_IN_DEFAULTS), each under its field docstring's summary, a section per nested config."""
+    from .config import PipelineConfig
+
+    lines = ["# Every setting of `recon run` at its default, a section per stage: the names of --set and",
+             "# of a --config file. Written from the dataclasses' fields by recon.core.config_file.",
+             "# write_defaults (python scripts/write_defaults.py); do not edit. The presets inherit it.",
+             "# The device, the Rerun mode and the input and output are the command line's."]
+    _yaml_lines(PipelineConfig(Path(), Path()), "", lines)
+    return "\n".join(lines) + "\n"
+
+
+def write_defaults(path: Path = DEFAULTS) -> Path:
+    """Write ``defaults_yaml()`` to `path` (the shipped presets/defaults.yaml)."""
+    Path(path).write_text(defaults_yaml())
+    return Path(path)
+
+
+def _yaml_lines(config, indent: str, lines: list[str]) -> None:
+    docs = field_docs(type(config))
+    for f in fields(config):
+        if f.name in NOT_IN_DEFAULTS:
+            continue
+        value = getattr(config, f.name)
+        summary = " ".join(docs.get(f.name, "").split("\n\n")[0].split())
+        lines += textwrap.wrap(summary, 100, initial_indent=f"{indent}# ", subsequent_indent=f"{indent}# ")
+        if is_dataclass(value):
+            lines.append(f"{indent}{f.name}:")
+            _yaml_lines(value, indent + "  ", lines)
+        else:
+            lines.append(f"{indent}{f.name}: {_yaml_scalar(value)}")
+
+
+def _yaml_scalar(value) -> str:
+    """`value` as YAML that yaml.safe_load reads back as the same value (tuples as lists)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        text = repr(value)
+        return text.replace("e", ".0e", 1) if "e" in text and "." not in text else text
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(_yaml_scalar(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return json.dumps(value)
+    return json.dumps(str(value))
 
 
 # --------------------------------------------------------------------------- --set
@@ -185,6 +272,23 @@ def with_settings(config, items: list[str]):
     return config
 
 
+def setting_default(name: str):
+    """The default of dotted setting `name` of PipelineConfig (``fusion.voxel_size``)."""
+    from .config import PipelineConfig
+
+    value = PipelineConfig(Path(), Path())
+    for part in name.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def with_values(config, values: dict):
+    """A copy of dataclass `config` with each ``{dotted name: value}`` of `values` set, typed as given."""
+    for name, value in values.items():
+        config = _assigned(config, name.split("."), value)
+    return config
+
+
 def _assigned(config, path: list[str], value):
     if len(path) == 1:
         return replace(config, **{path[0]: value})
@@ -218,5 +322,6 @@ def settings_listing(config) -> str:
     return "\n".join(f"{n:<{widths[0]}}  {k:<{widths[1]}}  {v}" for n, k, v in rows)
 
 
-__all__ = ["changed_settings", "format_setting", "merged", "preset_names", "preset_path", "read_config_file",
-           "setting_types", "settings_listing", "updated", "with_settings"]
+__all__ = ["DEFAULTS", "changed_settings", "defaults_yaml", "format_setting", "merged", "preset_names", "preset_path",
+           "read_config_file", "setting_default", "setting_types", "settings_listing", "updated", "with_settings",
+           "with_values", "write_defaults"]

@@ -44,43 +44,61 @@ _BYTES_PER_VOXEL = 20  # tsdf + weight + rgb, float32
 
 @dataclass
 class FusionOptions:
-    """Settings of :func:`fuse`; None means "choose from the data" (module docstring).
-
-    voxel_size: metres. trunc: truncation distance in metres (default trunc_voxels x voxel).
-    max_depth: metres; depth beyond it is ignored. weight_threshold: the fewest frames that
-    must have observed a voxel for it to be meshed (1 = a single frame suffices; Open3D's own
-    threshold is strict, weight > t, so t - 0.5 is passed to it). block_resolution: voxels
-    per block side. block_count: the memory budget in blocks (80 000 blocks at resolution 8
-    ~ 0.8 GB). min_fragment_triangles / min_fragment_fraction: fragment removal (0 and 0
-    keep everything). point_cloud: also extract a surface point cloud. device: "cpu",
-    "cuda", "cuda:1", ... progress: show a tqdm bar over frames. min_confidence: with a
-    confidence map, pixels below it are not integrated (None: the caller's choice, else
-    DEFAULT_MIN_CONFIDENCE). confidence_weights: confidence levels that each add one
-    observation's weight to a pixel fused (min_confidence admits it with weight 1): with
-    (0.1,) and min_confidence 0.02 a reconstructed pixel counts twice, a filled one near
-    evidence once, so ``weight_threshold`` sums weights and not frames (() = every fused pixel
-    weighs 1; ``confidence_weight``). max_triangles: the mesh's triangle budget (``volume.within_budget``:
-    vertex clustering; 0 = no limit, the full mesh). metric: the depth is in metres to be
-    trusted (False: its scale is not, and the voxel follows the depth without the absolute
-    bounds; the pipeline sets it from report.json's poses.metric_scale).
-    """
+    """Settings of :func:`fuse`; None means "choose from the data" (module docstring)."""
 
     voxel_size: float | None = None
+    """The voxel's edge in metres (none: from the median depth, clamped)."""
     trunc: float | None = None
+    """The truncation distance in metres (none: trunc_voxels x the voxel)."""
     trunc_voxels: float = 8.0
+    """The truncation distance in voxels when trunc is none."""
     max_depth: float | None = None
+    """Depth beyond this many metres is ignored (none: a margin over a high percentile of the depth)."""
     weight_threshold: float = 2.0
+    """The fewest frames that must have observed a voxel for it to be meshed (1: a single frame suffices).
+
+    Open3D's own threshold is strict, weight > t, so t - 0.5 is passed to it; with
+    confidence_weights it sums weights, not frames.
+    """
     block_resolution: int = 8
+    """Voxels per block side: 4, 8, 16 or 32."""
     block_count: int = 80_000
+    """The memory budget in voxel blocks (80 000 blocks at resolution 8: about 0.8 GB); the voxel grows to fit."""
     min_fragment_triangles: int = 100
+    """Mesh pieces with fewer triangles are dropped (0 keeps all)."""
     min_fragment_fraction: float = 0.005
+    """Mesh pieces with a smaller share of the triangles are dropped (0 keeps all)."""
     point_cloud: bool = False
+    """Also extract a surface point cloud (point_cloud.ply)."""
     device: str = "cpu"
+    """The device of the volume: cpu, cuda, cuda:1, ..."""
     progress: bool = True
+    """Show a progress bar over the frames."""
     min_confidence: float | None = None
+    """With a confidence map, fuse only pixels of at least this confidence (none: the caller's choice).
+
+    The pipeline's default: 0.1 (reconstructed pixels only) with given poses, 0.01 (also
+    filled pixels near evidence) with estimated poses; else DEFAULT_MIN_CONFIDENCE.
+    Reconstructed pixels have the share of source views that agree (>= 1/3), filled pixels
+    0.1 x the share of reconstructed pixels around them; 0 fuses all.
+    """
     confidence_weights: tuple[float, ...] = ()
+    """Confidence levels that each add one observation's weight to a fused pixel (empty: every pixel weighs 1).
+
+    min_confidence admits a pixel with weight 1: with (0.1,) and min_confidence 0.02 a
+    reconstructed pixel counts twice, a filled one near evidence once, so weight_threshold
+    sums weights and not frames (``confidence_weight``).
+    """
     max_triangles: int = 1_000_000
+    """The mesh's triangle budget: a larger mesh is thinned to 80-100 % of it (0 keeps the full mesh).
+
+    ``volume.within_budget``: vertex clustering, colours kept.
+    """
     metric: bool = True
+    """The depth is in metres to be trusted (false: the voxel follows the depth without the absolute bounds).
+
+    The pipeline sets it from report.json's poses.metric_scale.
+    """
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
@@ -464,7 +482,7 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
             "fused (0 fuses every pixel; camera motion between frames gives the refinement its evidence)"
             if confidence_used and options.min_confidence else "")
     log.warning("TSDF fusion: the mesh is empty (%d frames fused): no surface within --max-depth %.2f m was seen "
-                "by more than --weight-threshold %g frames%s; mesh.ply and mesh.glb are not written",
+                "by more than fusion.weight_threshold %g frames%s; mesh.ply and mesh.glb are not written",
                 volume.frames_fused, volume.max_depth, options.weight_threshold, gate)
 
 

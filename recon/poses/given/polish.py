@@ -30,45 +30,52 @@ from recon.poses.result import invert_poses, pool_depth
 @dataclass
 class PolishConfig:
     """Settings of :func:`polish_poses`.
-    why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
 
-    ba_stride: BA grid = frame size / ba_stride (flow runs at twice that resolution).
-    temporal: each frame is linked to this many following frames.
-    partners: ... and to this many stereo partners chosen by triangulation angle and
-        overlap on the prior depth (``mvs_core.select_sources``), which are the pairs the
-        refinement will match.
-    pose_weight: strength of the tie to the given poses: moving a pose so that its pixels
-        shift by one BA pixel costs pose_weight times as much as all its flow being off by
-        one pixel (so the tie does not depend on how many edges a frame has); weak, so
-        that the flow decides relative motion.
-    prior_weight: tie of the BA depth to the depth prior (``ba.BAOptions``).
-    iters: Levenberg-Marquardt iterations of the joint BA.
-    depth_iters, min_gain: first the BA's depth alone is fitted under the given poses
-        (depth_iters iterations); the polished poses are kept only when the joint BA lowers
-        that cost at least min_gain times, so poses that already agree with the frames (a
-        rendered sequence, a good SfM model) are left exactly as given: polishing is
-        limited by the flow's own noise.
-    calibrate_lens: estimate the lens' radial term k1 as well; off by default, since the
-        poses come with intrinsics (a calibration a fitted lens would override).
-        why: docs/decisions.md#the-lens
-    min_fit: the share of the flow (BA inlier fraction) the poses that come out of the
-        polish (polished, or kept as given) should explain; below it ``info["disagreement"]``
-        says so (``pose_disagreement``; report.json only: MEDeA's gate judges the poses in
-        use with ``recon.poses.given.pose_check``, which needs no polish).
-    flow: the DIS flow settings.
+    why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
     """
 
     ba_stride: int = 8
+    """The BA grid is the frame size / ba_stride (the flow runs at twice that resolution)."""
     temporal: int = 3
+    """Each frame is linked to this many following frames."""
     partners: int = 3
+    """... and to this many stereo partners chosen by triangulation angle and overlap on the prior depth.
+
+    ``mvs_core.select_sources``: the pairs the refinement will match.
+    """
     pose_weight: float = 1e-4
+    """The strength of the tie to the given poses (weak, so that the flow decides relative motion).
+
+    Moving a pose so that its pixels shift by one BA pixel costs pose_weight times as much as
+    all its flow being off by one pixel (so the tie does not depend on how many edges a
+    frame has).
+    """
     prior_weight: float = 0.002
+    """The tie of the BA depth to the depth prior (``ba.BAOptions``)."""
     iters: int = 6
+    """Levenberg-Marquardt iterations of the joint BA."""
     depth_iters: int = 3
+    """Iterations of the first fit, the BA's depth alone under the given poses."""
     min_gain: float = 1.5
+    """The polished poses are kept only when the joint BA lowers the depth-only cost at least this many times.
+
+    So poses that already agree with the frames (a rendered sequence, a good SfM model) are
+    left exactly as given: polishing is limited by the flow's own noise.
+    """
     calibrate_lens: bool = False
+    """Estimate the lens' radial term k1 as well (off: the poses come with intrinsics).
+
+    A fitted lens would override their calibration; why: docs/poses.md#given-poses
+    """
     min_fit: float = 0.75
+    """The share of the flow (BA inlier fraction) the poses that come out of the polish should explain.
+
+    Below it ``info["disagreement"]`` says so (``pose_disagreement``; report.json only:
+    MEDeA's gate judges the poses in use with ``recon.poses.given.pose_check``, which needs no
+    polish). why: docs/validation.md
+    """
     flow: fl.FlowConfig = field(default_factory=fl.FlowConfig)
+    """The DIS flow settings."""
 
     def to_dict(self) -> dict:
         return {k: v for k, v in asdict(self).items() if k != "flow"}

@@ -21,47 +21,54 @@ import torch.nn.functional as F
 
 @dataclass
 class FlowConfig:
-    """DIS settings and the confidence model.
-
-    finest_scale, patch_size, patch_stride, gd_iters, var_iters: DIS parameters. OpenCV's
-        presets stop at 1/4 (fast) or 1/2 (medium) of the input and upsample; the flow
-        images here are already small (about 160 px wide), so the default runs DIS down to
-        full resolution (finest_scale 0), which on the synthetic room cuts the median
-        error 2-3x for ~3x the time (still ~10 ms per flow at 160x120).
-    fb_sigma: forward-backward error (pixels at the flow resolution) at which the
-        confidence drops to 1/2 (Cauchy-like falloff 1 / (1 + (e / sigma)^2)).
-    fb_rel: the tolerated error grows by this fraction of the flow magnitude (large
-        motions are less precise but not wrong).
-    spread_sigma: within a pooled block, a flow spread (std, pixels at the flow resolution)
-        of this much halves the weight: blocks straddling a depth edge mix two motions.
-    photo_sigma: mean absolute grey-level difference (0-255, over 3x3 pixels) between a
-        pixel and where its flow lands at which the confidence halves. Forward-backward
-        agreement alone trusts a flow that is zero both ways, which is what DIS returns
-        between unrelated images (a cut, a blurred or corrupt frame); the images then
-        disagree. Wide enough for exposure changes and blur between neighbouring frames.
-    anisotropic: weigh each flow vector by the direction its image's texture measures it
-        in (``flow_whitening``) instead of the same in every direction. Along a straight
-        edge or over plain shading only the flow across the edge is measured; what DIS
-        returns along it is the aperture problem's guess, and it is biased short: on the
-        synthetic walk-through's plain corridor, seeded with the true flow, DIS returned
-        0.46-0.57 of it (confidence-weighted), 0.91-0.99 once each vector is weighed by
-        its image's structure tensor, with forward-backward and photometric agreement as
-        high either way. The bias shrank the corridor's trajectory to half its length.
-    texture_floor: grey levels per pixel (squared, the structure tensor's units): texture
-        weaker than this counts as plain (its flow is weighted down in every direction).
-    """
+    """DIS settings and the confidence model."""
 
     finest_scale: int = 0
+    """DIS's finest pyramid level (0: full resolution).
+
+    OpenCV's presets stop at 1/4 (fast) or 1/2 (medium) of the input and upsample; the flow
+    images here are already small (about 160 px wide), so the default runs DIS down to full
+    resolution, which on the synthetic room cuts the median error 2-3x for ~3x the time
+    (still ~10 ms per flow at 160x120).
+    """
     patch_size: int = 8
+    """DIS's patch size in pixels."""
     patch_stride: int = 4
+    """DIS's patch stride in pixels."""
     gd_iters: int = 16
+    """DIS's gradient descent iterations."""
     var_iters: int = 5
+    """DIS's variational refinement iterations."""
     fb_sigma: float = 0.75
+    """The forward-backward error (pixels at the flow resolution) at which the confidence drops to 1/2.
+
+    A Cauchy-like falloff 1 / (1 + (e / sigma)^2).
+    """
     fb_rel: float = 0.05
+    """The tolerated error grows by this fraction of the flow magnitude (large motions are less precise)."""
     spread_sigma: float = 1.0
+    """Within a pooled block, a flow spread (std, pixels at the flow resolution) of this much halves the weight.
+
+    Blocks straddling a depth edge mix two motions.
+    """
     photo_sigma: float = 24.0
+    """The mean absolute grey-level difference (0-255, over 3x3 pixels) at which the confidence halves.
+
+    Between a pixel and where its flow lands. Forward-backward agreement alone trusts a flow
+    that is zero both ways, which is what DIS returns between unrelated images (a cut, a
+    blurred or corrupt frame); the images then disagree. Wide enough for exposure changes
+    and blur between neighbouring frames.
+    """
     anisotropic: bool = False
+    """Weigh each flow vector by the direction its image's texture measures it in (``flow_whitening``).
+
+    Along a straight edge or over plain shading only the flow across the edge is measured;
+    what DIS returns along it is the aperture problem's guess, and it is biased short (on
+    the synthetic walk-through's plain corridor it shrank the trajectory to half its
+    length). why: docs/poses.md#plain-surfaces-the-flows-aperture-problem
+    """
     texture_floor: float = 1.0
+    """Texture weaker than this (grey levels per pixel, squared) counts as plain; its flow is weighted down."""
 
 
 _DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
