@@ -67,7 +67,7 @@ def test_block_estimate_and_budget(fusion_room, fused_room, caplog):
     # A budget 4x too small: the voxel grows (about 2x) with a warning instead of failing.
     budget = fused_room.block_estimate // 4
     frames = slice(0, 20, 4)
-    with caplog.at_level(logging.WARNING, logger="recon.fusion.tsdf"):
+    with caplog.at_level(logging.WARNING, logger="recon.fusion.sizing"):
         r = fuse(fusion_room.depth[frames], fusion_room.rgb[frames], fusion_room.poses[frames], fusion_room.intrinsics,
                  FusionOptions(block_count=budget, **QUIET))
     assert any("budget" in rec.message for rec in caplog.records)

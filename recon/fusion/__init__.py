@@ -1,13 +1,12 @@
-"""TSDF fusion of metric depth maps into a mesh (`tsdf`: sizing and the whole-sequence fuse; `volume`: one
-growing volume, extraction and clean-up)."""
+"""TSDF fusion of metric depth maps into a mesh: `sizing` (the voxel, the depth range and the
+memory budget), `tsdf` (the whole-sequence fuse), `volume` (one growing volume, extraction
+and clean-up)."""
 
+from .sizing import auto_max_depth, auto_voxel_size, estimate_block_count
 from .tsdf import (
     FusionOptions,
     FusionResult,
-    auto_max_depth,
-    auto_voxel_size,
     confidence_weight,
-    estimate_block_count,
     fuse,
     fusion_device,
     o3d_device,
