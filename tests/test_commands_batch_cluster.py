@@ -30,16 +30,22 @@ STORE = 100 * 2**20  # each node's object store: the tasks pass kilobytes
 @pytest.fixture(scope="module")
 def cluster():
     """A Ray head node with 1 CPU (resource "head"); each test adds and removes its workers.
-    Torn down whatever the tests do."""
+    Torn down whatever the tests do, and the signal handlers a Ray driver installs in this
+    process (ray.init's SIGTERM handler) put back, so that later tests see their own."""
+    import signal
+
     pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     head = Cluster(initialize_head=True, head_node_args=dict(num_cpus=1, resources={"head": 1},
                                                             object_store_memory=STORE, include_dashboard=False))
     try:
         yield head
     finally:
         head.shutdown()
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
 
 
 def _worker(cluster, cpus: int):
@@ -255,6 +261,7 @@ def test_a_node_that_does_not_see_the_output_folder_stops_the_batch(cluster, inp
         finally:
             ray.shutdown()
         assert joined, "the node in its own mount namespace did not join"
+        capfd.readouterr()  # what this test's own Ray driver said while the node joined
         code = main(["batch", *clips[:2], "-o", str(out), "--address", cluster.address, *options])
         captured = capfd.readouterr()
         err = captured.err.splitlines()
