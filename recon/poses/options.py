@@ -12,11 +12,12 @@ which ``import recon.poses`` should not.
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import fields, replace
 from functools import cache
 
 from recon.errors import ReconInputError
-from recon.options import scalar_fields, split_option, type_name, typed_value
+from recon.options import field_summary, scalar_fields, split_option, type_name, typed_value
 
 
 def _option_fields() -> dict[str, tuple[str, object, object]]:
@@ -125,12 +126,41 @@ def format_pose_option(key: str, value) -> str:
     return f"{key}={text}"
 
 
-def pose_option_table() -> str:
-    """The pose options (`--pose-option KEY=VALUE`) with type, default and owner, a line each."""
+def _summaries(name: str) -> list[str]:
+    """The summary of setting `name` (its field's docstring, first paragraph), one per config
+    that has the field when they differ, each then led by the config's name."""
+    from recon.poses.config import FrontendConfig
+    from recon.poses.sfm.mapper import SfMConfig
+
+    texts = {cls.__name__: field_summary(cls, name) for cls in (FrontendConfig, SfMConfig)
+             if name in cls.__dataclass_fields__}
+    if len(set(texts.values())) == 1:
+        return [next(iter(texts.values()))]
+    return [f"{owner}: {text}" for owner, text in texts.items()]
+
+
+def pose_option_table(width: int = 100) -> str:
+    """The pose options (`--pose-option KEY=VALUE`), a line each with type, default and owner,
+    and under it, indented, what the setting does.
+
+    Args:
+        width: the column the summaries are wrapped at.
+
+    Returns:
+        The table, lines joined by newlines, options sorted by name.
+    """
     rows = [(name, type_name(kind), repr(default), owner)
             for name, (owner, kind, default) in sorted(_option_fields().items())]
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
-    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}" for n, t, d, o in rows)
+    lines = []
+    for n, t, d, o in rows:
+        lines.append(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}")
+        lines += [textwrap.fill(text, width, initial_indent=_INDENT, subsequent_indent=_INDENT)
+                  for text in _summaries(n)]
+    return "\n".join(lines)
+
+
+_INDENT = " " * 4
 
 
 __all__ = ["check_pose_config", "check_pose_options", "format_pose_option", "parse_pose_option", "pose_option_table"]
