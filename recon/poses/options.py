@@ -1,9 +1,9 @@
 """The pose estimators' settings as the command line sees them (``--pose-option KEY=VALUE``).
 
 This module owns which fields of ``FrontendConfig`` and ``SfMConfig`` can be set that way,
-the range each numeric setting must lie in, and the checks that name a setting outside it
-(for the command line and for Python callers of ``estimate_poses`` alike). The typing of
-``KEY=VALUE`` text is the shared rule of :mod:`recon.options`.
+their listing, and the checks that name a setting outside the range its field declares
+(``recon.poses.config.bounded``), for the command line and for Python callers of
+``estimate_poses`` alike. The typing of ``KEY=VALUE`` text is the shared rule of :mod:`recon.options`.
 
 The configs are imported inside the functions: they pull in the estimators (torch, OpenCV),
 which ``import recon.poses`` should not.
@@ -12,11 +12,12 @@ which ``import recon.poses`` should not.
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import fields, replace
 from functools import cache
 
 from recon.errors import ReconInputError
-from recon.options import scalar_fields, split_option, type_name, typed_value
+from recon.options import field_summary, scalar_fields, split_option, type_name, typed_value
 
 
 def _option_fields() -> dict[str, tuple[str, object, object]]:
@@ -33,58 +34,28 @@ def _option_fields() -> dict[str, tuple[str, object, object]]:
     return table
 
 
-def _one_of(values: tuple[str, ...]) -> tuple[str, object]:
-    quoted = [repr(v) for v in values]
-    return (", ".join(quoted[:-1]) + " or " + quoted[-1], lambda v: v in values)
-
-
-_AT_LEAST_ONE = (">= 1", lambda v: v >= 1)
-_AT_LEAST_ZERO = (">= 0", lambda v: v >= 0)
-_POSITIVE = ("> 0", lambda v: v > 0)
-_FRACTION = ("in [0, 1]", lambda v: 0 <= v <= 1)
-
-
 @cache
-def _ranges() -> dict[str, tuple[str, object]]:
-    """{setting: (what it must be, test)} for the estimators' settings (FrontendConfig, then
-    SfMConfig; see their docstrings): outside them a setting makes no sense or breaks the
-    estimator. Settings not listed take any finite value. None is not checked here: the
-    command line gives None only to fields that may be None (``parse_pose_option``), Python
-    callers are trusted with it."""
-    from recon.poses.sfm.mapper import LOOP_MATCHING, MAPPERS
+def _bounds() -> dict[str, object]:
+    """{setting: its Bounds} of the fields of FrontendConfig and SfMConfig that declare one
+    (``recon.poses.config.bounded``): outside them a setting makes no sense or breaks the
+    estimator. Settings not listed take any finite value."""
+    from recon.poses.config import FrontendConfig
+    from recon.poses.sfm.mapper import SfMConfig
 
-    return {
-        **dict.fromkeys(("ba_stride", "temporal_radius", "window", "calib_stride", "calib_flow_stride", "calib_iters",
-                         "align_chunk", "torch_threads"), _AT_LEAST_ONE),
-        **dict.fromkeys(("proximity_edges", "proximity_nms", "final_proximity_edges", "window_iters", "global_iters",
-                         "prior_weight", "calibrate_after", "calibrate_iters", "max_lost", "reloc_candidates"),
-                        _AT_LEAST_ZERO),
-        **dict.fromkeys(("keyframe_flow", "keyframe_max_flow", "proximity_max_flow", "calib_tol"), _POSITIVE),
-        **dict.fromkeys(("proximity_min_overlap", "min_edge_weight", "lost_inlier", "min_registered"), _FRACTION),
-        **dict.fromkeys(("min_match_correlation", "min_local_correlation"), ("in [-1, 1]", lambda v: -1 <= v <= 1)),
-        "seed_min_flow": _AT_LEAST_ZERO,
-        "calib_keyframes": (">= 2", lambda v: v >= 2),
-        **dict.fromkeys(("max_keyframes", "keyframe_stride", "max_num_features", "overlap", "num_threads"),
-                        _AT_LEAST_ONE),
-        "correction_grid": ("two numbers >= 1", lambda v: len(v) == 2 and min(v) >= 1),
-        "mapper": _one_of(MAPPERS),
-        "keyframe_motion": _POSITIVE,
-        "loop_candidates": _AT_LEAST_ONE,
-        "loop_words": (">= 2", lambda v: v >= 2),
-        "loop_matching": _one_of(LOOP_MATCHING),
-    }
+    return {f.name: f.metadata["bounds"] for cls in (FrontendConfig, SfMConfig) for f in fields(cls)
+            if "bounds" in f.metadata}
 
 
-def _check_value(name: str, value) -> None:
-    """ReconInputError when a scalar setting is outside its range; None, booleans and nested
-    configs pass (see _ranges)."""
+def _check_value(name: str, value, bounds) -> None:
+    """ReconInputError when scalar setting `name` is outside `bounds` (its field's Bounds or None)
+    or not finite; None, booleans and nested configs pass (the command line gives None only to fields that may be None,
+    ``parse_pose_option``; Python callers are trusted with it)."""
     if value is None or isinstance(value, bool) or not isinstance(value, (int, float, tuple, str)):
         return
     numbers = value if isinstance(value, tuple) else (value,)
     finite = all(isinstance(v, str) or math.isfinite(v) for v in numbers)
-    rule = _ranges().get(name)
-    if not finite or (rule is not None and not rule[1](value)):
-        raise ReconInputError(f"pose option {name} must be {rule[0] if rule else 'finite'}, got {value!r}")
+    if not finite or (bounds is not None and not bounds.test(value)):
+        raise ReconInputError(f"pose option {name} must be {bounds.words if bounds else 'finite'}, got {value!r}")
 
 
 def check_pose_config(config) -> None:
@@ -97,7 +68,7 @@ def check_pose_config(config) -> None:
         if isinstance(value, FrontendConfig):
             check_pose_config(value)
         else:  # flow and BA settings (nested configs) are set in Python and not checked here
-            _check_value(f.name, value)
+            _check_value(f.name, value, f.metadata.get("bounds"))
 
 
 def configure_frontend(options: dict, device: str = "cpu", base=None):
@@ -123,7 +94,7 @@ def check_pose_options(options: dict) -> None:
             f"unknown pose option(s): {', '.join(sorted(unknown))} (`--pose-option list` shows the options)"
         )
     for name, value in options.items():
-        _check_value(name, value)
+        _check_value(name, value, _bounds().get(name))
 
 
 def parse_pose_option(text: str) -> tuple[str, object]:
@@ -155,12 +126,41 @@ def format_pose_option(key: str, value) -> str:
     return f"{key}={text}"
 
 
-def pose_option_table() -> str:
-    """The pose options (`--pose-option KEY=VALUE`) with type, default and owner, a line each."""
+def _summaries(name: str) -> list[str]:
+    """The summary of setting `name` (its field's docstring, first paragraph), one per config
+    that has the field when they differ, each then led by the config's name."""
+    from recon.poses.config import FrontendConfig
+    from recon.poses.sfm.mapper import SfMConfig
+
+    texts = {cls.__name__: field_summary(cls, name) for cls in (FrontendConfig, SfMConfig)
+             if name in cls.__dataclass_fields__}
+    if len(set(texts.values())) == 1:
+        return [next(iter(texts.values()))]
+    return [f"{owner}: {text}" for owner, text in texts.items()]
+
+
+def pose_option_table(width: int = 100) -> str:
+    """The pose options (`--pose-option KEY=VALUE`), a line each with type, default and owner,
+    and under it, indented, what the setting does.
+
+    Args:
+        width: the column the summaries are wrapped at.
+
+    Returns:
+        The table, lines joined by newlines, options sorted by name.
+    """
     rows = [(name, type_name(kind), repr(default), owner)
             for name, (owner, kind, default) in sorted(_option_fields().items())]
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
-    return "\n".join(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}" for n, t, d, o in rows)
+    lines = []
+    for n, t, d, o in rows:
+        lines.append(f"{n:<{widths[0]}}  {t:<{widths[1]}}  {d:<{widths[2]}}  {o}")
+        lines += [textwrap.fill(text, width, initial_indent=_INDENT, subsequent_indent=_INDENT)
+                  for text in _summaries(n)]
+    return "\n".join(lines)
+
+
+_INDENT = " " * 4
 
 
 __all__ = ["check_pose_config", "check_pose_options", "format_pose_option", "parse_pose_option", "pose_option_table"]

@@ -24,7 +24,17 @@ import torch
 from recon.errors import ReconInputError
 from recon.geometry import lie
 from recon.poses.checks import prior_agreement as pa
-from recon.poses.config import FrontendConfig, calibrates_lens, make_geometry
+from recon.poses.config import (
+    FRACTION,
+    POSITIVE,
+    Bounds,
+    FrontendConfig,
+    at_least,
+    bounded,
+    calibrates_lens,
+    make_geometry,
+    one_of,
+)
 from recon.poses.frontend.filler import align_to_keyframes
 from recon.poses.matching import flow as fl
 from recon.poses.result import (
@@ -46,72 +56,85 @@ log = logging.getLogger(__name__)
 
 LOOP_MATCHING = ("retrieval", "exhaustive", "none")
 MAPPERS = ("incremental", "global")
+GRID = Bounds("two numbers >= 1", lambda v: len(v) == 2 and min(v) >= 1)  # correction_grid's
 
 
 @dataclass
 class SfMConfig:
-    """SfM fallback settings. why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
-
-    max_keyframes: at most this many frames go to COLMAP, which bounds the time; the rest
-        are registered densely.
-    keyframe_motion: keyframe spacing by motion: a frame becomes a keyframe when the mean
-        DIS flow (pixels as if the frames were 640 px wide, confidence-weighted) summed
-        over the frames since the last keyframe reaches this, and both frames of a step
-        the flow cannot follow do (``sfm_keyframes.select_keyframes``). Raised as needed
-        to respect max_keyframes.
-    keyframe_stride: every k-th frame (and the last) instead of the motion selection
-        (None: by motion).
-    max_num_features: SIFT features per image.
-    overlap: sequential matching links each keyframe to the next `overlap` ones.
-    loop_matching: how keyframes far apart in time get matched, for paths that come back:
-        "retrieval" (each keyframe with its `loop_candidates` most similar keyframes
-        beyond the sequential window, by a bag of `loop_words` visual words over their
-        SIFT descriptors: ``sfm_keyframes.loop_pairs``), "exhaustive" (every pair; the
-        matching time grows with the square of the keyframe count) or "none".
-    loop_candidates: retrieval pairs per keyframe (each verified by COLMAP like any pair).
-    loop_words: size of the visual vocabulary learnt on the keyframes (k-means).
-    vocab_tree_path: a COLMAP vocabulary tree file enabling COLMAP's own loop detection in
-        sequential matching (none by default: pycolmap would download one, and nothing may
-        be downloaded at run time).
-    mapper: "incremental" (COLMAP) or "global" (GLOMAP) (``MAPPERS``).
-    min_registered: fraction of all frames that must be registered, in COLMAP's model
-        ("keyframe") or densely next to a keyframe in it ("tracked"); else SfM fails,
-        naming the longest range of frames it could not register.
-    num_threads: threads for feature extraction, matching and mapping.
-    correction_grid: (rows, cols) of the per-keyframe prior correction from SfM points
-        (the keyframe depth used to register the other frames).
-    calibrate_lens: estimate the radial term k1 in COLMAP's bundle adjustment (reported as
-        ``lens_k1``, used to register the other frames and by the pipeline to undistort);
-        None (default): only when the focal length is unknown too
-        (``frontend_config.calibrates_lens``).
-    max_scale_spread: the most the map's scale may vary against the depth prior's over the
-        frames (standard deviation of the per-frame log ratio that the metric scale is the
-        median of; 0 = not checked). Beyond it the model is marked (``scale_spread``), and
-        refused under ``--on-break stop``: five times the prior's own scale noise (about 5 %
-        a frame, ``scale_watch``) may be a map whose parts are at different scales, or the
-        prior's own noise on a scene it knows badly.
-        why: docs/decisions.md#the-checks-on-an-estimated-trajectory
-    frontend: flow / alignment settings used to choose keyframes (its flow settings,
-        ``min_match_correlation`` and ``min_edge_weight`` decide which steps the flow can
-        follow) and to register the remaining frames (``lost_inlier`` and the rest).
+    """SfM fallback settings; a field's range, where it has one, is its ``bounded`` metadata.
+    why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen
     """
 
-    max_keyframes: int = 100
-    keyframe_motion: float = 16.0
-    keyframe_stride: int | None = None
-    max_num_features: int = 4096
-    overlap: int = 10
-    loop_matching: str = "retrieval"
-    loop_candidates: int = 5
-    loop_words: int = 256
+    max_keyframes: int = bounded(100, at_least(1))
+    """At most this many frames go to COLMAP, which bounds the time; the rest are registered densely."""
+    keyframe_motion: float = bounded(16.0, POSITIVE)
+    """Keyframe spacing by motion: a new keyframe when the flow summed since the last one reaches this.
+
+    A frame becomes a keyframe when the mean DIS flow (pixels as if the frames were 640 px wide,
+    confidence-weighted) summed over the frames since the last keyframe reaches this, and both
+    frames of a step the flow cannot follow do (``sfm_keyframes.select_keyframes``). Raised as
+    needed to respect max_keyframes.
+    """
+    keyframe_stride: int | None = bounded(None, at_least(1))
+    """Every k-th frame (and the last) instead of the motion selection (None: by motion)."""
+    max_num_features: int = bounded(4096, at_least(1))
+    """SIFT features per image."""
+    overlap: int = bounded(10, at_least(1))
+    """Sequential matching links each keyframe to the next `overlap` ones."""
+    loop_matching: str = bounded("retrieval", one_of(LOOP_MATCHING))
+    """How keyframes far apart in time get matched, for paths that come back: retrieval, exhaustive or none.
+
+    "retrieval" (each keyframe with its `loop_candidates` most similar keyframes beyond the
+    sequential window, by a bag of `loop_words` visual words over their SIFT descriptors:
+    ``sfm_keyframes.loop_pairs``), "exhaustive" (every pair; the matching time grows with the
+    square of the keyframe count) or "none".
+    """
+    loop_candidates: int = bounded(5, at_least(1))
+    """Retrieval pairs per keyframe (each verified by COLMAP like any pair)."""
+    loop_words: int = bounded(256, at_least(2))
+    """Size of the visual vocabulary learnt on the keyframes (k-means)."""
     vocab_tree_path: str | None = None
-    mapper: str = "incremental"
-    min_registered: float = 0.8
-    num_threads: int = 2
-    correction_grid: tuple[int, int] = (3, 4)
+    """A COLMAP vocabulary tree file enabling COLMAP's own loop detection in sequential matching.
+
+    None by default: pycolmap would download one, and nothing may be downloaded at run time.
+    """
+    mapper: str = bounded("incremental", one_of(MAPPERS))
+    """The mapper: "incremental" (COLMAP) or "global" (GLOMAP) (``MAPPERS``)."""
+    min_registered: float = bounded(0.8, FRACTION)
+    """Fraction of all frames that must be registered, else SfM fails.
+
+    Registered in COLMAP's model ("keyframe") or densely next to a keyframe in it ("tracked");
+    else SfM fails, naming the longest range of frames it could not register.
+    """
+    num_threads: int = bounded(2, at_least(1))
+    """Threads for feature extraction, matching and mapping."""
+    correction_grid: tuple[int, int] = bounded((3, 4), GRID)
+    """(rows, cols) of the per-keyframe prior correction from SfM points.
+
+    The corrected keyframe depth is used to register the other frames.
+    """
     calibrate_lens: bool | None = None
+    """Estimate the radial term k1 in COLMAP's bundle adjustment (None: only when the focal length is unknown too).
+
+    Reported as ``lens_k1``, used to register the other frames and by the pipeline to
+    undistort; None (default): only when the focal length is unknown too
+    (``frontend_config.calibrates_lens``).
+    """
     max_scale_spread: float = 0.25
+    """The most the map's scale may vary against the depth prior's over the frames (0 = not checked).
+
+    Standard deviation of the per-frame log ratio that the metric scale is the median of.
+    Beyond it the model is marked (``scale_spread``), and refused under ``--on-break stop``:
+    five times the prior's own scale noise (about 5 % a frame, ``scale_watch``) may be a map
+    whose parts are at different scales, or the prior's own noise on a scene it knows badly.
+    why: docs/decisions.md#the-checks-on-an-estimated-trajectory
+    """
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    """Flow / alignment settings used to choose keyframes and to register the remaining frames.
+
+    Its flow settings, ``min_match_correlation`` and ``min_edge_weight`` decide which steps the
+    flow can follow; ``lost_inlier`` and the rest, the registration.
+    """
 
 
 def _import_pycolmap():
