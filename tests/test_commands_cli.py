@@ -315,7 +315,8 @@ def test_pose_option_errors_and_list(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:  # like --help: no input needed
         main(["run", "--pose-option", "list"])
     assert exit_info.value.code == 0
-    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]}
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[1:]
+            if not line.startswith(" ")}  # indented: the summary under a row
     assert rows["window"][1:3] == ["int", str(FrontendConfig().window)]
     assert rows["calibrate_lens"][-2:] == ["FrontendConfig,", "SfMConfig"]
     assert "torch_threads" in rows and "mapper" in rows and "flow" not in rows

@@ -109,8 +109,8 @@ class _ListableAction(argparse.Action):
 
 
 class _PoseOptionAction(_ListableAction):
-    heading = ("pose options (--pose-option KEY=VALUE): name, type, default, config; their meaning is in the "
-               "docstrings of recon.poses.frontend.streaming.FrontendConfig and recon.poses.sfm.mapper.SfMConfig")
+    heading = ("pose options (--pose-option KEY=VALUE): name, type, default, config, and below each what it "
+               "does (recon.poses.config.FrontendConfig, recon.poses.sfm.mapper.SfMConfig)")
 
     def table(self, parser: argparse.ArgumentParser) -> str:
         from ..poses.options import pose_option_table

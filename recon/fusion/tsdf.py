@@ -1,8 +1,9 @@
 """TSDF fusion of metric depth maps into a coloured mesh (Open3D VoxelBlockGrid).
 
 Owns the settings (:class:`FusionOptions`; the automatic voxel, depth range and memory
-budget are :mod:`recon.fusion.sizing`'s), the integration loop on CPU or CUDA, marching cubes and the removal of small fragments. Pixels
-below ``min_confidence`` are left out; ``confidence_weights`` weigh the rest by confidence.
+budget are :mod:`recon.fusion.sizing`'s), the integration loop on CPU or CUDA, marching
+cubes and the removal of small fragments. Pixels below ``min_confidence`` are left out;
+``confidence_weights`` weigh the rest by confidence.
 How each automatic value is chosen: docs/fusion.md#the-volume.
 why: docs/decisions.md#the-tsdf-band, docs/decisions.md#which-refined-pixels-are-fused
 """
