@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import threading
 import time
 from pathlib import Path
@@ -20,6 +21,13 @@ import pytest
 
 from recon.commands.batch_cluster import Progress, format_duration, probe_output_root
 from recon.commands.cli import main
+
+# The benchmark kills a worker node the same way: one count of the inputs a node runs.
+_SYS_PATH = list(sys.path)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from batch_cluster import running_inputs  # noqa: E402
+
+sys.path[:] = _SYS_PATH
 
 pytestmark = pytest.mark.slow  # Ray clusters and end-to-end runs: `make test-fast` leaves them out
 
@@ -126,22 +134,6 @@ def test_two_nodes_share_the_inputs_and_a_second_call_skips_them(cluster, inputs
         cluster.remove_node(worker)
 
 
-def _running_inputs(node) -> int:
-    """Worker processes of this node's raylet that run an input's task now (their process
-    title is the task's name while it runs)."""
-    import psutil
-    from ray._private import ray_constants
-
-    raylet = psutil.Process(node.all_processes[ray_constants.PROCESS_TYPE_RAYLET][0].process.pid)
-    count = 0
-    for child in raylet.children(recursive=True):
-        try:
-            count += any("run_input" in part for part in child.cmdline()[:1])
-        except psutil.Error:
-            pass
-    return count
-
-
 def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
     """The worker node (2 CPUs) is killed once an input is finished and the node runs inputs."""
     pytest.importorskip("psutil")
@@ -154,7 +146,7 @@ def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
         deadline = time.monotonic() + 50
         while time.monotonic() < deadline and "stop" not in killed:
             finished = [p.parent for p in out.glob("*/report.json")]
-            running = _running_inputs(worker)
+            running = running_inputs(worker)
             if finished and running:
                 killed["finished"] = {p.name: _files(p) for p in finished}
                 killed["running"] = running
