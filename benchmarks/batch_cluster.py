@@ -73,6 +73,14 @@ def run_batch(address: str, inputs: list[str], out: Path, options: list[str]) ->
     return wall, done.returncode, json.loads((out / "batch.json").read_text()), done.stderr
 
 
+def finished_outputs(out: Path) -> list[Path]:
+    """The output folders under `out` whose run has ended: report.json written and the
+    UNFINISHED.txt mark gone (a run writes its report, then removes the mark)."""
+    from recon.io.output_folder import UNFINISHED
+
+    return [p.parent for p in out.glob("*/report.json") if not (p.parent / UNFINISHED).exists()]
+
+
 def running_inputs(node) -> int:
     """Worker processes of this node's raylet running an input's task now."""
     import psutil
@@ -107,7 +115,7 @@ def setup(name: str, nodes: list[int], inputs: list[str], options: list[str], wo
 
         def kill_when_busy() -> None:
             while not stop.is_set():
-                finished = [p.parent for p in out.glob("*/report.json")]
+                finished = finished_outputs(out)
                 running = running_inputs(workers[0])
                 if finished and running:
                     killed.update(finished={p.name: files(p) for p in finished}, running=running,
