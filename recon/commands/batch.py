@@ -42,6 +42,7 @@ from .batch_cluster import (
     node_lost,
     ray_session,
     task_resources,
+    this_node,
 )
 
 log = logging.getLogger(__name__)
@@ -218,15 +219,6 @@ def _failure(job_input: str, output: str, error: BaseException, start: float) ->
                    error=f"{type(error).__name__}: {error}", detail=traceback.format_exc())
 
 
-def _this_node() -> str | None:
-    try:
-        import ray
-
-        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
-    except ImportError:
-        return None
-
-
 def run_input(label: str, config: PipelineConfig, threads: int, gpus: float) -> Outcome:
     """Run one input (the body of a Ray task); every error comes back in the Outcome, with
     the node that ran it."""
@@ -253,7 +245,7 @@ def run_input(label: str, config: PipelineConfig, threads: int, gpus: float) -> 
     finally:
         recon_log.removeHandler(warnings)
     outcome.warnings = warnings.messages
-    outcome.node, outcome.host = _this_node(), socket.gethostname()
+    outcome.node, outcome.host = this_node(), socket.gethostname()
     return outcome
 
 

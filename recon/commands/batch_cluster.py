@@ -192,13 +192,21 @@ def check_resources(nodes: list[dict], options: BatchOptions, local: bool) -> No
 # --------------------------------------------------------------------------- the output root
 
 
+def this_node() -> str | None:
+    """The Ray node id of the process this runs in; None outside a Ray task or without Ray
+    (get_runtime_context would start a Ray instance)."""
+    try:
+        import ray
+
+        return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
+    except ImportError:
+        return None
+
+
 def probe_output_root(folder: str, name: str, token: str) -> tuple[str | None, str, str | None]:
     """On one node: does it see the probe file the driver wrote in the output root, and can it
     write and remove a file of its own there? Returns (node id, host name, the problem or None)."""
-    import ray
-
-    # Outside a Ray task (a test) no node id: get_runtime_context would start a Ray instance.
-    node = ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
+    node = this_node()
     host = socket.gethostname()
     root = Path(folder)
     try:
