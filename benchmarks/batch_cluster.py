@@ -81,19 +81,26 @@ def finished_outputs(out: Path) -> list[Path]:
     return [p.parent for p in out.glob("*/report.json") if not (p.parent / UNFINISHED).exists()]
 
 
-def running_inputs(node) -> int:
-    """Worker processes of this node's raylet running an input's task now."""
+def running_input_pids(node) -> set[int]:
+    """The worker processes of this node's raylet running an input's task now (their process
+    title names the task while it runs)."""
     import psutil
     from ray._private import ray_constants
 
     raylet = psutil.Process(node.all_processes[ray_constants.PROCESS_TYPE_RAYLET][0].process.pid)
-    count = 0
+    pids = set()
     for child in raylet.children(recursive=True):
         try:
-            count += any("run_input" in part for part in child.cmdline()[:1])
+            if any("run_input" in part for part in child.cmdline()[:1]):
+                pids.add(child.pid)
         except psutil.Error:
             pass
-    return count
+    return pids
+
+
+def running_inputs(node) -> int:
+    """How many inputs this node runs now."""
+    return len(running_input_pids(node))
 
 
 def files(folder: Path) -> dict[str, int]:

@@ -25,7 +25,7 @@ from recon.commands.cli import main
 # The benchmark kills a worker node the same way: one count of the inputs a node runs.
 _SYS_PATH = list(sys.path)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from batch_cluster import finished_outputs, running_inputs  # noqa: E402
+from batch_cluster import finished_outputs, running_input_pids  # noqa: E402
 
 sys.path[:] = _SYS_PATH
 
@@ -143,11 +143,16 @@ def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
     killed: dict = {}
 
     def kill_when_busy() -> None:
+        # Killed as an input starts on the worker, so that it dies mid-input (an input seen
+        # running may be finishing just then: its node's loss would cost it nothing).
         deadline = time.monotonic() + 300  # the batch's end stops it sooner
+        before: set[int] = set()
         while time.monotonic() < deadline and "stop" not in killed:
             finished = finished_outputs(out)
-            running = running_inputs(worker)
-            if finished and running:
+            now = running_input_pids(worker)
+            started, before = now - before, now
+            running = len(now)
+            if finished and started:
                 killed["finished"] = {p.name: _files(p) for p in finished}
                 killed["running"] = running
                 cluster.remove_node(worker, allow_graceful=False)
