@@ -144,7 +144,8 @@ def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
 
     def kill_when_busy() -> None:
         # Killed as an input starts on the worker, so that it dies mid-input (an input seen
-        # running may be finishing just then: its node's loss would cost it nothing).
+        # running may be finishing just then: its node's loss would cost it nothing). Each
+        # input runs in a process of its own, so a new process running an input is a start.
         deadline = time.monotonic() + 300  # the batch's end stops it sooner
         before: set[int] = set()
         while time.monotonic() < deadline and "stop" not in killed:

@@ -317,7 +317,11 @@ def _remote_runner(ray, options: BatchOptions):
                  # Ray retries nothing: a dead worker (out of memory, a native crash) would most
                  # likely die again (the next `recon batch` retries the input anyway), and an input
                  # whose node left the cluster is run again by _run_tasks.
-                 "max_retries": 0}
+                 "max_retries": 0,
+                 # Each input in a fresh worker process: what one input leaves in the process
+                 # (torch's allocator, Open3D's buffers) is not carried into the next one's
+                 # --memory-per-task; the start costs a second or two against minutes per input.
+                 "max_calls": 1}
     if "memory" in task_resources(options):
         resources["memory"] = int(task_resources(options)["memory"])
     return ray.remote(**resources)(run_input)
