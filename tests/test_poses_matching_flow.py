@@ -20,6 +20,20 @@ def test_dis_flow_does_not_depend_on_earlier_calls(pose_room):
     np.testing.assert_array_equal(fl.dis_flow(a, b, cfg), first)
 
 
+def test_a_flow_pair_on_two_threads_is_the_two_directions_in_turn(pose_room):
+    """flow_pair computes the backward flow on a second thread: its four arrays are those of
+    the two directions computed one after the other, seeded or not, whatever ran before."""
+    seq, _ = pose_room
+    cfg = fl.FlowConfig()
+    a, b = (fl.prepare_gray(seq.rgb[i], (120, 160)) for i in (0, 4))
+    for seed in (None, np.full((120, 160, 2), 1.5, np.float32)):
+        fwd, bwd = fl.dis_flow(a, b, cfg, seed), fl.dis_flow(b, a, cfg, None if seed is None else -seed)
+        expected = (fwd, bwd, fl.fb_confidence(fwd, bwd, cfg) * fl.photo_confidence(a, b, fwd, cfg),
+                    fl.fb_confidence(bwd, fwd, cfg) * fl.photo_confidence(b, a, bwd, cfg))
+        for got, want in zip(fl.flow_pair(a, b, cfg, seed, None if seed is None else -seed), expected):
+            np.testing.assert_array_equal(got, want)
+
+
 def test_flow_whitening_weighs_the_directions_the_texture_measures():
     """flow.flow_whitening: across a straight edge weight 2 and along it 0 (the aperture
     problem), about the identity on random texture, about 0 on a plain surface; None when

@@ -11,6 +11,9 @@ BA targets are absolute (u, v) pixel coordinates on the BA grid of the target im
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -71,7 +74,17 @@ class FlowConfig:
     """Texture weaker than this (grey levels per pixel, squared) counts as plain; its flow is weighted down."""
 
 
-_DIS_CACHE: dict[tuple, cv2.DISOpticalFlow] = {}
+_DIS_CACHE = threading.local()  # one set of DIS instances per thread: an instance is not thread-safe
+_SECOND_THREAD: dict[int, ThreadPoolExecutor] = {}  # by process id: a forked child starts its own
+
+
+def _second_thread() -> ThreadPoolExecutor:
+    """The thread that computes the second direction of a flow pair, one per process."""
+    pid = os.getpid()
+    if pid not in _SECOND_THREAD:
+        _SECOND_THREAD.clear()
+        _SECOND_THREAD[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recon-flow")
+    return _SECOND_THREAD[pid]
 
 
 def _dis(cfg: FlowConfig, shape: tuple[int, int], seeded: bool) -> cv2.DISOpticalFlow:
@@ -82,15 +95,16 @@ def _dis(cfg: FlowConfig, shape: tuple[int, int], seeded: bool) -> cv2.DISOptica
     leaves state behind in OpenCV 5.0's DIS that changes the next unseeded call on the same
     instance. why: docs/decisions.md#pose-settings-how-the-defaults-were-chosen"""
     key = (cfg.finest_scale, cfg.patch_size, cfg.patch_stride, cfg.gd_iters, cfg.var_iters, tuple(shape), seeded)
-    if key not in _DIS_CACHE:
+    cache = _DIS_CACHE.__dict__
+    if key not in cache:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
         dis.setFinestScale(cfg.finest_scale)
         dis.setPatchSize(cfg.patch_size)
         dis.setPatchStride(cfg.patch_stride)
         dis.setGradientDescentIterations(cfg.gd_iters)
         dis.setVariationalRefinementIterations(cfg.var_iters)
-        _DIS_CACHE[key] = dis
-    return _DIS_CACHE[key]
+        cache[key] = dis
+    return cache[key]
 
 
 def prepare_gray(frame: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -201,12 +215,22 @@ def flow_pair(
     init_ba: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Flows a->b, b->a (h, w, 2) and their confidences (h, w): forward-backward agreement
-    times photometric agreement."""
+    times photometric agreement.
+
+    The backward direction runs on a second thread (OpenCV and NumPy let go of the GIL), so
+    that DIS, whose own parallel loops leave the second core half idle on these small
+    images, keeps both busy; the results are those of running the two in turn."""
+    backward = _second_thread().submit(dis_flow, b, a, cfg, init_ba)
     fwd = dis_flow(a, b, cfg, init_ab)
-    bwd = dis_flow(b, a, cfg, init_ba)
-    cf = fb_confidence(fwd, bwd, cfg) * photo_confidence(a, b, fwd, cfg)
-    cb = fb_confidence(bwd, fwd, cfg) * photo_confidence(b, a, bwd, cfg)
-    return fwd, bwd, cf, cb
+    bwd = backward.result()
+    backward = _second_thread().submit(_confidence, b, a, bwd, fwd, cfg)
+    cf = _confidence(a, b, fwd, bwd, cfg)
+    return fwd, bwd, cf, backward.result()
+
+
+def _confidence(a: np.ndarray, b: np.ndarray, fwd: np.ndarray, bwd: np.ndarray, cfg: FlowConfig) -> np.ndarray:
+    """Confidence (h, w) of the flow a->b fwd given the flow b->a bwd (see flow_pair)."""
+    return fb_confidence(fwd, bwd, cfg) * photo_confidence(a, b, fwd, cfg)
 
 
 def pool_edge(flow: np.ndarray, conf: np.ndarray, factor: int, cfg: FlowConfig) -> tuple[torch.Tensor, torch.Tensor]:
