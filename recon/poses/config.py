@@ -261,7 +261,7 @@ class FrontendConfig:
     bending.
     """
     calib_tol: float = bounded(0.01, POSITIVE)
-    """Bracket width on log f at which the focal search stops (0.01 = 1 %)."""
+    """Golden-section bracket width on log f at which the focal search stops (0.01 = 1 %)."""
     calib_iters: int = bounded(6, at_least(1))
     """See calib_tol: LM iterations per evaluated focal length."""
     align_chunk: int = bounded(64, at_least(1))

@@ -3,8 +3,8 @@
 The principal point at the image centre and fx = fy = f; each candidate f is scored by the
 final robust reprojection cost of a dense BA of the first keyframes (on flows that do not
 depend on f), with the plumb-line lens (``recon.poses.intrinsics.plumb_line``) held at its k1
-for that f. :func:`search_focal` sweeps a log grid of fields of view, then Brent's method
-on log f; :func:`estimate_focal` picks the keyframes and scores f. Rotation is what
+for that f. :func:`search_focal` sweeps a log grid of fields of view, then golden-section
+search on log f; :func:`estimate_focal` picks the keyframes and scores f. Rotation is what
 makes f observable: a turning camera's flow bends with x^2 / f, which no depths imitate.
 More: docs/poses.md#the-focal-search
 """
@@ -50,15 +50,10 @@ def candidate_focals(width: int, height: int, fovs_deg=(100.0, 85.0, 72.0, 62.0,
 def search_focal(
     score: Callable[[float], float], candidates: list[float], tol: float = 0.003, max_evals: int = 12
 ) -> FocalSearch:
-    """Minimise score(f) over f: sweep the candidates, then Brent's method on log f between
-    the neighbours of the best one until the minimum is bracketed within `tol` (relative) or
-    after `max_evals` further evaluations. A minimum at the end of the sweep is reported as
-    not bracketed (the true focal may lie outside the candidates).
-
-    Brent's method (Brent 1973, "Algorithms for Minimization without Derivatives", ch. 5)
-    steps to the minimum of the parabola through the three best points so far, and falls
-    back to a golden-section step where the parabola is not trusted; it starts from the
-    sweep's best candidate and its two neighbours, which it already has scores for."""
+    """Minimise score(f) over f: sweep the candidates, then golden-section on log f between
+    the neighbours of the best one until the bracket is within `tol` (relative) or
+    `max_evals` further evaluations. A minimum at the end of the sweep is reported as not
+    bracketed (the true focal may lie outside the candidates)."""
     cands = sorted(candidates)
     evals: list[tuple[float, float]] = []
 
@@ -72,78 +67,26 @@ def search_focal(
     scores = [f_eval(f) for f in cands]
     best = int(np.argmin(scores))
     bracketed = 0 < best < len(cands) - 1
-    lo, hi = math.log(cands[max(best - 1, 0)]), math.log(cands[min(best + 1, len(cands) - 1)])
-    points = [(math.log(f), s) for f, s in evals if lo <= math.log(f) <= hi]
-    if not bracketed:  # the best at an end: a point inside the last interval to start from
-        inside = lo + (1.0 - GOLDEN) * (hi - lo)
-        points.append((inside, f_eval(math.exp(inside))))
-    points.sort(key=lambda p: p[1])
-    brent_minimise(lambda x: f_eval(math.exp(x)), lo, hi, points[0], points[1:], tol, max_evals - (not bracketed))
-    f_best, _ = min(evals, key=lambda e: e[1])
-    return FocalSearch(focal=float(f_best), evaluations=evals, bracketed=bracketed)
-
-
-def brent_minimise(func: Callable[[float], float], a: float, b: float, best: tuple[float, float],
-                   others: list[tuple[float, float]], tol: float, max_evals: int) -> tuple[float, float]:
-    """The minimum of func on [a, b] by Brent's method, from points already evaluated.
-
-    Args:
-        func: the function of one variable.
-        a, b: the bracket, a < b.
-        best: (x, func(x)), a <= x <= b, the lowest point evaluated so far.
-        others: the two next lowest (x, func(x)) in [a, b] (here the bracket's ends).
-        tol: stop once the bracket around the best point is narrower than this.
-        max_evals: the most evaluations of func.
-
-    Returns:
-        (x, func(x)) of the lowest point evaluated.
-    """
-    golden_step = 1.0 - GOLDEN  # 0.382: the golden section of the larger side
-    x, fx = best
-    (w, fw), (v, fv) = sorted(others, key=lambda p: p[1])
-    step = previous = b - a  # the last two steps; a wide one lets the first parabola in
-    tol1 = 0.25 * tol
-    for _ in range(max_evals):
-        middle = 0.5 * (a + b)
-        if max(x - a, b - x) <= 2.0 * tol1:
-            break
-        parabolic = False
-        if abs(previous) > tol1:
-            # The minimum of the parabola through x, w and v, as p / q from x.
-            r = (x - w) * (fx - fv)
-            q = (x - v) * (fx - fw)
-            p = (x - v) * q - (x - w) * r
-            q = 2.0 * (q - r)
-            if q > 0.0:
-                p = -p
-            q = abs(q)
-            # Trusted when it moves less than half the step before last and stays inside.
-            if abs(p) < abs(0.5 * q * previous) and q * (a - x) < p < q * (b - x):
-                previous, step = step, p / q
-                parabolic = True
-                if (x + step) - a < 2.0 * tol1 or b - (x + step) < 2.0 * tol1:
-                    step = tol1 if middle > x else -tol1
-        if not parabolic:
-            previous = (a - x) if x >= middle else (b - x)
-            step = golden_step * previous
-        u = x + (step if abs(step) >= tol1 else math.copysign(tol1, step))
-        fu = func(u)
-        if fu <= fx:
-            if u >= x:
-                a = x
-            else:
-                b = x
-            v, fv, w, fw, x, fx = w, fw, x, fx, u, fu
+    lo = math.log(cands[max(best - 1, 0)])
+    hi = math.log(cands[min(best + 1, len(cands) - 1)])
+    # Golden-section on log f inside [lo, hi].
+    a, b = lo, hi
+    c = b - GOLDEN * (b - a)
+    d = a + GOLDEN * (b - a)
+    fc, fd = f_eval(math.exp(c)), f_eval(math.exp(d))
+    n = 2
+    while (b - a) > tol and n < max_evals:
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - GOLDEN * (b - a)
+            fc = f_eval(math.exp(c))
         else:
-            if u < x:
-                a = u
-            else:
-                b = u
-            if fu <= fw or w == x:
-                v, fv, w, fw = w, fw, u, fu
-            elif fu <= fv or v == x or v == w:
-                v, fv = u, fu
-    return x, fx
+            a, c, fc = c, d, fd
+            d = a + GOLDEN * (b - a)
+            fd = f_eval(math.exp(d))
+        n += 1
+    f_best, s_best = min(evals, key=lambda e: e[1])
+    return FocalSearch(focal=float(f_best), evaluations=evals, bracketed=bracketed)
 
 
 def estimate_focal(frames: list[np.ndarray], prior: PriorSource, cfg: FrontendConfig,
