@@ -98,9 +98,18 @@ def running_input_pids(node) -> set[int]:
     return pids
 
 
-def running_inputs(node) -> int:
-    """How many inputs this node runs now."""
-    return len(running_input_pids(node))
+def started_after_a_finish(out: Path, node, before: set[int]) -> tuple[bool, set[int], list[Path]]:
+    """Whether an input started on `node` since the last look while another input's output
+    under `out` is finished. An input runs in a process of its own (recon batch asks Ray
+    for a fresh worker per input), so a process running an input that `before`, the ids seen
+    at the last look, lacks is a start: killing the node then loses an input mid-run.
+
+    Returns:
+        (started, the process ids running inputs now, the finished output folders).
+    """
+    finished = finished_outputs(out)
+    now = running_input_pids(node)
+    return bool(finished and now - before), now, finished
 
 
 def files(folder: Path) -> dict[str, int]:
@@ -121,11 +130,11 @@ def setup(name: str, nodes: list[int], inputs: list[str], options: list[str], wo
         stop = threading.Event()
 
         def kill_when_busy() -> None:
+            before: set[int] = set()
             while not stop.is_set():
-                finished = finished_outputs(out)
-                running = running_inputs(workers[0])
-                if finished and running:
-                    killed.update(finished={p.name: files(p) for p in finished}, running=running,
+                started, before, finished = started_after_a_finish(out, workers[0], before)
+                if started:
+                    killed.update(finished={p.name: files(p) for p in finished}, running=len(before),
                                   at=time.perf_counter())
                     cluster.remove_node(workers[0], allow_graceful=False)
                     return

@@ -22,10 +22,10 @@ import pytest
 from recon.commands.batch_cluster import Progress, format_duration, probe_output_root
 from recon.commands.cli import main
 
-# The benchmark kills a worker node the same way: one count of the inputs a node runs.
+# The benchmark kills a worker node the same way: one test of an input's start.
 _SYS_PATH = list(sys.path)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from batch_cluster import finished_outputs, running_input_pids  # noqa: E402
+from batch_cluster import files, started_after_a_finish  # noqa: E402
 
 sys.path[:] = _SYS_PATH
 
@@ -92,10 +92,6 @@ def _batch(capfd, cluster, inputs, out, options) -> tuple[int, list[str], list[s
     return code, captured.out.splitlines(), captured.err.splitlines(), json.loads((out / "batch.json").read_text())
 
 
-def _files(folder: Path) -> dict[str, int]:
-    return {str(p.relative_to(folder)): p.stat().st_mtime_ns for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
 def _complete(folder: Path) -> bool:
     return all((folder / name).is_file() for name in ("report.json", "mesh.ply", "trajectory.txt", "intrinsics.json"))
 
@@ -126,10 +122,10 @@ def test_two_nodes_share_the_inputs_and_a_second_call_skips_them(cluster, inputs
         # The probe files of the output-folder check are gone.
         assert not list(out.glob(".recon-batch-probe-*"))
 
-        before = {name: _files(out / name) for name in ("clip0", "clip1", "clip2", "clip3")}
+        before = {name: files(out / name) for name in ("clip0", "clip1", "clip2", "clip3")}
         code, stdout, stderr, summary = _batch(capfd, cluster, clips[:4], out, options)
         assert code == 0 and [r["status"] for r in summary["rows"]] == ["skipped"] * 4
-        assert {name: _files(out / name) for name in before} == before
+        assert {name: files(out / name) for name in before} == before
     finally:
         cluster.remove_node(worker)
 
@@ -144,18 +140,14 @@ def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
 
     def kill_when_busy() -> None:
         # Killed as an input starts on the worker, so that it dies mid-input (an input seen
-        # running may be finishing just then: its node's loss would cost it nothing). Each
-        # input runs in a process of its own, so a new process running an input is a start.
+        # running may be finishing just then: its node's loss would cost it nothing).
         deadline = time.monotonic() + 300  # the batch's end stops it sooner
         before: set[int] = set()
         while time.monotonic() < deadline and "stop" not in killed:
-            finished = finished_outputs(out)
-            now = running_input_pids(worker)
-            started, before = now - before, now
-            running = len(now)
-            if finished and started:
-                killed["finished"] = {p.name: _files(p) for p in finished}
-                killed["running"] = running
+            started, before, finished = started_after_a_finish(out, worker, before)
+            if started:
+                killed["finished"] = {p.name: files(p) for p in finished}
+                killed["running"] = len(before)
                 cluster.remove_node(worker, allow_graceful=False)
                 return
             time.sleep(0.05)
@@ -180,7 +172,7 @@ def test_a_lost_node_s_inputs_run_again_elsewhere(cluster, inputs, capfd):
     assert any(f"{r['input']}: node {worker.node_id[:8]} left the cluster" in "\n".join(stderr) for r in lost)
     assert any("after losing node" in line for line in stdout)
     # What was finished when the node went away is as it was.
-    assert {name: _files(out / name) for name in killed["finished"]} == killed["finished"]
+    assert {name: files(out / name) for name in killed["finished"]} == killed["finished"]
 
 
 # --------------------------------------------------------------------------- pieces
