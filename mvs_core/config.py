@@ -59,6 +59,12 @@ class MvsConfig:
     blur, no texture), and the pipeline then fuses its filled depth whole rather than a few
     scattered pixels.
     """
+    sparse_frame_share: float = 0.0
+    """A frame reconstructed less than this share also fuses its filled pixels near evidence (0: none).
+
+    ``recon.core.refine.fusion_confidence``: where the images confirmed little of a frame
+    (a textureless wall), the depth filled around what they did confirm is its only surface.
+    """
     chunk: int = 16
     """Reference frames scored per batch in view selection (bounds the memory)."""
     device: str = "cpu"
@@ -82,6 +88,7 @@ class MvsConfig:
             "fill_sigma": self.fill_sigma > 0,
             "min_fill_weight": self.min_fill_weight >= 0,
             "min_frame_share": 0 <= self.min_frame_share <= 1,
+            "sparse_frame_share": 0 <= self.sparse_frame_share <= 1,
             "chunk": self.chunk >= 1,
         }
         for name, ok in checks.items():

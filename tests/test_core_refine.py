@@ -78,3 +78,32 @@ def test_fusion_confidence_orders_reconstructed_filled_and_unsupported_pixels():
     # Given poses: reconstructed pixels only; estimated: also filled pixels near evidence.
     assert weights[0, 1, 0] >= given > weights[0, 1, 2]
     assert weights[0, 1, 2] >= estimated > weights[0, 1, 5]
+
+
+def test_a_sparse_frame_fuses_its_filled_pixels_near_evidence():
+    """With sparse_frame_share 0.5, the frame reconstructed on a third of its pixels passes
+    the given-pose threshold with its filled pixels near evidence (support 0.6), not the
+    far ones (0.02); the frame reconstructed on two thirds keeps its reconstructed pixels only."""
+    import torch
+
+    from mvs_core import RefineResult
+    from recon.core.refine import default_min_confidence
+
+    depth = torch.ones(2, 3, 6)
+    reconstructed = torch.zeros(2, 3, 6, dtype=torch.bool)
+    reconstructed[0, :, :2] = True  # a third
+    reconstructed[1, :, :4] = True  # two thirds
+    confidence = torch.where(reconstructed, torch.tensor(0.5), torch.tensor(0.0))
+    support = torch.full((2, 3, 6), 0.6)
+    support[:, :, 5] = 0.02
+    share = reconstructed.flatten(1).float().mean(1)
+    result = RefineResult(depth, confidence, reconstructed, torch.zeros(2, 1), torch.zeros(2, 1),
+                          torch.zeros(2, dtype=torch.bool), {"reconstructed": share}, support)
+    given = default_min_confidence(False)
+    fused = fusion_confidence(result, sparse_share=0.5) >= given
+    assert fused[0, :, :5].all() and not fused[0, :, 5].any()
+    assert fused[1, :, :4].all() and not fused[1, :, 4:].any()
+    assert not (fusion_confidence(result) >= given)[0, :, 2:].any()  # 0: no frame is sparse
+    # With estimated poses the same pixels are fused with the rule or without it.
+    estimated = default_min_confidence(True)
+    assert ((fusion_confidence(result, 0.5) >= estimated) == (fusion_confidence(result) >= estimated)).all()

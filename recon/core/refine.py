@@ -73,15 +73,22 @@ def refine_sequence(
     return result
 
 
-def fusion_confidence(result: RefineResult) -> np.ndarray:
+def fusion_confidence(result: RefineResult, sparse_share: float = 0.0) -> np.ndarray:
     """Per-pixel confidence for TSDF fusion (N, H, W) float32 in [0, 1]: the refinement's
     confidence on reconstructed pixels, FILLED_CONFIDENCE x support on the other valid
     pixels, and 1 on every valid pixel of the frames it could not support (their filled
-    depth is fused whole: a scatter of reconstructed pixels would leave those views empty)."""
+    depth is fused whole: a scatter of reconstructed pixels would leave those views empty).
+    sparse_share: frames reconstructed less than this share give FILLED_CONFIDENCE to their
+    filled pixels that the estimated-pose threshold fuses (support >= 0.1), so that the
+    given-pose threshold fuses them too (``MvsConfig.sparse_frame_share``; 0: none)."""
     confidence = result.confidence.numpy().astype(np.float32, copy=True)
     if result.support is not None:
         filled = ~result.reconstructed.numpy() & (result.depth.numpy() > 0)
         confidence[filled] = FILLED_CONFIDENCE * np.clip(result.support.numpy()[filled], 0.0, 0.999)
+        share = result.stats.get("reconstructed")
+        if sparse_share > 0 and share is not None:
+            sparse = (share.numpy() < sparse_share)[:, None, None] & filled & (confidence >= MIN_CONFIDENCE_ESTIMATED)
+            confidence[sparse] = FILLED_CONFIDENCE
     unsupported = result.unsupported.numpy()
     if unsupported.any():
         confidence[unsupported] = (result.depth.numpy()[unsupported] > 0).astype(np.float32)
