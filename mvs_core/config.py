@@ -59,7 +59,7 @@ class MvsConfig:
     blur, no texture), and the pipeline then fuses its filled depth whole rather than a few
     scattered pixels.
     """
-    sparse_frame_share: float = 0.0
+    sparse_frame_share: float = 0.1
     """A frame reconstructed less than this share also fuses its filled pixels near evidence (0: none).
 
     ``recon.core.refine.fusion_confidence``: where the images confirmed little of a frame
