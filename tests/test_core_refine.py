@@ -10,7 +10,7 @@ import pytest
 from medea_core import MedeaConfig
 from recon.commands.demo import mesh_scores
 from recon.core.medea import adjust_sequence
-from recon.core.refine import fusion_confidence, refine_sequence
+from recon.core.refine import fusion_confidence, refine_sequence, refine_summary
 from recon.eval.depth import depth_metrics
 from recon.fusion import FusionOptions, fuse
 from recon.synthetic import add_shape_errors, render_sequence, simulate_prior
@@ -104,6 +104,7 @@ def test_a_sparse_frame_fuses_its_filled_pixels_near_evidence():
     assert fused[0, :, :5].all() and not fused[0, :, 5].any()
     assert fused[1, :, :4].all() and not fused[1, :, 4:].any()
     assert not (fusion_confidence(result) >= given)[0, :, 2:].any()  # 0: no frame is sparse
+    assert refine_summary(result, 0.5)["sparse_frames"] == [0] and refine_summary(result)["sparse_frames"] == []
     # With estimated poses the same pixels are fused with the rule or without it.
     estimated = default_min_confidence(True)
     assert ((fusion_confidence(result, 0.5) >= estimated) == (fusion_confidence(result) >= estimated)).all()

@@ -100,9 +100,10 @@ def default_min_confidence(poses_estimated: bool) -> float:
     return MIN_CONFIDENCE_ESTIMATED if poses_estimated else MIN_CONFIDENCE_GIVEN
 
 
-def refine_summary(result: RefineResult | None) -> dict:
+def refine_summary(result: RefineResult | None, sparse_share: float = 0.0) -> dict:
     """What report.json says of the refinement: reconstructed share per frame and overall,
-    the typical correction, the source views."""
+    the typical correction, the frames fused whole (unsupported) and with their fill (sparse:
+    under sparse_share and supported; fusion_confidence), the source views."""
     if result is None:
         return {}
     share = result.stats.get("reconstructed", torch.zeros(0)).numpy()
@@ -112,6 +113,8 @@ def refine_summary(result: RefineResult | None) -> dict:
         "reconstructed_per_frame": [round(float(v), 4) for v in share],
         "median_abs_log_correction": float(np.nanmedian(moved)) if np.isfinite(moved).any() else None,
         "unsupported_frames": np.flatnonzero(result.unsupported.numpy()).tolist(),
+        "sparse_frames": np.flatnonzero((share < sparse_share) & ~result.unsupported.numpy()).tolist()
+        if len(share) == len(result.unsupported) else [],
         "sources": result.sources.tolist(),
     }
 
