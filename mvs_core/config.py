@@ -62,8 +62,9 @@ class MvsConfig:
     sparse_frame_share: float = 0.1
     """A frame reconstructed less than this share also fuses its filled pixels near evidence (0: none).
 
-    ``recon.core.refine.fusion_confidence``: where the images confirmed little of a frame
-    (a textureless wall), the depth filled around what they did confirm is its only surface.
+    ``RefineResult.sparse``, ``recon.core.refine.fusion_confidence``: where the images
+    confirmed little of a frame (a textureless wall), the depth filled around what they did
+    confirm is its only surface.
     """
     chunk: int = 16
     """Reference frames scored per batch in view selection (bounds the memory)."""

@@ -35,6 +35,8 @@ class RefineResult:
     reconstructed: (N, H, W) bool, at least `min_consistent` sources agree.
     sources: (N, S) the views each frame was matched against; source_scores (N, S).
     unsupported: (N,) bool, frames whose reconstructed share is below min_frame_share.
+    sparse: (N,) bool, the other frames whose reconstructed share is below
+        sparse_frame_share (None: none), whose filled depth near evidence is fused too.
     stats: per-frame summaries (reconstructed share, median |log correction|).
     support: (N, H, W) the Gaussian-weighted share of reconstructed pixels around each
         pixel (fill_sigma): how much evidence its filled depth leans on.
@@ -52,6 +54,7 @@ class RefineResult:
     stats: dict = field(default_factory=dict)
     support: torch.Tensor | None = None
     swept: torch.Tensor | None = None
+    sparse: torch.Tensor | None = None
 
 
 def sweep_frames(
@@ -169,6 +172,7 @@ def refine_depth(
     moved = torch.where(reconstructed, log_ratio.abs(), torch.full_like(log_ratio, float("nan"))).flatten(1)
     stats = {"reconstructed": share.cpu(), "median_abs_log_correction": moved.nanmedian(1).values.cpu()}
     unsupported = (share < config.min_frame_share).cpu()
+    sparse = (share < config.sparse_frame_share).cpu() & ~unsupported
     support = F.interpolate(support[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
     return RefineResult(refined, confidence, confidence > 0, sources.cpu(), scores.cpu(), unsupported, stats, support,
-                        swept[first:])
+                        swept[first:], sparse)

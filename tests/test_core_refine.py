@@ -97,14 +97,20 @@ def test_a_sparse_frame_fuses_its_filled_pixels_near_evidence():
     support = torch.full((2, 3, 6), 0.6)
     support[:, :, 5] = 0.02
     share = reconstructed.flatten(1).float().mean(1)
-    result = RefineResult(depth, confidence, reconstructed, torch.zeros(2, 1), torch.zeros(2, 1),
-                          torch.zeros(2, dtype=torch.bool), {"reconstructed": share}, support)
+    unsupported = torch.zeros(2, dtype=torch.bool)
+
+    def result_at(sparse_share: float) -> RefineResult:
+        """The frames marked sparse as refine_depth marks them at sparse_share."""
+        return RefineResult(depth, confidence, reconstructed, torch.zeros(2, 1), torch.zeros(2, 1), unsupported,
+                            {"reconstructed": share}, support, sparse=(share < sparse_share) & ~unsupported)
+
+    result, none_sparse = result_at(0.5), result_at(0.0)
     given = default_min_confidence(False)
-    fused = fusion_confidence(result, sparse_share=0.5) >= given
+    fused = fusion_confidence(result) >= given
     assert fused[0, :, :5].all() and not fused[0, :, 5].any()
     assert fused[1, :, :4].all() and not fused[1, :, 4:].any()
-    assert not (fusion_confidence(result) >= given)[0, :, 2:].any()  # 0: no frame is sparse
-    assert refine_summary(result, 0.5)["sparse_frames"] == [0] and refine_summary(result)["sparse_frames"] == []
+    assert not (fusion_confidence(none_sparse) >= given)[0, :, 2:].any()  # 0: no frame is sparse
+    assert refine_summary(result)["sparse_frames"] == [0] and refine_summary(none_sparse)["sparse_frames"] == []
     # With estimated poses the same pixels are fused with the rule or without it.
     estimated = default_min_confidence(True)
-    assert ((fusion_confidence(result, 0.5) >= estimated) == (fusion_confidence(result) >= estimated)).all()
+    assert ((fusion_confidence(result) >= estimated) == (fusion_confidence(none_sparse) >= estimated)).all()

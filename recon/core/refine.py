@@ -73,21 +73,20 @@ def refine_sequence(
     return result
 
 
-def fusion_confidence(result: RefineResult, sparse_share: float = 0.0) -> np.ndarray:
+def fusion_confidence(result: RefineResult) -> np.ndarray:
     """Per-pixel confidence for TSDF fusion (N, H, W) float32 in [0, 1]: the refinement's
     confidence on reconstructed pixels, FILLED_CONFIDENCE x support on the other valid
     pixels, and 1 on every valid pixel of the frames it could not support (their filled
     depth is fused whole: a scatter of reconstructed pixels would leave those views empty).
-    sparse_share: frames reconstructed less than this share give FILLED_CONFIDENCE to their
-    filled pixels that the estimated-pose threshold fuses (support >= 0.1), so that the
-    given-pose threshold fuses them too (``MvsConfig.sparse_frame_share``; 0: none)."""
+    The sparse frames (``RefineResult.sparse``) give FILLED_CONFIDENCE to their filled
+    pixels that the estimated-pose threshold fuses (support >= 0.1), so that the given-pose
+    threshold fuses them too."""
     confidence = result.confidence.numpy().astype(np.float32, copy=True)
     if result.support is not None:
         filled = ~result.reconstructed.numpy() & (result.depth.numpy() > 0)
         confidence[filled] = FILLED_CONFIDENCE * np.clip(result.support.numpy()[filled], 0.0, 0.999)
-        share = result.stats.get("reconstructed")
-        if sparse_share > 0 and share is not None:
-            sparse = (share.numpy() < sparse_share)[:, None, None] & filled & (confidence >= MIN_CONFIDENCE_ESTIMATED)
+        if result.sparse is not None:
+            sparse = result.sparse.numpy()[:, None, None] & filled & (confidence >= MIN_CONFIDENCE_ESTIMATED)
             confidence[sparse] = FILLED_CONFIDENCE
     unsupported = result.unsupported.numpy()
     if unsupported.any():
@@ -100,10 +99,10 @@ def default_min_confidence(poses_estimated: bool) -> float:
     return MIN_CONFIDENCE_ESTIMATED if poses_estimated else MIN_CONFIDENCE_GIVEN
 
 
-def refine_summary(result: RefineResult | None, sparse_share: float = 0.0) -> dict:
+def refine_summary(result: RefineResult | None) -> dict:
     """What report.json says of the refinement: reconstructed share per frame and overall,
-    the typical correction, the frames fused whole (unsupported) and with their fill (sparse:
-    under sparse_share and supported; fusion_confidence), the source views."""
+    the typical correction, the frames fused whole (unsupported) and with their fill
+    (sparse; fusion_confidence), the source views."""
     if result is None:
         return {}
     share = result.stats.get("reconstructed", torch.zeros(0)).numpy()
@@ -113,8 +112,7 @@ def refine_summary(result: RefineResult | None, sparse_share: float = 0.0) -> di
         "reconstructed_per_frame": [round(float(v), 4) for v in share],
         "median_abs_log_correction": float(np.nanmedian(moved)) if np.isfinite(moved).any() else None,
         "unsupported_frames": np.flatnonzero(result.unsupported.numpy()).tolist(),
-        "sparse_frames": np.flatnonzero((share < sparse_share) & ~result.unsupported.numpy()).tolist()
-        if len(share) == len(result.unsupported) else [],
+        "sparse_frames": [] if result.sparse is None else np.flatnonzero(result.sparse.numpy()).tolist(),
         "sources": result.sources.tolist(),
     }
 

@@ -107,7 +107,7 @@ def build_report(*, config, source, seq, intrinsics_from: str, pose_stage, undis
         "prior": {"name": config.prior, "kind": prior.kind, "info": prior.info,
                   "features": None if features is None else list(features.shape[1:])},
         "medea": {"skipped": medea_skipped} if medea_skipped else medea_summary(medea_result),
-        "refine": {"method": config.refine, **refine_summary(refined, config.mvs.sparse_frame_share)},
+        "refine": {"method": config.refine, **refine_summary(refined)},
         **_closing_sections(config, fusion, min_confidence, seconds, len(seq)),
         "files": dict(files),
     }

@@ -166,7 +166,7 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
     fusion_options = FusionOptions(**{**asdict(config.fusion), "device": config.device, "progress": config.progress,
                                       "metric": not untrusted_scale(pose_stage.info)})
     with timer.stage("fusion"):
-        confidence = None if refined is None else fusion_confidence(refined, config.mvs.sparse_frame_share)
+        confidence = None if refined is None else fusion_confidence(refined)
         if refined is not None:
             # Their use is over (the confidence is made; a later call's `known` is the
             # streamed run's): a frame's worth each, dropped before the volume is built.

@@ -113,7 +113,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                 first = window.shared if known and all(k is not None for k in known) else 0
                 refined = refine_depth(seq, adjusted, config.mvs, config.device, progress=False,
                                        known=torch.stack(known) if first else None)
-                final, confidence = refined.depth.numpy(), fusion_confidence(refined, config.mvs.sparse_frame_share)
+                final, confidence = refined.depth.numpy(), fusion_confidence(refined)
                 swept = {int(p): refined.swept[k - first] for k, p in enumerate(pos)
                          if k >= max(first, len(pos) - config.window_overlap)}
         finished = {int(p): adjusted[k] for k, p in enumerate(pos) if k >= len(pos) - config.window_overlap}
