@@ -110,6 +110,14 @@ class MedeaConfig:
     """
     min_sample_validity: float = 0.999
     """A warped pixel counts only if this share of its bilinear footprint lies on valid depth in frame j."""
+    scale_search: bool = False
+    """Search one factor on every frame's prior before Stage I (off: the paper's start, the prior as it is).
+
+    For poses whose scale is not the prior's (given poses): :mod:`medea_core.global_scale`.
+    why: docs/decisions.md#the-priors-scale-under-given-poses
+    """
+    scale_search_min_gain: float = 0.05
+    """The searched factor starts Stage I only when it lowers the pairs' photometric term by this share."""
 
     @classmethod
     def fast(cls, **overrides) -> "MedeaConfig":
@@ -153,6 +161,7 @@ class MedeaConfig:
             "feature_weight": self.feature_weight >= 0,
             "feature_eps": self.feature_eps >= 0,
             "min_sample_validity": 0 <= self.min_sample_validity <= 1,
+            "scale_search_min_gain": 0 <= self.scale_search_min_gain < 1,
         }
         for stage in ("stage1", "stage2"):
             checks.update({f"{stage}.{name}": ok for name, ok in getattr(self, stage).checks().items()})

@@ -10,6 +10,7 @@ several it avoids moving frames on stale momentum from other batches.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ import torch.nn.functional as F
 from .config import MedeaConfig, StageConfig
 from .frames import FrameData, prepare_frames
 from .geometry import pair_transforms
+from .global_scale import GlobalScale, search_global_scale
 from .grid import adjust_depth
 from .objective import PairBatch, pair_losses
 from .pairs import nearest_keyframe, stage_pairs
@@ -43,13 +45,15 @@ class StageHistory:
 @dataclass
 class MedeaResult:
     """depth: (N, H, W) adjusted depth at the prior's resolution (0 where the prior was
-    invalid); log_scales: (N, h, w); keyframes: (K,); history per stage; seconds per step."""
+    invalid); log_scales: (N, h, w); keyframes: (K,); history per stage; seconds per step;
+    global_scale: the search before Stage I (None when config.scale_search is off)."""
 
     depth: torch.Tensor
     log_scales: torch.Tensor
     keyframes: torch.Tensor
     history: dict[str, StageHistory]
     seconds: dict[str, float]
+    global_scale: GlobalScale | None = None
 
 
 def _grids(table: torch.Tensor, frozen: torch.Tensor, trainable: torch.Tensor, frames: torch.Tensor, grid):
@@ -204,6 +208,17 @@ def run_medea(
     is_key[keyframes] = True
     seconds["prepare"] = time.perf_counter() - start
 
+    global_scale = None
+    if config.scale_search:
+        start = time.perf_counter()
+        # Stage II's neighbours overlap most; a short sequence is all keyframes and has none.
+        global_scale = search_global_scale(data, pairs2 if pairs2.numel() else pairs1,
+                                           stride=max(2, config.pixel_stride), min_gain=config.scale_search_min_gain,
+                                           min_validity=config.min_sample_validity)
+        if global_scale.applied:
+            log_scales += math.log(global_scale.factor)
+        seconds["scale_search"] = time.perf_counter() - start
+
     history: dict[str, StageHistory] = {}
     if config.run_stage1:
         log_scales, history["stage1"] = optimise_stage(
@@ -231,4 +246,4 @@ def run_medea(
     out_device = prior.device
     depth = adjust_depth(torch.nan_to_num(prior.float(), nan=0.0).clamp(min=0), log_scales.to(out_device))
     return MedeaResult(depth=depth, log_scales=log_scales.to(out_device), keyframes=keyframes, history=history,
-                       seconds=seconds)
+                       seconds=seconds, global_scale=global_scale)

@@ -202,6 +202,14 @@ class PipelineConfig:
     Every run with given poses checks them (recon.poses.given.pose_check) and warns either way.
     why: docs/poses.md#given-poses
     """
+    scale_prior: bool = True
+    """With given poses, search one factor on the prior against them before MEDeA (``medea.scale_search``).
+
+    Given poses carry their own scale (a tracker's metres, an SfM model's units), which the
+    prior's need not match: an indoor network predicts a door handle 0.3 m away five times
+    too far. Estimated poses take their scale from the prior, so nothing is searched then.
+    why: docs/decisions.md#the-priors-scale-under-given-poses
+    """
     medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
     """MEDeA's settings (medea_core.MedeaConfig; the fast preset)."""
     refine: str = "mvs"

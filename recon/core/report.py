@@ -34,11 +34,14 @@ def scale_vs_prior(log_scales) -> dict:
 
 def medea_summary(result) -> dict:
     """Per stage: epochs run, whether it stopped early, first and last epoch losses; the
-    overall scale MEDeA gave the depth against the prior's (:func:`scale_vs_prior`)."""
+    overall scale MEDeA gave the depth against the prior's (:func:`scale_vs_prior`); the
+    search for the prior's scale before Stage I, when it ran (factor, gain, applied, pairs)."""
     if result is None:
         return {}
     out = {"keyframes": int(len(result.keyframes)), "seconds": dict(result.seconds),
            "scale_vs_prior": scale_vs_prior(result.log_scales), "stages": {}}
+    if result.global_scale is not None:
+        out["global_scale"] = result.global_scale.to_dict()
     for name, history in result.history.items():
         losses = {term: [float(v) for v in values] for term, values in history.losses.items()}
         out["stages"][name] = {

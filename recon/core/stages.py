@@ -478,6 +478,15 @@ def polished_poses(stage: PoseStage, seq: Sequence, config, progress: bool = Tru
 # --------------------------------------------------------------------------- depth
 
 
+def medea_settings(config, estimated: bool):
+    """The MedeaConfig a run uses: ``config.medea``, with the search for the prior's scale
+    (``scale_search``) on when the poses are given and ``config.scale_prior`` asks for it.
+    config: the PipelineConfig; estimated: whether the poses were estimated."""
+    if config.scale_prior and not estimated and not config.medea.scale_search:
+        return replace(config.medea, scale_search=True)
+    return config.medea
+
+
 def adjust_with_medea(seq: Sequence, config, use_features: bool = True, progress: bool = True):
     """MEDeA (``config`` its MedeaConfig) on the sequence: (adjusted depth (N, H, W) float32,
     MedeaResult). use_features: give MEDeA the prior's encoder features when it has them."""

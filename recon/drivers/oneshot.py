@@ -31,6 +31,7 @@ from ..core.stages import (
     decode,
     default_intrinsics,
     judge_given_poses,
+    medea_settings,
     polished_poses,
     prior_function,
     refine_depth,
@@ -146,7 +147,8 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
     if config.adjust and medea_skipped is None:
         say("MEDeA depth adjustment")
         with timer.stage("medea"):
-            depth, medea_result = adjust_with_medea(seq, config.medea, config.features, config.progress)
+            depth, medea_result = adjust_with_medea(seq, medea_settings(config, pose_plan.estimated), config.features,
+                                                    config.progress)
     else:
         depth = seq.prior_depth
         timer.seconds["medea"] = 0.0

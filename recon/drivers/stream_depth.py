@@ -71,7 +71,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     from tqdm.auto import tqdm
 
     from ..core.refine import default_min_confidence, fusion_confidence
-    from ..core.stages import adjust_with_medea, refine_depth
+    from ..core.stages import adjust_with_medea, medea_settings, refine_depth
     from ..export import write_depth_frame
     from ..fusion import FusionOptions, confidence_weight
 
@@ -98,7 +98,8 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         shifts.update(zip(pos.tolist(), window_shifts))
         with clock.stage("medea"):
             if config.adjust and not skipped:
-                adjusted, medea = adjust_with_medea(seq, config.medea, config.features, progress=False)
+                adjusted, medea = adjust_with_medea(seq, medea_settings(config, plan.estimated), config.features,
+                                                    progress=False)
             else:
                 adjusted, medea = seq.prior_depth, None
         with clock.stage("fusion"):  # the fused surface is rendered into the window
