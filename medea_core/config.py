@@ -90,6 +90,8 @@ class MedeaConfig:
     """Use the depth consistency loss."""
     use_features: bool = True
     """Use the feature-metric loss (only when features are given)."""
+    depth_loss: Literal["metres", "relative"] = "metres"
+    """The depth term: metres, |D_i - D_j->i| (the paper's), or relative, that divided by D_i + D_j->i (scale-free)."""
     feature_loss: Literal["S", "M"] = "S"
     """The feature loss: S, |Fi - Fj->i| / |Fi + Fj->i| (MEDeA-S), or M, the negative mean dot product (MEDeA-M)."""
     photometric_weight: float = 1.0
@@ -156,6 +158,7 @@ class MedeaConfig:
             "stage1_levels": levels(self.stage1_levels),
             "stage2_levels": levels(self.stage2_levels),
             "feature_loss": self.feature_loss in ("S", "M"),
+            "depth_loss": self.depth_loss in ("metres", "relative"),
             "photometric_weight": self.photometric_weight >= 0,
             "depth_weight": self.depth_weight >= 0,
             "feature_weight": self.feature_weight >= 0,

@@ -90,7 +90,7 @@ def photometric_at(data: FrameData, batch: PairBatch, log_scale: float, stride: 
 
 
 @torch.no_grad()
-def search_global_scale(data: FrameData, pairs: torch.Tensor, *, span: float = 8.0, steps_per_octave: int = 4,
+def search_global_scale(data: FrameData, pairs: torch.Tensor, *, span: float = 16.0, steps_per_octave: int = 4,
                         max_pairs: int = 64, stride: int = 2, min_gain: float = 0.05,
                         min_validity: float = 0.999, min_overlap: float = 0.25) -> GlobalScale:
     """The factor on the prior whose depths make the frame pairs agree best in colour.

@@ -53,6 +53,26 @@ def depth_loss(depth_i: torch.Tensor, depth_j_in_i: torch.Tensor, mask: torch.Te
     return masked_mean((depth_i - depth_j_in_i).abs(), mask)
 
 
+def relative_depth_loss(depth_i: torch.Tensor, depth_j_in_i: torch.Tensor, mask: torch.Tensor,
+                        eps: float = 1e-6) -> torch.Tensor:
+    """L_depth made scale-free: mean over valid pixels of |D_i - D_{j->i}| / (D_i + D_{j->i}).
+
+    The paper's term in metres is smallest for a smaller scene: with the poses fixed it
+    pulls every depth towards the cameras. Divided by the two depths' sum it scores the
+    same disagreement at any scale (the form of the S feature distance).
+
+    Args:
+        depth_i: (B, H, W) depth of view i in metres.
+        depth_j_in_i: (B, H, W) D_{j->i}, frame j's depth as z in camera i, in metres.
+        mask: (B, H, W) bool, valid reprojections.
+        eps: added to the denominator.
+
+    Returns:
+        (B,) per-pair loss (a fraction).
+    """
+    return masked_mean((depth_i - depth_j_in_i).abs() / (depth_i + depth_j_in_i).abs().clamp(min=eps), mask)
+
+
 def feature_loss_s(feat_i: torch.Tensor, warped_j: torch.Tensor, mask: torch.Tensor, eps: float = 0.01) -> torch.Tensor:
     """MEDeA-S: mean over valid pixels and channels of |Fi - Fj->i| / (|Fi + Fj->i| + eps).
 

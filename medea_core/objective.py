@@ -12,7 +12,7 @@ from .config import MedeaConfig
 from .frames import FrameData, Level
 from .geometry import depth_in_view_i, pixel_grid, reproject, sample
 from .grid import sample_scale_field, scale_field
-from .losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss
+from .losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss, relative_depth_loss
 
 
 @dataclass
@@ -126,7 +126,8 @@ def pair_losses(
         terms["photometric"] = photometric_loss(maps_i, warped, mask)
         total = total + config.photometric_weight * terms["photometric"]
     if config.use_depth:
-        terms["depth"] = depth_loss(depth_i, depth_j_in_i, mask)
+        score_depth = relative_depth_loss if config.depth_loss == "relative" else depth_loss
+        terms["depth"] = score_depth(depth_i, depth_j_in_i, mask)
         total = total + config.depth_weight * terms["depth"]
     if config.use_features and data.features is not None:
         feat = data.features

@@ -12,7 +12,7 @@ from medea_core import MedeaConfig, StageConfig, hierarchical_pairs, optimise_st
 from medea_core.frames import prepare_frames
 from medea_core.geometry import depth_in_view_i, pair_transforms, pixel_grid, reproject, sample
 from medea_core.grid import median_pool_to_grid, scale_field
-from medea_core.losses import feature_loss_m, feature_loss_s, photometric_loss
+from medea_core.losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss, relative_depth_loss
 from medea_core.propagate import propagate_scales
 
 from helpers import look_at, plane_depth
@@ -105,6 +105,16 @@ def test_loss_values_on_known_inputs():
     off, barely = torch.zeros(1, 2, 4, 5), torch.full((1, 2, 4, 5), 1e-4)
     assert float(feature_loss_s(off, barely, mask)) < 0.02
     assert float(feature_loss_m(feat_i, feat_j, mask)) == pytest.approx(-6.0)
+
+
+def test_the_relative_depth_loss_scores_a_disagreement_alike_at_any_scale():
+    """The paper's depth term in metres halves with the scene; the relative one does not."""
+    mask = torch.ones(1, 4, 5, dtype=torch.bool)
+    near, far = torch.full((1, 4, 5), 2.0), torch.full((1, 4, 5), 3.0)
+    assert float(relative_depth_loss(near, far, mask)) == pytest.approx(0.2, abs=1e-6)
+    assert float(relative_depth_loss(near / 2, far / 2, mask)) == pytest.approx(0.2, abs=1e-6)
+    assert float(depth_loss(near / 2, far / 2, mask)) == pytest.approx(float(depth_loss(near, far, mask)) / 2)
+    assert float(relative_depth_loss(near, near, mask)) == 0.0
 
 
 def _plane_sequence(num_frames=3, seed=0):
