@@ -71,6 +71,9 @@ def test_demo_writes_every_output(demo):
     assert all(v >= 0 for v in report["seconds"].values()) and report["seconds"]["medea"] > 0
     stage1 = report["medea"]["stages"]["stage1"]
     assert stage1["epochs"] > 1 and stage1["last"]["total"] < stage1["first"]["total"]
+    # Given poses: the prior's scale was searched against them (medea_core.global_scale).
+    searched = report["medea"]["global_scale"]
+    assert searched["pairs"] > 0 and searched["applied"] == (searched["gain"] >= 0.05)
     assert {"recon", "torch", "open3d", "rerun"} <= set(report["versions"])
     assert report["options"]["poses"].endswith("poses_gt.txt") and report["intrinsics"]["source"] == "given"
 

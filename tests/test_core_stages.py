@@ -19,6 +19,7 @@ from recon.core.stages import (
     budget_capacity,
     decode,
     given_intrinsics,
+    medea_settings,
     plan_poses,
     select_frames,
     shutter_summary,
@@ -131,3 +132,19 @@ def test_shutter_summary_counts_the_frames_it_moved():
     assert summary["readout_ms"] == 20.0 and summary["max_shift_px"] == 3.0
     assert summary["median_turn_deg_per_s"] == pytest.approx(30.0)
     assert 0 < summary["frames_resampled"] < 4
+
+
+def test_medea_searches_the_priors_scale_under_given_poses_only():
+    """Given poses carry a scale of their own; estimated ones take the prior's."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from recon.core.config import PipelineConfig
+
+    config = PipelineConfig(Path("in.mp4"), Path("out"))
+    assert medea_settings(config, estimated=False).scale_search
+    assert not medea_settings(config, estimated=True).scale_search
+    assert not medea_settings(replace(config, scale_prior=False), estimated=False).scale_search
+    asked = replace(config, medea=replace(config.medea, scale_search=True))
+    assert medea_settings(asked, estimated=True).scale_search  # the user's own setting stands
+    assert not config.medea.scale_search  # the config itself is left as it was
