@@ -60,6 +60,8 @@ def test_streamed_run_matches_the_one_shot_run(room_video, both_runs):
     each = streamed.report["windows"]["each"]
     assert [w["refined_frames"] for w in each] == [w["new"] for w in each] and sum(w["new"] for w in each) == FRAMES
     assert all(w["medea_seconds"]["stage1"] > 0 and w["medea_seconds"]["stage2"] > 0 for w in each)
+    # Given poses: each window searched the prior's scale against them, and reports it.
+    assert all(w["prior_factor"]["pairs"] > 0 for w in each)
     # The first window's surface is fused after tracking and that window's depth, well before the end.
     first = streamed.report["windows"]["first_result_s"]
     seconds = streamed.report["seconds"]

@@ -59,6 +59,8 @@ class _WindowRecord:
     last_frame: int = 0
     # Why MEDeA was skipped (--medea-gate and given poses the frames contradict).
     medea_skipped: str | None = None
+    # Given poses: the factor MEDeA's search put on the window's prior (medea_core.global_scale).
+    prior_factor: dict | None = None
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
@@ -143,7 +145,9 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         records.append(_WindowRecord(len(pos), len(pos) - window.shared, factor, anchored_to, _epochs(medea),
                                      None if refined is None else float(refined.reconstructed.float().mean()),
                                      0 if refined is None else len(pos) - first, _seconds(medea),
-                                     int(seq.indices[0]), int(seq.indices[-1]), skipped))
+                                     int(seq.indices[0]), int(seq.indices[-1]), skipped,
+                                     None if medea is None or medea.global_scale is None
+                                     else medea.global_scale.to_dict()))
     bar.close()
     warn_scale_disagreement(records, config)
     return (volume, options), records, shifts
