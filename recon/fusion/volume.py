@@ -24,6 +24,12 @@ log = logging.getLogger(__name__)
 # the next (0 % at factors 1 and 2 over repeated calls); 1 costs ~30 % more on a call that
 # takes ~20 ms at 256x192.
 RANGE_MAP_DOWN_FACTOR = 1
+# Open3D's ray casting splits the blocks' screen footprints into tiles of 16 x 16 range-map
+# pixels (RANGE_TILE) held in a fixed buffer (65535); with many blocks in view at once it
+# crashed the process. render_depth casts the blocks in front of the camera and in view in
+# passes of at most RANGE_TILE_BUDGET tiles (measured: docs/history/validation.md).
+RANGE_TILE = 16
+RANGE_TILE_BUDGET = 32_768
 # The triangle budget (within_budget): a thinned mesh keeps at least this share of the
 # budget, found in at most BUDGET_TRIES clusterings (each ~2 s for 2.4 M triangles).
 BUDGET_FILL = 0.8
@@ -132,6 +138,54 @@ def remove_fragments(
 # --------------------------------------------------------------------------- the volume
 
 
+def blocks_in_view(keys: np.ndarray, side: float, pose, intrinsics, size: tuple[int, int],
+                   max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel blocks wholly in front of a camera, within max_depth and overlapping its image.
+
+    Args:
+        keys: (B, 3) integer block coordinates (a block spans keys * side to (keys + 1) * side).
+        side: a block's edge in metres.
+        pose: (4, 4) camera-to-world.
+        intrinsics: (fx, fy, cx, cy) in pixels of an image of `size`.
+        size: (H, W) of the image.
+        max_depth: metres.
+
+    Returns:
+        ((B,) bool: the blocks kept; (K,) float: the range-map tiles each kept block's bounding
+        sphere covers at full resolution; (K,) float: each kept block's centre depth).
+    """
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    world_to_camera = np.linalg.inv(np.asarray(pose, np.float64))
+    centres = (np.asarray(keys, np.float64) + 0.5) * side @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    radius = 0.5 * np.sqrt(3.0) * side
+    z = centres[:, 2]
+    ahead = (z > radius) & (z - radius < max_depth)
+    z_safe = np.where(ahead, z, 1.0)
+    reach = max(fx, fy) * radius / z_safe
+    u, v = fx * centres[:, 0] / z_safe + cx, fy * centres[:, 1] / z_safe + cy
+    h, w = size
+    seen = ahead & (u + reach >= 0) & (u - reach <= w) & (v + reach >= 0) & (v - reach <= h)
+    per_side = np.ceil(2.0 * reach[seen] / RANGE_TILE) + 1  # one more for where it falls on the tile grid
+    return seen, per_side * per_side, z[seen]
+
+
+def tile_batches(tiles: np.ndarray, budget: int) -> list[np.ndarray]:
+    """Consecutive runs of blocks whose range-map tiles each sum to at most ``budget``.
+
+    Args:
+        tiles: (K,) tiles of each block, in the order the runs take them.
+        budget: the tiles a run may start in (it ends with the block that crosses it).
+
+    Returns:
+        Index arrays into ``tiles``, one per run, covering every block once.
+    """
+    # A block joins the run in which its first tile falls: each run stays within the budget
+    # plus one block's tiles.
+    first = np.cumsum(tiles) - tiles
+    run = np.floor(first / budget).astype(np.int64)
+    return [np.flatnonzero(run == r) for r in np.unique(run)]
+
+
 class TsdfVolume:
     """An Open3D VoxelBlockGrid of tsdf, weight (and colour) that frames are integrated into.
 
@@ -151,6 +205,7 @@ class TsdfVolume:
             block_count=int(capacity), device=self.device,
         )
         self.frames_fused = 0
+        self.block_resolution = int(block_resolution)
 
     def integrate(self, depth, pose, intrinsics, rgb=None, weight=None) -> bool:
         """Fuse one frame into the volume.
@@ -218,13 +273,21 @@ class TsdfVolume:
         K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), o3c.float64)
         E = o3c.Tensor(np.linalg.inv(np.asarray(pose, np.float64)), o3c.float64)
         hashmap = self.grid.hashmap()
-        blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
-        # Open3D reports how it sized its range map on stdout; that is not the user's business.
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            result = self.grid.ray_cast(blocks, K, E, w, h, ["depth"], 1.0, 0.05, self.max_depth,
-                                        float(min_weight), self.trunc / self.voxel, RANGE_MAP_DOWN_FACTOR)
-        depth = result["depth"].cpu().numpy().reshape(h, w).astype(np.float32, copy=False)
-        depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+        keys = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)].cpu().numpy()
+        seen, tiles, near = blocks_in_view(keys, self.voxel * self.block_resolution, pose, intrinsics, (h, w),
+                                           self.max_depth)
+        depth = np.zeros((h, w), np.float32)
+        order = np.argsort(near)  # each pass a shell of depth: few rays cross two of them
+        for part in tile_batches(tiles[order], RANGE_TILE_BUDGET):
+            blocks = o3c.Tensor(np.ascontiguousarray(keys[seen][order[part]]), o3c.int32).to(self.device)
+            # Open3D reports how it sized its range map on stdout; that is not the user's business.
+            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+                result = self.grid.ray_cast(blocks, K, E, w, h, ["depth"], 1.0, 0.05, self.max_depth,
+                                            float(min_weight), self.trunc / self.voxel, RANGE_MAP_DOWN_FACTOR)
+            found = result["depth"].cpu().numpy().reshape(h, w).astype(np.float32, copy=False)
+            found = np.where(np.isfinite(found) & (found > 0), found, np.float32(0.0))
+            # The nearest surface any pass found.
+            depth = np.where((found > 0) & ((depth == 0) | (found < depth)), found, depth)
         return depth
 
     @property
