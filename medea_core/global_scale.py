@@ -17,10 +17,12 @@ from dataclasses import dataclass
 
 import torch
 
+from .config import MedeaConfig
 from .frames import FrameData
 from .geometry import pair_transforms
 from .losses import photometric_loss
 from .objective import PairBatch, warp_level
+from .pairs import stage_pairs
 
 
 @dataclass(frozen=True)
@@ -134,4 +136,21 @@ def search_global_scale(data: FrameData, pairs: torch.Tensor, *, span: float = 1
     return GlobalScale(math.exp(best), gain, gain >= min_gain, int(pairs.shape[0]))
 
 
-__all__ = ["GlobalScale", "photometric_at", "search_global_scale", "spread_pairs"]
+def search_configured_scale(data: FrameData, config: MedeaConfig) -> GlobalScale:
+    """The search as MEDeA runs it before Stage I: on its Stage II pairs, at its pixel stride and gate.
+
+    Args:
+        data: frames at working resolution with their poses (see prepare_frames).
+        config: the MedeaConfig (its pairs' levels, pixel_stride, scale_search_min_gain,
+            min_sample_validity).
+
+    Returns:
+        GlobalScale (see search_global_scale).
+    """
+    pairs1, _, pairs2 = stage_pairs(data.poses.shape[0], config.stage1_levels, config.stage2_levels)
+    # Stage II's neighbours overlap most; a short sequence is all keyframes and has none.
+    return search_global_scale(data, pairs2 if pairs2.numel() else pairs1, stride=max(2, config.pixel_stride),
+                               min_gain=config.scale_search_min_gain, min_validity=config.min_sample_validity)
+
+
+__all__ = ["GlobalScale", "photometric_at", "search_configured_scale", "search_global_scale", "spread_pairs"]

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from .config import MedeaConfig, StageConfig
 from .frames import FrameData, prepare_frames
 from .geometry import pair_transforms
-from .global_scale import GlobalScale, search_global_scale
+from .global_scale import GlobalScale, search_configured_scale
 from .grid import adjust_depth
 from .objective import PairBatch, pair_losses
 from .pairs import nearest_keyframe, stage_pairs
@@ -211,10 +211,7 @@ def run_medea(
     global_scale = None
     if config.scale_search:
         start = time.perf_counter()
-        # Stage II's neighbours overlap most; a short sequence is all keyframes and has none.
-        global_scale = search_global_scale(data, pairs2 if pairs2.numel() else pairs1,
-                                           stride=max(2, config.pixel_stride), min_gain=config.scale_search_min_gain,
-                                           min_validity=config.min_sample_validity)
+        global_scale = search_configured_scale(data, config)
         if global_scale.applied:
             log_scales += math.log(global_scale.factor)
         seconds["scale_search"] = time.perf_counter() - start

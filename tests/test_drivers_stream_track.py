@@ -1,6 +1,6 @@
-"""A streamed run's second opinion (recon.drivers.stream_track): asked of SfM on the
-depth frames where the front end doubts its trajectory, with --pose-method auto and not under
---on-break keep; the verdict lands in the result's diagnostics for report.json."""
+"""The streamed run's tracking pass (recon.drivers.stream_track): SfM's second opinion, asked on
+the depth frames where the front end doubts its trajectory (with --pose-method auto, not under
+--on-break keep); with given poses, depth frames chosen at the poses' scale, not the prior's."""
 
 from __future__ import annotations
 
@@ -10,8 +10,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from recon.commands.demo import write_demo_inputs
+from recon.core.clock import StageClock
+from recon.core.config import PipelineConfig
+from recon.core.stages import plan_poses, select_frames
 from recon.drivers import stream_track
+from recon.io.frame_store import FrameStore
+from recon.io.output_folder import OutputFolder
 from recon.poses.result import PoseResult
+from recon.synthetic import render_sequence, simulate_prior
 
 # The module (recon.poses exports a function of the same name).
 so = importlib.import_module("recon.poses.second_opinion")
@@ -53,3 +60,55 @@ def test_sfm_is_asked_where_the_front_end_doubts(monkeypatch, pose_method, stop_
     if asked:
         assert calls[0][0] == [0, 3, 6, 9] and "frames 104-109" in calls[0][1]
         assert result.diagnostics["second_opinion"]["verdict"] == "disagree"
+
+
+@pytest.fixture(scope="module")
+def room_walk(tmp_path_factory):
+    """40 frames of the synthetic room at 192x144 as a video with its trajectory, and two prior
+    folders: a simulated prior, and the same five times too far (the scale of an indoor network
+    on a close-up)."""
+    seq = render_sequence(40, 192, 144, seed=0)
+    prior = simulate_prior(seq.depth, seed=1)
+    inputs = write_demo_inputs(OutputFolder(tmp_path_factory.mktemp("near")), seq, prior)
+    far = write_demo_inputs(OutputFolder(tmp_path_factory.mktemp("far")), seq, 5.0 * prior)
+    return seq, inputs, far["prior"]
+
+
+def _tracked(seq, inputs, prior_path, scale_prior: bool, max_frames: int | None = None):
+    config = PipelineConfig(input=inputs["video"], output=inputs["video"].parent / "unused", width=None,
+                            max_frames=max_frames,
+                            intrinsics=seq.intrinsics, poses=str(inputs["poses"]), prior="folder",
+                            prior_path=prior_path, stream="on", depth_frames="motion", scale_prior=scale_prior,
+                            depth_rotation=45.0, progress=False)  # the path's turns take no frame here
+    source = select_frames(config.input, max_frames=max_frames, frame_budget=None)
+    with FrameStore() as store:
+        return stream_track.track_video(config, source, plan_poses(config.poses, source), (seq.intrinsics, "given"),
+                                        store, None, StageClock())
+
+
+def test_given_poses_choose_depth_frames_at_their_own_scale(room_walk):
+    seq, inputs, far = room_walk
+    near = _tracked(seq, inputs, inputs["prior"], scale_prior=True)
+    unscaled = _tracked(seq, inputs, far, scale_prior=False)
+    scaled = _tracked(seq, inputs, far, scale_prior=True)
+    # The motion rule measures the path in the median depth: a prior five times too far
+    # makes it take a fraction of the frames...
+    assert unscaled.depth_frame.sum() < 0.5 * near.depth_frame.sum()
+    # ... unless the prior's factor against the poses is searched first.
+    assert scaled.prior_scale["applied"] and 0.17 < scaled.prior_scale["factor"] < 0.23
+    assert not near.prior_scale["applied"]
+    assert abs(int(scaled.depth_frame.sum()) - int(near.depth_frame.sum())) <= 2
+    assert unscaled.prior_scale is None
+    # Every frame is tracked once, in order, with the given pose.
+    for video in (near, scaled):
+        assert list(video.indices) == list(range(40))
+        np.testing.assert_allclose(video.poses, seq.poses, atol=1e-5)
+
+
+def test_a_video_shorter_than_the_scale_probe_is_tracked_whole(room_walk):
+    seq, inputs, far = room_walk
+    count = stream_track.SCALE_PROBE_FRAMES // 2
+    video = _tracked(seq, inputs, far, scale_prior=True, max_frames=count)
+    assert list(video.indices) == list(range(count)) and video.prior_scale["frames"] == count
+    assert video.prior_scale["applied"] and 0.17 < video.prior_scale["factor"] < 0.23
+    assert video.depth_frame[0] and 2 <= video.depth_frame.sum() < count

@@ -11,7 +11,8 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from medea_core import MedeaConfig, MedeaResult, run_medea
-from medea_core.frames import working_size
+from medea_core.frames import prepare_frames, working_size
+from medea_core.global_scale import GlobalScale, search_configured_scale
 
 
 def _as_tensor(array, dtype=torch.float32) -> torch.Tensor:
@@ -92,3 +93,24 @@ def adjust_sequence(
         )
     finally:
         bars.close()
+
+
+def search_prior_scale(rgb, prior, poses, intrinsics, config: MedeaConfig) -> GlobalScale:
+    """The factor on the prior that MEDeA's search (medea_core.global_scale) finds on a
+    sequence, without running MEDeA: a streamed run chooses its depth frames with it.
+
+    Args:
+        rgb: (N, H', W', 3) uint8 frames (any resolution with the prior's aspect).
+        prior: (N, H, W) prior depth in metres, 0 where invalid.
+        poses: (N, 4, 4) camera-to-world.
+        intrinsics: (4,) fx, fy, cx, cy in pixels of the prior's resolution.
+        config: the MedeaConfig whose search is run (its pairs, stride and gate).
+
+    Returns:
+        GlobalScale.
+    """
+    prior_t = _as_tensor(prior)
+    images = images_at_working_size(rgb, tuple(prior_t.shape[-2:]), config.image_scale)
+    data = prepare_frames(images, prior_t, _as_tensor(poses, torch.float64), _as_tensor(intrinsics), None,
+                          config.image_scale, torch.device(config.device))
+    return search_configured_scale(data, config)

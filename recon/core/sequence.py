@@ -69,6 +69,17 @@ class Sequence:
                   for label, value in self._per_frame().items()}
         return replace(self, indices=self.indices[keep], **picked)
 
+    @staticmethod
+    def concatenate(parts: list[Sequence]) -> Sequence:
+        """The frames of ``parts`` one after another (the first part's camera); a field is
+        None where the first part's is."""
+        first = parts[0]
+        joined = {label: None if value is None else
+                  (sum((getattr(p, label) for p in parts), []) if isinstance(value, list)
+                   else np.concatenate([getattr(p, label) for p in parts]))
+                  for label, value in first._per_frame().items()}
+        return replace(first, indices=np.concatenate([p.indices for p in parts]), **joined)
+
     def undistort(self, k1: float) -> Sequence:
         """Frames, prior depth and features resampled into the pinhole camera of a lens with
         radial term ``k1`` (recon.geometry.lens); the intrinsics are the pinhole camera's already.

@@ -3,15 +3,16 @@
 Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at
 a time (:class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given poses), each
 parked in a :class:`~recon.io.frame_store.FrameStore`; the depth frames
-(:class:`recon.drivers.stream_plan.MotionSelector`) with their prior and features. At the end
-the estimate is closed and passes the quality gate as in a one-shot run; what the depth
-pass needs is a :class:`TrackedVideo`. More: docs/running.md#how-a-streamed-run-works
+(:class:`recon.drivers.stream_plan.MotionSelector`; given poses: at their scale, searched on
+the first frames) with their prior and features. At the end the estimate is closed and
+passes the quality gate as in a one-shot run; the depth pass gets a :class:`TrackedVideo`.
+More: docs/running.md#how-a-streamed-run-works
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -26,6 +27,7 @@ from ..core.stages import (
     gate_estimate,
     ground_truth_kept,
     judge_given_poses,
+    medea_settings,
     prior_function,
 )
 from ..errors import ReconInputError
@@ -39,6 +41,8 @@ log = logging.getLogger(__name__)
 
 # Frames given their prior at once (FastDepth runs faster on a batch than frame by frame).
 PRIOR_BATCH = 8
+# Given poses: the first frames, held back until the prior's scale against the poses is known.
+SCALE_PROBE_FRAMES = 32
 # Depth values kept per depth frame (a pixel lattice) to size the TSDF volume, and in all.
 _SAMPLE_STEP = 16
 _SAMPLE_MAX = 400_000
@@ -65,6 +69,9 @@ class TrackedVideo:
     feature_shape: list | None = None
     # Given poses: why MEDeA is skipped (--medea-gate and the frames contradict them), else None.
     medea_skipped: str | None = None
+    # Given poses, depth frames by motion: the prior's factor the motion rule measured in
+    # (GlobalScale.to_dict and the frames searched), else None.
+    prior_scale: dict | None = None
 
 
 
@@ -110,9 +117,59 @@ class _TrackLoop:
         self.names_of = _frame_namer(source)
         self.indices, self.stamps, self.names, self.live, self.chosen, self.sample = [], [], [], [], [], []
         self.prior_info, self.feature_shape = {}, None
+        # Given poses, depth frames by motion: the motion rule measures the camera's path in
+        # the prior's median depth, so the first frames wait for the prior's scale (_settle_scale).
+        self.prior_scale: dict | None = None
+        self.prior_factor = 1.0
+        self.probe: list[Sequence] | None = None
+        searched = config.adjust and medea_settings(config, estimated=False).scale_search
+        if not plan.estimated and self.select.step is None and searched:
+            self.probe = []
 
     def add(self, batch: Sequence) -> None:
-        """Prior, poses and depth-frame choice of a batch of frames; each frame parked."""
+        """Prior, poses and depth-frame choice of a batch of frames; each frame parked (the
+        first SCALE_PROBE_FRAMES of a given-pose run once the prior's scale is known)."""
+        if self.probe is not None:
+            self.probe.append(batch)
+            if sum(len(b) for b in self.probe) >= SCALE_PROBE_FRAMES:
+                self._settle_scale()
+            return
+        self._add(batch)
+
+    def _settle_scale(self) -> None:
+        """The prior's factor against the given poses on the frames held back (MEDeA's search,
+        recon.core.medea.search_prior_scale); then those frames are added as any others, their
+        prior reused, and the motion rule measures in the prior's depth times the factor."""
+        from ..core.medea import search_prior_scale
+
+        held, self.probe = self.probe, None
+        if not held:
+            return
+        seq = Sequence.concatenate(held)
+        positions = np.arange(len(self.indices), len(self.indices) + len(seq))
+        seq = seq.with_(names=self.names_of(seq.indices, positions), intrinsics=self.intrinsics)
+        with self.clock.stage("poses"):
+            poses = self.poser.batch(positions, seq, None)
+        posed = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
+        out = self._prior(seq.take(posed), positions[posed]) if len(posed) else None
+        if len(posed) >= 2:
+            camera = self._live_intrinsics()
+            with self.clock.stage("medea"):
+                scale = search_prior_scale(seq.rgb[posed], out.depth, poses[posed], camera,
+                                           medea_settings(self.config, False))
+            self.prior_scale = {**scale.to_dict(), "frames": int(len(posed))}
+            self.prior_factor = scale.factor if scale.applied else 1.0
+        start = 0
+        for batch in held:
+            rows = np.flatnonzero((posed >= start) & (posed < start + len(batch)))
+            ready = None if out is None else (replace(out, depth=out.depth[rows], features=None if out.features is None
+                                                      else out.features[rows]), posed[rows] - start)
+            self._add(batch, ready)
+            start += len(batch)
+
+    def _add(self, batch: Sequence, ready=None) -> None:
+        """add() of one batch; ready: with given poses, the prior already computed for some of
+        its frames as (PriorOutput, their rows in the batch)."""
         positions = np.arange(len(self.indices), len(self.indices) + len(batch))
         batch = batch.with_(names=self.names_of(batch.indices, positions), intrinsics=self.intrinsics)
         if self.poser.estimating:
@@ -133,9 +190,9 @@ class _TrackLoop:
             with self.clock.stage("poses"):
                 self._check(batch, poses)
             rows = np.flatnonzero(take)
-            out = self._prior(batch.take(rows), positions[rows]) if len(rows) else None
+            out = self._given_prior(batch, positions, rows, ready) if len(rows) else None
             if out is not None:
-                self.select.depth = _median_depth(out.depth[-1]) or self.select.depth
+                self.select.depth = self.prior_factor * _median_depth(out.depth[-1]) or self.select.depth
         with self.clock.stage("store"):
             # A frame's colour is read again only if it gets depth; the front end's finish
             # needs the others' grey image at its flow size, 1/48 of the bytes.
@@ -155,6 +212,14 @@ class _TrackLoop:
         self.live += list(poses)
         self.chosen += list(take)
         self._log(batch, poses)
+
+    def _given_prior(self, batch: Sequence, positions: np.ndarray, rows: np.ndarray, ready):
+        """The prior of the batch's frames ``rows``, taken from ``ready`` (see _add) where it has them."""
+        if ready is None or not np.isin(rows, ready[1]).all():
+            return self._prior(batch.take(rows), positions[rows])
+        held, held_rows = ready
+        at = np.searchsorted(held_rows, rows)
+        return replace(held, depth=held.depth[at], features=None if held.features is None else held.features[at])
 
     def _check(self, batch: Sequence | None, poses: np.ndarray | None) -> None:
         """Collect the first frames with given poses; judge them once there are enough (or,
@@ -204,6 +269,8 @@ class _TrackLoop:
 
     def close(self) -> TrackedVideo:
         """Close the poses (global BA, gate) and return what the depth pass needs."""
+        if self.probe is not None:  # a video shorter than the probe
+            self._settle_scale()
         if len(self.indices) < 2:
             raise ReconInputError(f"{self.source.path}: needs at least 2 frames, got {len(self.indices)} "
                                   f"({self.source.selection.describe()})")
@@ -230,7 +297,7 @@ class _TrackLoop:
             size=tuple(self.source.shape), lens_k1=closed.lens_k1, pose_source=closed.source,
             pose_info=closed.info if self.pose_check is None else {**closed.info, "check": self.pose_check},
             depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
-            medea_skipped=self.medea_skipped,
+            medea_skipped=self.medea_skipped, prior_scale=self.prior_scale,
         )
 
 
