@@ -220,6 +220,8 @@ def test_ray_casting_more_blocks_than_open3d_holds_at_once(fusion_room):
     # Open3D's ray cast holds the blocks' screen tiles in a buffer of 65535; cast at once, a
     # phone video's volume (58540 tiles at 160x285) crashed the process. The blocks in view are
     # cast in passes of fewer tiles, the passes' nearest surface kept: the same surface.
+    import open3d.core as o3c
+
     from recon.fusion.volume import RANGE_TILE_BUDGET, TsdfVolume, blocks_in_view, tile_batches
 
     room = fusion_room
@@ -229,7 +231,8 @@ def test_ray_casting_more_blocks_than_open3d_holds_at_once(fusion_room):
         volume.integrate(room.depth[k], room.poses[k], room.intrinsics)
     scale = 3  # a larger image: each block covers more tiles
     big = np.asarray(room.intrinsics, np.float64) * scale
-    keys = volume.grid.hashmap().key_tensor().cpu().numpy()[:volume.blocks_used]
+    hashmap = volume.grid.hashmap()
+    keys = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)].cpu().numpy()
     seen, tiles, _ = blocks_in_view(keys, volume.voxel * volume.block_resolution, room.poses[5], big,
                                     (h * scale, w * scale), volume.max_depth)
     assert tiles.sum() > 65535 and len(tile_batches(tiles, RANGE_TILE_BUDGET)) >= 2

@@ -139,7 +139,7 @@ def remove_fragments(
 
 
 def blocks_in_view(keys: np.ndarray, side: float, pose, intrinsics, size: tuple[int, int],
-                   max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+                   max_depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxel blocks wholly in front of a camera, within max_depth and overlapping its image.
 
     Args:
