@@ -120,7 +120,6 @@ class _TrackLoop:
         # Given poses, depth frames by motion: the motion rule measures the camera's path in
         # the prior's median depth, so the first frames wait for the prior's scale (_settle_scale).
         self.prior_scale: dict | None = None
-        self.prior_factor = 1.0
         self.probe: list[Sequence] | None = None
         searched = config.adjust and medea_settings(config, estimated=False).scale_search
         if not plan.estimated and self.select.step is None and searched:
@@ -158,7 +157,6 @@ class _TrackLoop:
                 scale = search_prior_scale(seq.rgb[posed], out.depth, poses[posed], camera,
                                            medea_settings(self.config, False))
             self.prior_scale = {**scale.to_dict(), "frames": int(len(posed))}
-            self.prior_factor = scale.factor if scale.applied else 1.0
         start = 0
         for batch in held:
             rows = np.flatnonzero((posed >= start) & (posed < start + len(batch)))
@@ -212,6 +210,12 @@ class _TrackLoop:
         self.live += list(poses)
         self.chosen += list(take)
         self._log(batch, poses)
+
+    @property
+    def prior_factor(self) -> float:
+        """The factor the motion rule puts on the prior's depth: the probe's, where applied."""
+        found = self.prior_scale
+        return found["factor"] if found is not None and found["applied"] else 1.0
 
     def _given_prior(self, batch: Sequence, positions: np.ndarray, rows: np.ndarray, ready):
         """The prior of the batch's frames ``rows``, taken from ``ready`` (see _add) where it has them."""

@@ -278,8 +278,9 @@ class TsdfVolume:
                                            self.max_depth)
         depth = np.zeros((h, w), np.float32)
         order = np.argsort(near)  # each pass a shell of depth: few rays cross two of them
-        for part in tile_batches(tiles[order], RANGE_TILE_BUDGET):
-            blocks = o3c.Tensor(np.ascontiguousarray(keys[seen][order[part]]), o3c.int32).to(self.device)
+        keys, tiles = keys[seen][order], tiles[order]
+        for part in tile_batches(tiles, RANGE_TILE_BUDGET):
+            blocks = o3c.Tensor(np.ascontiguousarray(keys[part]), o3c.int32).to(self.device)
             # Open3D reports how it sized its range map on stdout; that is not the user's business.
             with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
                 result = self.grid.ray_cast(blocks, K, E, w, h, ["depth"], 1.0, 0.05, self.max_depth,
