@@ -567,12 +567,15 @@ def test_refine_none_keeps_the_papers_pipeline(demo, tmp_path):
     report = json.loads((plain / "report.json").read_text())
     assert report["refine"] == {"method": "none"} and report["seconds"]["refine"] == 0.0
     assert "polish" not in report["poses"] and report["options"]["refine"] == "none"
+    # Unrefined depth is fused unconfirmed: a voxel needs two frames (refined: one, see below).
+    assert report["fusion"]["weight_threshold"] == 2.0
     refined = tmp_path / "refined"
     assert main(["run", str(out / "input/synthetic.mp4"), "-o", str(refined), *common,
                  "--set", "mvs.num_sources=3"]) == 0
     report = json.loads((refined / "report.json").read_text())
     assert report["options"]["mvs"]["num_sources"] == 3 and len(report["refine"]["sources"][0]) == 3
     assert 0.3 < report["refine"]["reconstructed"] <= 1.0
+    assert report["fusion"]["weight_threshold"] == 1.0 and report["options"]["fusion"]["weight_threshold"] is None
 
 
 @pytest.mark.parametrize("mode", ["one-shot", "stream"])

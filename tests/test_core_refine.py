@@ -10,7 +10,13 @@ import pytest
 from medea_core import MedeaConfig
 from recon.commands.demo import mesh_scores
 from recon.core.medea import adjust_sequence
-from recon.core.refine import fusion_confidence, refine_sequence, refine_summary
+from recon.core.refine import (
+    default_min_confidence,
+    default_weight_threshold,
+    fusion_confidence,
+    refine_sequence,
+    refine_summary,
+)
 from recon.eval.depth import depth_metrics
 from recon.fusion import FusionOptions, fuse
 from recon.synthetic import add_shape_errors, render_sequence, simulate_prior
@@ -29,6 +35,26 @@ def refined():
 def _mesh_f(depth, seq, confidence=None):
     mesh = fuse(depth, None, seq.poses, seq.intrinsics, FusionOptions(progress=False), confidence=confidence).mesh
     return mesh_scores(mesh, seq)["fscore"]
+
+
+def test_confirmed_depth_is_meshed_from_one_frame(refined):
+    """Every 8th frame's refined depth (a streamed run's depth frames), the given-pose gate:
+    the default threshold for refined given poses (1) meshes the surface that one fused frame
+    confirmed, which a second-frame requirement drops, at the same precision."""
+    seq, _, _, result = refined
+    picked = slice(None, None, 8)
+    depth, confidence = result.depth.numpy()[picked], fusion_confidence(result)[picked]
+    scores = {}
+    for threshold in (default_weight_threshold(False, True), 2.0):
+        options = FusionOptions(progress=False, min_confidence=default_min_confidence(False),
+                                weight_threshold=threshold)
+        mesh = fuse(depth, None, seq.poses[picked], seq.intrinsics, options, confidence=confidence).mesh
+        scores[threshold] = mesh_scores(mesh, seq)
+    one, two = scores[1.0], scores[2.0]
+    assert one["recall"] > two["recall"] + 0.02, (one, two)
+    assert one["precision"] > two["precision"] - 0.025 and one["fscore"] > two["fscore"] + 0.01, (one, two)
+    # Unconfirmed depth, or estimated poses (whose gate admits filled pixels): two frames.
+    assert default_weight_threshold(False, False) == default_weight_threshold(True, True) == 2.0
 
 
 def test_shape_errors_are_beyond_medea(refined):
@@ -56,7 +82,7 @@ def test_fusion_confidence_orders_reconstructed_filled_and_unsupported_pixels():
     import torch
 
     from mvs_core import RefineResult
-    from recon.core.refine import FILLED_CONFIDENCE, default_min_confidence
+    from recon.core.refine import FILLED_CONFIDENCE
 
     depth = torch.ones(3, 4, 6)
     depth[0, 0, 2] = 0.0  # invalid pixel: never fused
@@ -87,7 +113,6 @@ def test_a_sparse_frame_fuses_its_filled_pixels_near_evidence():
     import torch
 
     from mvs_core import RefineResult
-    from recon.core.refine import default_min_confidence
 
     depth = torch.ones(2, 3, 6)
     reconstructed = torch.zeros(2, 3, 6, dtype=torch.bool)

@@ -99,6 +99,13 @@ def default_min_confidence(poses_estimated: bool) -> float:
     return MIN_CONFIDENCE_ESTIMATED if poses_estimated else MIN_CONFIDENCE_GIVEN
 
 
+def default_weight_threshold(poses_estimated: bool, refined: bool) -> float:
+    """The frames that must see a voxel for it to be meshed when the user gives none: 1 with
+    given poses and the refinement (each fused pixel already agrees with min_consistent
+    other views: a second fused frame would drop half of what they confirmed), else 2."""
+    return 1.0 if refined and not poses_estimated else 2.0
+
+
 def refine_summary(result: RefineResult | None) -> dict:
     """What report.json says of the refinement: reconstructed share per frame and overall,
     the typical correction, the frames fused whole (unsupported) and with their fill

@@ -54,10 +54,11 @@ def medea_summary(result) -> dict:
 
 
 def fusion_summary(fused, min_confidence: float | None) -> dict:
-    """The TSDF volume and mesh figures; min_confidence: the threshold used (None: no
-    confidence was fused)."""
+    """The TSDF volume and mesh figures, the weight threshold meshed at among them;
+    min_confidence: the threshold used (None: no confidence was fused)."""
     mesh = fused.mesh
-    return {"min_confidence": min_confidence, "voxel_size": fused.voxel_size, "trunc": fused.trunc,
+    return {"min_confidence": min_confidence, "weight_threshold": fused.weight_threshold,
+            "voxel_size": fused.voxel_size, "trunc": fused.trunc,
             "max_depth": fused.max_depth, "frames_fused": fused.frames_fused, "block_estimate": fused.block_estimate,
             "blocks_used": fused.blocks_used, "fragments_removed": fused.fragments_removed,
             "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),

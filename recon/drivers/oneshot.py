@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core.clock import StageClock
 from ..core.config import PipelineConfig
-from ..core.refine import default_min_confidence, fusion_confidence
+from ..core.refine import default_min_confidence, default_weight_threshold, fusion_confidence
 from ..core.report import build_report, segments_summary, segments_warning
 from ..core.sequence import Sequence
 from ..core.stages import (
@@ -176,6 +176,8 @@ def _reconstruct(config: PipelineConfig, out: OutputFolder, source, seq: Sequenc
             release_memory(force=True)
         if fusion_options.min_confidence is None:
             fusion_options.min_confidence = default_min_confidence(pose_plan.estimated)
+        if fusion_options.weight_threshold is None:
+            fusion_options.weight_threshold = default_weight_threshold(pose_plan.estimated, refined is not None)
         fused = fuse(depth, seq.rgb, seq.poses, seq.intrinsics, fusion_options, confidence=confidence)
 
     say("export")

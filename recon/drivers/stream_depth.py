@@ -72,7 +72,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
     import torch
     from tqdm.auto import tqdm
 
-    from ..core.refine import default_min_confidence, fusion_confidence
+    from ..core.refine import default_min_confidence, default_weight_threshold, fusion_confidence
     from ..core.stages import adjust_with_medea, medea_settings, refine_depth
     from ..export import write_depth_frame
     from ..fusion import FusionOptions, confidence_weight
@@ -89,6 +89,8 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                                "metric": not untrusted_scale(video.pose_info)})
     if options.min_confidence is None:
         options.min_confidence = default_min_confidence(plan.estimated)
+    if options.weight_threshold is None:
+        options.weight_threshold = default_weight_threshold(plan.estimated, config.refine == "mvs")
     undistort = worth_undistorting(video.intrinsics, video.size, video.lens_k1)
     volume, records, finished, swept, fused, shifts = None, [], {}, {}, 0, {}
     skipped = video.medea_skipped

@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 # Confidence threshold when none is set: the refinement's reconstructed pixels (whose
 # confidence is >= 1/3 by default) and no filled ones (< 0.1, recon.core.refine).
 DEFAULT_MIN_CONFIDENCE = 0.1
+DEFAULT_WEIGHT_THRESHOLD = 2.0
 
 
 @dataclass
@@ -52,11 +53,14 @@ class FusionOptions:
     """The truncation distance in voxels when trunc is none."""
     max_depth: float | None = None
     """Depth beyond this many metres is ignored (none: a margin over a high percentile of the depth)."""
-    weight_threshold: float = 2.0
+    weight_threshold: float | None = None
     """The fewest frames that must have observed a voxel for it to be meshed (1: a single frame suffices).
 
-    Open3D's own threshold is strict, weight > t, so t - 0.5 is passed to it; with
-    confidence_weights it sums weights, not frames.
+    None: the caller's choice, else DEFAULT_WEIGHT_THRESHOLD (``meshing_weight``). The
+    pipeline's default: 1 with given poses and the refinement, whose fused pixels each
+    already agree with ``mvs.min_consistent`` other views; 2 otherwise. Open3D's own
+    threshold is strict, weight > t, so t - 0.5 is passed to it; with confidence_weights it
+    sums weights, not frames.
     """
     block_resolution: int = 8
     """Voxels per block side: 4, 8, 16 or 32."""
@@ -98,6 +102,11 @@ class FusionOptions:
     The pipeline sets it from report.json's poses.metric_scale.
     """
 
+    @property
+    def meshing_weight(self) -> float:
+        """The weight_threshold in force (DEFAULT_WEIGHT_THRESHOLD where none was chosen)."""
+        return DEFAULT_WEIGHT_THRESHOLD if self.weight_threshold is None else float(self.weight_threshold)
+
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
         positive = {"voxel_size": self.voxel_size, "trunc": self.trunc, "max_depth": self.max_depth}
@@ -106,7 +115,7 @@ class FusionOptions:
                 raise ReconInputError(f"fusion option {name} must be > 0, got {value}")
         if not (self.trunc_voxels >= 1):
             raise ReconInputError(f"fusion option trunc_voxels must be >= 1, got {self.trunc_voxels}")
-        if not (self.weight_threshold >= 0):
+        if self.weight_threshold is not None and not (self.weight_threshold >= 0):
             raise ReconInputError(f"fusion option weight_threshold must be >= 0, got {self.weight_threshold}")
         if self.block_resolution not in (4, 8, 16, 32):
             raise ReconInputError(f"fusion option block_resolution must be 4, 8, 16 or 32, got {self.block_resolution}")
@@ -136,7 +145,7 @@ class FusionResult:
     fragments_removed: triangles dropped by fragment removal. triangles_full: the mesh's
     triangles before the budget (FusionOptions.max_triangles) decimated it. upright: the
     rotation that stands the scene upright (:mod:`recon.fusion.upright`), for the GLB and
-    the exports.
+    the exports. weight_threshold: the observations a meshed voxel needed.
     """
 
     mesh: o3d.geometry.TriangleMesh
@@ -151,6 +160,7 @@ class FusionResult:
     fragments_removed: int = 0
     triangles_full: int = 0
     upright: Upright | None = None
+    weight_threshold: float = DEFAULT_WEIGHT_THRESHOLD
 
 
 # --------------------------------------------------------------------------- devices
@@ -304,7 +314,7 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
             if confidence_used and options.min_confidence else "")
     log.warning("TSDF fusion: the mesh is empty (%d frames fused): no surface within --max-depth %.2f m was seen "
                 "by more than fusion.weight_threshold %g frames%s; mesh.ply and mesh.glb are not written",
-                volume.frames_fused, volume.max_depth, options.weight_threshold, gate)
+                volume.frames_fused, volume.max_depth, options.meshing_weight, gate)
 
 
 def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: bool):
@@ -401,4 +411,5 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         fragments_removed=removed,
         triangles_full=full,
         upright=estimate_upright(poses, np.asarray(mesh.vertices)),
+        weight_threshold=options.meshing_weight,
     )

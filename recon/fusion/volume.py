@@ -329,7 +329,7 @@ class TsdfVolume:
         # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
         if self.blocks_used == 0:  # nothing integrated (Open3D raises on an empty hash map)
             return o3d.geometry.TriangleMesh(), 0
-        threshold = options.weight_threshold - 0.5
+        threshold = options.meshing_weight - 0.5
         mesh = _extract(lambda: self.grid.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
         mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
         if mesh.has_vertex_colors():
@@ -347,7 +347,7 @@ class TsdfVolume:
         """
         if self.blocks_used == 0:
             return o3d.geometry.PointCloud()
-        threshold = options.weight_threshold - 0.5
+        threshold = options.meshing_weight - 0.5
         return canonical_points(_extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud))
 
 
