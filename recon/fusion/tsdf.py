@@ -54,11 +54,11 @@ class FusionOptions:
     max_depth: float | None = None
     """Depth beyond this many metres is ignored (none: a margin over a high percentile of the depth)."""
     weight_threshold: float | None = None
-    """The fewest frames that must have observed a voxel for it to be meshed (1: a single frame suffices).
+    """The fewest frames that must have observed a voxel to mesh it (none: 1 with given poses and refinement, else 2).
 
-    None: the caller's choice, else DEFAULT_WEIGHT_THRESHOLD (``meshing_weight``). The
-    pipeline's default: 1 with given poses and the refinement, whose fused pixels each
-    already agree with ``mvs.min_consistent`` other views; 2 otherwise. Open3D's own
+    None is the caller's choice, else DEFAULT_WEIGHT_THRESHOLD (``meshing_weight``); the
+    pipeline's: 1 with given poses and the refinement, whose fused pixels each already agree
+    with ``mvs.min_consistent`` other views, else 2. Open3D's own
     threshold is strict, weight > t, so t - 0.5 is passed to it; with confidence_weights it
     sums weights, not frames.
     """
@@ -313,7 +313,7 @@ def warn_empty_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used:
             "fused (0 fuses every pixel; camera motion between frames gives the refinement its evidence)"
             if confidence_used and options.min_confidence else "")
     log.warning("TSDF fusion: the mesh is empty (%d frames fused): no surface within --max-depth %.2f m was seen "
-                "by more than fusion.weight_threshold %g frames%s; mesh.ply and mesh.glb are not written",
+                "by the %g frames fusion.weight_threshold asks for%s; mesh.ply and mesh.glb are not written",
                 volume.frames_fused, volume.max_depth, options.meshing_weight, gate)
 
 
