@@ -391,3 +391,30 @@ def test_a_confirmed_pixel_outweighs_a_filled_one_by_its_levels(fusion_room):
     for name, expected in {"alike": 0.010, "weighed": 0.004}.items():
         offset = surface_offset([(truth, 0.5), (truth + 0.02, 0.05)], levels[name]) - base
         assert offset == pytest.approx(expected, abs=0.0015), name
+
+
+def test_the_surface_estimate_follows_what_marching_cubes_extracts(fusion_room, caplog):
+    """surface_triangles is within 20 % of the triangles extracted at each weight, and a surface
+    over EXTRACTION_BUDGET_FACTOR x the budget is meshed at the lowest weight that fits it."""
+    from recon.fusion import TsdfVolume
+    from recon.fusion.tsdf import finished_mesh
+    from recon.fusion.volume import EXTRACTION_BUDGET_FACTOR
+
+    room = fusion_room
+    volume = TsdfVolume(0.02, 0.08, 8.0, 4096, colored=False)
+    for k in (0, 0, 0, 19):  # what only frame 19 saw has weight 1, what frame 0 saw 3 or 4
+        volume.integrate(room.depth[k], room.poses[k], room.intrinsics)
+    extracted = {}
+    for weight in (1, 2, 3):
+        options = FusionOptions(weight_threshold=weight, max_triangles=0, min_fragment_triangles=0)
+        mesh, removed = volume.mesh(options)
+        extracted[weight] = len(mesh.triangles) + removed
+        assert volume.surface_triangles(weight) == pytest.approx(extracted[weight], rel=0.2), weight
+    assert extracted[1] > 1.1 * extracted[2] > 0
+    budget = int(0.5 * (extracted[1] + extracted[2])) // EXTRACTION_BUDGET_FACTOR + 1
+    options = FusionOptions(weight_threshold=1, max_triangles=budget, min_fragment_triangles=0)
+    assert volume.meshing_weight(options) == 2
+    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_triangles=0)) == 1
+    with caplog.at_level(logging.WARNING):
+        *_, used = finished_mesh(volume, options, confidence_used=False)
+    assert used == 2 and "meshing the surface seen by 2 instead" in caplog.text

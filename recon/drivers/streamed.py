@@ -185,13 +185,13 @@ def _finish(config, source, out: OutputFolder, video: TrackedVideo, fusion_state
     (volume, options) = fusion_state
     start = time.perf_counter()
     with clock.stage("fusion"):
-        mesh, cloud, removed, full = finished_mesh(volume, options, config.refine != "none")
+        mesh, cloud, removed, full, weight = finished_mesh(volume, options, config.refine != "none")
     fusion = FusionResult(mesh=mesh, point_cloud=cloud, voxel_size=volume.voxel, trunc=volume.trunc,
                           seconds=time.perf_counter() - start, max_depth=volume.max_depth,
                           frames_fused=volume.frames_fused, block_estimate=0, blocks_used=volume.blocks_used,
                           fragments_removed=removed, triangles_full=full,
                           upright=estimate_upright(video.poses, np.asarray(mesh.vertices)),
-                          weight_threshold=options.meshing_weight)
+                          weight_threshold=weight)
     kept = np.isfinite(video.poses).all(axis=(1, 2))
     with clock.stage("export"):
         files = export_reconstruction(out, mesh=mesh, poses=video.poses[kept], timestamps=video.timestamps[kept],

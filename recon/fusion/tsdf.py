@@ -31,7 +31,14 @@ from .sizing import (
     frame_intrinsics,
 )
 from .upright import Upright, estimate_upright
-from .volume import TsdfVolume, clean_depth, remove_fragments, triangle_components, within_budget  # noqa: F401 (re-exported)
+from .volume import (  # noqa: F401 (re-exported)
+    EXTRACTION_BUDGET_FACTOR,
+    TsdfVolume,
+    clean_depth,
+    remove_fragments,
+    triangle_components,
+    within_budget,
+)
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +67,9 @@ class FusionOptions:
     pipeline's: 1 with given poses and the refinement, whose fused pixels each already agree
     with ``mvs.min_consistent`` other views, else 2. Open3D's own
     threshold is strict, weight > t, so t - 0.5 is passed to it; with confidence_weights it
-    sums weights, not frames.
+    sums weights, not frames. A surface that would mesh to more than
+    ``volume.EXTRACTION_BUDGET_FACTOR`` x max_triangles is meshed at a higher threshold
+    (``TsdfVolume.meshing_weight``, with a warning).
     """
     block_resolution: int = 8
     """Voxels per block side: 4, 8, 16 or 32."""
@@ -330,15 +339,22 @@ def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: b
 
     Returns:
         (mesh within options.max_triangles, point cloud or None, fragment triangles removed,
-        triangles before the budget).
+        triangles before the budget, the weight threshold the mesh was extracted at).
     """
-    mesh, removed = volume.mesh(options)
+    weight = volume.meshing_weight(options)
+    if weight > options.meshing_weight:
+        log.warning("TSDF fusion: the surface seen by %g frames would mesh to about %.1f M triangles, over %d x the "
+                    "triangle budget (fusion.max_triangles %d), more than memory allows; meshing the surface seen by "
+                    "%g instead (fusion.max_triangles=0 meshes all)", options.meshing_weight,
+                    volume.surface_triangles(options.meshing_weight) / 1e6, EXTRACTION_BUDGET_FACTOR,
+                    options.max_triangles, weight)
+    mesh, removed = volume.mesh(options, weight)
     full = len(mesh.triangles)
     if full == 0:
         warn_empty_mesh(volume, options, confidence_used)
-    cloud = volume.point_cloud(options) if options.point_cloud else None
+    cloud = volume.point_cloud(options, weight) if options.point_cloud else None
     volume.close()
-    return within_budget(mesh, options.max_triangles), cloud, removed, full
+    return within_budget(mesh, options.max_triangles), cloud, removed, full, weight
 
 
 def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, confidence=None) -> FusionResult:
@@ -396,7 +412,7 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
     for i in tqdm(frames, desc="TSDF fusion", unit="frame", disable=not options.progress, leave=False):
         volume.integrate(depth[i], poses[i], k_all[i], None if rgb is None else rgb[i],
                          weight=depth.weight(i) if confidence is not None else None)
-    mesh, cloud, removed, full = finished_mesh(volume, options, confidence is not None)
+    mesh, cloud, removed, full, weight = finished_mesh(volume, options, confidence is not None)
     fused, blocks_used = volume.frames_fused, volume.blocks_used
     return FusionResult(
         mesh=mesh,
@@ -411,5 +427,5 @@ def fuse(depth, rgb, poses, intrinsics, options: FusionOptions | None = None, co
         fragments_removed=removed,
         triangles_full=full,
         upright=estimate_upright(poses, np.asarray(mesh.vertices)),
-        weight_threshold=options.meshing_weight,
+        weight_threshold=weight,
     )

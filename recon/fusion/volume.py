@@ -34,6 +34,12 @@ RANGE_TILE_BUDGET = 32_768
 # budget, found in at most BUDGET_TRIES clusterings (each ~2 s for 2.4 M triangles).
 BUDGET_FILL = 0.8
 BUDGET_TRIES = 3
+# Marching cubes and the cleanup after it hold about 0.3 GB per million triangles extracted:
+# a surface estimated above this many times the triangle budget is meshed at a higher
+# weight threshold (meshing_weight). why: docs/decisions.md#the-frames-a-meshed-voxel-needs
+EXTRACTION_BUDGET_FACTOR = 4
+# Voxel blocks read per pass when counting the surface (bounds the copy: 4 MB of tsdf).
+_COUNT_CHUNK = 2048
 
 
 def clean_depth(d) -> np.ndarray:
@@ -313,14 +319,66 @@ class TsdfVolume:
 
             release_memory(force=True)
 
-    def mesh(self, options) -> tuple[o3d.geometry.TriangleMesh, int]:
+    def surface_triangles(self, min_weight: float) -> int:
+        """Estimated triangles marching cubes makes of the voxels of weight >= min_weight.
+
+        Twice the voxel edges within a block whose two voxels both qualify and have signed
+        distances of opposite sign: each such edge is a vertex of the mesh, and a surface
+        has about twice as many triangles as vertices (Euler). Edges across blocks are not
+        counted (1/8 of them at block resolution 8).
+
+        Args:
+            min_weight: observations a voxel needs.
+
+        Returns:
+            Estimated triangle count (0 when nothing is fused).
+        """
+        if self.blocks_used == 0:
+            return 0
+        active = self.grid.hashmap().active_buf_indices().to(o3c.int64)
+        tsdf, weight = self.grid.attribute("tsdf"), self.grid.attribute("weight")
+        side = (-1,) + (self.block_resolution,) * 3
+        edges = 0
+        for start in range(0, active.shape[0], _COUNT_CHUNK):
+            part = active[start:start + _COUNT_CHUNK]
+            distance = tsdf[part].cpu().numpy().reshape(side)
+            kept = weight[part].cpu().numpy().reshape(side) >= min_weight - 0.5
+            for axis in (1, 2, 3):
+                d, k = np.moveaxis(distance, axis, -1), np.moveaxis(kept, axis, -1)
+                edges += int(((d[..., 1:] * d[..., :-1] < 0) & k[..., 1:] & k[..., :-1]).sum())
+        return 2 * edges
+
+    def meshing_weight(self, options) -> float:
+        """The weight threshold the mesh is extracted at: options.meshing_weight, raised by
+        whole observations while the surface (surface_triangles) exceeds
+        EXTRACTION_BUDGET_FACTOR x options.max_triangles, so that extracting it stays
+        within memory (no bound with max_triangles 0).
+
+        Args:
+            options: FusionOptions (weight_threshold, max_triangles).
+
+        Returns:
+            Observations a meshed voxel needs.
+        """
+        weight = options.meshing_weight
+        ceiling = EXTRACTION_BUDGET_FACTOR * int(options.max_triangles)
+        if ceiling <= 0:
+            return weight
+        count = self.surface_triangles(weight)
+        while count > ceiling:
+            weight += 1.0
+            count = self.surface_triangles(weight)
+        return weight
+
+    def mesh(self, options, weight: float | None = None) -> tuple[o3d.geometry.TriangleMesh, int]:
         """The mesh of what is fused so far, cleaned of small fragments.
 
         Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding).
 
         Args:
-            options: FusionOptions (weight_threshold, min_fragment_triangles,
+            options: FusionOptions (weight_threshold, max_triangles, min_fragment_triangles,
                 min_fragment_fraction).
+            weight: observations a meshed voxel needs (None: meshing_weight(options)).
 
         Returns:
             (legacy TriangleMesh in world coordinates and canonical order, triangles removed
@@ -329,25 +387,26 @@ class TsdfVolume:
         # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
         if self.blocks_used == 0:  # nothing integrated (Open3D raises on an empty hash map)
             return o3d.geometry.TriangleMesh(), 0
-        threshold = options.meshing_weight - 0.5
+        threshold = (self.meshing_weight(options) if weight is None else weight) - 0.5
         mesh = _extract(lambda: self.grid.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
         mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
         if mesh.has_vertex_colors():
             mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0, 1))
         return canonical_mesh(mesh), removed
 
-    def point_cloud(self, options) -> o3d.geometry.PointCloud:
+    def point_cloud(self, options, weight: float | None = None) -> o3d.geometry.PointCloud:
         """The zero crossings of what is fused so far, at the mesh's weight threshold.
 
         Args:
-            options: FusionOptions (weight_threshold).
+            options: FusionOptions (weight_threshold, max_triangles).
+            weight: observations a voxel needs (None: meshing_weight(options)).
 
         Returns:
             Legacy PointCloud in world coordinates, in canonical order (canonical_points).
         """
         if self.blocks_used == 0:
             return o3d.geometry.PointCloud()
-        threshold = options.meshing_weight - 0.5
+        threshold = (self.meshing_weight(options) if weight is None else weight) - 0.5
         return canonical_points(_extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud))
 
 
