@@ -402,7 +402,7 @@ def test_the_surface_estimate_follows_what_marching_cubes_extracts(fusion_room, 
 
     room = fusion_room
     volume = TsdfVolume(0.02, 0.08, 8.0, 4096, colored=False)
-    for k in (0, 0, 0, 19):  # what only frame 19 saw has weight 1, what frame 0 saw 3 or 4
+    for k in (0, 0, 0, 19):  # weight 1: what frame 19 alone saw; 3: frame 0 alone; 4: both
         volume.integrate(room.depth[k], room.poses[k], room.intrinsics)
     extracted = {}
     for weight in (1, 2, 3):
@@ -415,6 +415,8 @@ def test_the_surface_estimate_follows_what_marching_cubes_extracts(fusion_room, 
     options = FusionOptions(weight_threshold=1, max_triangles=budget, min_fragment_triangles=0)
     assert volume.meshing_weight(options) == 2
     assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_triangles=0)) == 1
+    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_extracted=0)) == 1
+    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_extracted=volume.surface_triangles(3) - 1)) == 4
     with caplog.at_level(logging.WARNING):
         *_, used = finished_mesh(volume, options, confidence_used=False)
     assert used == 2 and "meshing the surface seen by 2 instead" in caplog.text

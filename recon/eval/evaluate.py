@@ -93,7 +93,8 @@ def reference_tsdf_mesh(dataset, indices: np.ndarray, voxel_size: float | None, 
         )
     if depth is None:
         depth = dataset.load_depth_batch(indices)
-    options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress)
+    # The sensor's whole surface, however large: no weight threshold raised for memory.
+    options = FusionOptions(voxel_size=voxel_size, max_depth=max_depth, progress=progress, max_extracted=0)
     camera = dataset.intrinsics if intrinsics is None else intrinsics
     return fuse(depth, None, dataset.poses[indices], camera, options).mesh
 

@@ -67,9 +67,8 @@ class FusionOptions:
     pipeline's: 1 with given poses and the refinement, whose fused pixels each already agree
     with ``mvs.min_consistent`` other views, else 2. Open3D's own
     threshold is strict, weight > t, so t - 0.5 is passed to it; with confidence_weights it
-    sums weights, not frames. A surface that would mesh to more than
-    ``volume.EXTRACTION_BUDGET_FACTOR`` x max_triangles is meshed at a higher threshold
-    (``TsdfVolume.meshing_weight``, with a warning).
+    sums weights, not frames. A surface that would mesh to more than ``max_extracted``
+    triangles is meshed at a higher threshold.
     """
     block_resolution: int = 8
     """Voxels per block side: 4, 8, 16 or 32."""
@@ -105,11 +104,25 @@ class FusionOptions:
 
     ``volume.within_budget``: vertex clustering, colours kept.
     """
+    max_extracted: int | None = None
+    """The most triangles marching cubes may make before the budget thins them (none: 4 x max_triangles; 0: no bound).
+
+    A surface counted above it is meshed at a higher weight threshold, a frame at a time
+    (``TsdfVolume.meshing_weight``, with a warning): extraction and the cleanup after it
+    hold about 0.3 GB per million triangles.
+    """
     metric: bool = True
     """The depth is in metres to be trusted (false: the voxel follows the depth without the absolute bounds).
 
     The pipeline sets it from report.json's poses.metric_scale.
     """
+
+    @property
+    def extraction_bound(self) -> int:
+        """The max_extracted in force (EXTRACTION_BUDGET_FACTOR x max_triangles where none was chosen; 0: none)."""
+        if self.max_extracted is None:
+            return EXTRACTION_BUDGET_FACTOR * int(self.max_triangles)
+        return int(self.max_extracted)
 
     @property
     def meshing_weight(self) -> float:
@@ -134,6 +147,8 @@ class FusionOptions:
             raise ReconInputError(f"fusion option min_confidence must be in [0, 1], got {self.min_confidence}")
         if not all(0 <= level <= 1 for level in self.confidence_weights):
             raise ReconInputError(f"fusion option confidence_weights must be in [0, 1], got {self.confidence_weights}")
+        if self.max_extracted is not None and int(self.max_extracted) < 0:
+            raise ReconInputError(f"fusion option max_extracted must be >= 0 (0: no bound), got {self.max_extracted}")
         if int(self.max_triangles) < 0:
             raise ReconInputError(f"fusion option max_triangles must be >= 0 (0: no limit), got {self.max_triangles}")
         if self.min_fragment_triangles < 0 or not (0 <= self.min_fragment_fraction <= 1):
@@ -343,11 +358,10 @@ def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: b
     """
     weight = volume.meshing_weight(options)
     if weight > options.meshing_weight:
-        log.warning("TSDF fusion: the surface seen by %g frames would mesh to about %.1f M triangles, over %d x the "
-                    "triangle budget (fusion.max_triangles %d), more than memory allows; meshing the surface seen by "
-                    "%g instead (fusion.max_triangles=0 meshes all)", options.meshing_weight,
-                    volume.surface_triangles(options.meshing_weight) / 1e6, EXTRACTION_BUDGET_FACTOR,
-                    options.max_triangles, weight)
+        log.warning("TSDF fusion: the surface seen by %g frames would mesh to about %.1f M triangles, over the %.1f M "
+                    "that fit in memory (fusion.max_extracted); meshing the surface seen by %g instead "
+                    "(fusion.max_extracted=0 meshes it all)", options.meshing_weight,
+                    volume.surface_triangles(options.meshing_weight) / 1e6, options.extraction_bound / 1e6, weight)
     mesh, removed = volume.mesh(options, weight)
     full = len(mesh.triangles)
     if full == 0:

@@ -35,8 +35,9 @@ RANGE_TILE_BUDGET = 32_768
 BUDGET_FILL = 0.8
 BUDGET_TRIES = 3
 # Marching cubes and the cleanup after it hold about 0.3 GB per million triangles extracted:
-# a surface estimated above this many times the triangle budget is meshed at a higher
-# weight threshold (meshing_weight). why: docs/decisions.md#the-frames-a-meshed-voxel-needs
+# by default a surface estimated above this many times the triangle budget is meshed at a
+# higher weight threshold (FusionOptions.max_extracted, meshing_weight).
+# why: docs/decisions.md#the-frames-a-meshed-voxel-needs
 EXTRACTION_BUDGET_FACTOR = 4
 # Voxel blocks read per pass when counting the surface (bounds the copy: 4 MB of tsdf).
 _COUNT_CHUNK = 2048
@@ -351,23 +352,19 @@ class TsdfVolume:
     def meshing_weight(self, options) -> float:
         """The weight threshold the mesh is extracted at: options.meshing_weight, raised by
         whole observations while the surface (surface_triangles) exceeds
-        EXTRACTION_BUDGET_FACTOR x options.max_triangles, so that extracting it stays
-        within memory (no bound with max_triangles 0).
+        options.extraction_bound, so that extracting it stays within memory.
 
         Args:
-            options: FusionOptions (weight_threshold, max_triangles).
+            options: FusionOptions (weight_threshold, max_extracted, max_triangles).
 
         Returns:
             Observations a meshed voxel needs.
         """
-        weight = options.meshing_weight
-        ceiling = EXTRACTION_BUDGET_FACTOR * int(options.max_triangles)
+        weight, ceiling = options.meshing_weight, options.extraction_bound
         if ceiling <= 0:
             return weight
-        count = self.surface_triangles(weight)
-        while count > ceiling:
+        while self.surface_triangles(weight) > ceiling:
             weight += 1.0
-            count = self.surface_triangles(weight)
         return weight
 
     def mesh(self, options, weight: float | None = None) -> tuple[o3d.geometry.TriangleMesh, int]:
@@ -376,7 +373,7 @@ class TsdfVolume:
         Vertex colours clipped to [0, 1] (TSDF colour averages can overshoot by rounding).
 
         Args:
-            options: FusionOptions (weight_threshold, max_triangles, min_fragment_triangles,
+            options: FusionOptions (weight_threshold, max_extracted, min_fragment_triangles,
                 min_fragment_fraction).
             weight: observations a meshed voxel needs (None: meshing_weight(options)).
 
@@ -398,7 +395,7 @@ class TsdfVolume:
         """The zero crossings of what is fused so far, at the mesh's weight threshold.
 
         Args:
-            options: FusionOptions (weight_threshold, max_triangles).
+            options: FusionOptions (weight_threshold, max_extracted).
             weight: observations a voxel needs (None: meshing_weight(options)).
 
         Returns:
