@@ -109,7 +109,7 @@ class FusionOptions:
 
     A surface counted above it is meshed at a higher weight threshold, a frame at a time
     (``TsdfVolume.meshing_weight``, with a warning): extraction and the cleanup after it
-    hold about 0.3 GB per million triangles.
+    hold about 0.25 GB per million triangles.
     """
     metric: bool = True
     """The depth is in metres to be trusted (false: the voxel follows the depth without the absolute bounds).
@@ -119,14 +119,22 @@ class FusionOptions:
 
     @property
     def extraction_bound(self) -> int:
-        """The max_extracted in force (EXTRACTION_BUDGET_FACTOR x max_triangles where none was chosen; 0: none)."""
+        """The max_extracted in force.
+
+        Returns:
+            Triangles: EXTRACTION_BUDGET_FACTOR x max_triangles where none was chosen (0: no bound).
+        """
         if self.max_extracted is None:
             return EXTRACTION_BUDGET_FACTOR * int(self.max_triangles)
         return int(self.max_extracted)
 
     @property
     def meshing_weight(self) -> float:
-        """The weight_threshold in force (DEFAULT_WEIGHT_THRESHOLD where none was chosen)."""
+        """The weight_threshold in force.
+
+        Returns:
+            Observations a meshed voxel needs: DEFAULT_WEIGHT_THRESHOLD where none was chosen.
+        """
         return DEFAULT_WEIGHT_THRESHOLD if self.weight_threshold is None else float(self.weight_threshold)
 
     def validate(self) -> None:

@@ -34,7 +34,7 @@ RANGE_TILE_BUDGET = 32_768
 # budget, found in at most BUDGET_TRIES clusterings (each ~2 s for 2.4 M triangles).
 BUDGET_FILL = 0.8
 BUDGET_TRIES = 3
-# Marching cubes and the cleanup after it hold about 0.3 GB per million triangles extracted:
+# Marching cubes and the cleanup after it hold about 0.25 GB per million triangles extracted:
 # by default a surface estimated above this many times the triangle budget is meshed at a
 # higher weight threshold (FusionOptions.max_extracted, meshing_weight).
 # why: docs/decisions.md#the-frames-a-meshed-voxel-needs
@@ -103,7 +103,8 @@ def triangle_components(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    t = np.asarray(triangles, dtype=np.int64)
+    # 32-bit indices where they fit: the graph's arrays are the labelling's memory.
+    t = np.asarray(triangles, dtype=np.int32 if num_vertices < 2**31 else np.int64)
     rows = np.concatenate([t[:, 0], t[:, 1]])
     cols = np.concatenate([t[:, 1], t[:, 2]])
     graph = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(num_vertices, num_vertices))
@@ -320,39 +321,57 @@ class TsdfVolume:
 
             release_memory(force=True)
 
+    def surface_curve(self) -> np.ndarray:
+        """Estimated triangles marching cubes makes at each whole weight threshold, in one pass.
+
+        Twice the voxel edges within a block whose two voxels have signed distances of
+        opposite sign, counted by the lower of their two weights: each such edge is a vertex
+        of the mesh, and a surface has about twice as many triangles as vertices (Euler).
+        Edges across blocks are not counted (1/8 of them at block resolution 8).
+
+        Returns:
+            (K,) int64: entry k estimates the mesh of the voxels of weight >= k (entry 0 all
+            observed voxels); empty when nothing is fused.
+        """
+        if self.blocks_used == 0:
+            return np.zeros(0, np.int64)
+        active = self.grid.hashmap().active_buf_indices().to(o3c.int64)
+        tsdf, weight = self.grid.attribute("tsdf"), self.grid.attribute("weight")
+        if self.device.get_type() == o3c.Device.DeviceType.CPU:  # numpy views: numpy's gather is ~30x Open3D's
+            active, tsdf, weight = active.numpy(), tsdf.numpy(), weight.numpy()
+        side = (-1,) + (self.block_resolution,) * 3
+        edges = np.zeros(1, np.int64)
+        for start in range(0, active.shape[0], _COUNT_CHUNK):
+            part = active[start:start + _COUNT_CHUNK]
+            negative = np.signbit(_host(tsdf[part]).reshape(side))
+            observed = _host(weight[part]).reshape(side)
+            for axis in (1, 2, 3):
+                d, w = np.moveaxis(negative, axis, -1), np.moveaxis(observed, axis, -1)
+                crossing = d[..., 1:] != d[..., :-1]
+                lower = np.minimum(w[..., 1:][crossing], w[..., :-1][crossing])
+                found = np.bincount(np.rint(lower).astype(np.int64))
+                if len(found) > len(edges):
+                    edges = np.pad(edges, (0, len(found) - len(edges)))
+                edges[:len(found)] += found
+        return 2 * np.cumsum(edges[::-1])[::-1]
+
     def surface_triangles(self, min_weight: float) -> int:
         """Estimated triangles marching cubes makes of the voxels of weight >= min_weight.
 
-        Twice the voxel edges within a block whose two voxels both qualify and have signed
-        distances of opposite sign: each such edge is a vertex of the mesh, and a surface
-        has about twice as many triangles as vertices (Euler). Edges across blocks are not
-        counted (1/8 of them at block resolution 8).
-
         Args:
-            min_weight: observations a voxel needs.
+            min_weight: observations a voxel needs (as Open3D tests it, weight > min_weight - 0.5).
 
         Returns:
-            Estimated triangle count (0 when nothing is fused).
+            Estimated triangle count (surface_curve; 0 when nothing is fused).
         """
-        if self.blocks_used == 0:
-            return 0
-        active = self.grid.hashmap().active_buf_indices().to(o3c.int64)
-        tsdf, weight = self.grid.attribute("tsdf"), self.grid.attribute("weight")
-        side = (-1,) + (self.block_resolution,) * 3
-        edges = 0
-        for start in range(0, active.shape[0], _COUNT_CHUNK):
-            part = active[start:start + _COUNT_CHUNK]
-            distance = tsdf[part].cpu().numpy().reshape(side)
-            kept = weight[part].cpu().numpy().reshape(side) >= min_weight - 0.5
-            for axis in (1, 2, 3):
-                d, k = np.moveaxis(distance, axis, -1), np.moveaxis(kept, axis, -1)
-                edges += int(((d[..., 1:] * d[..., :-1] < 0) & k[..., 1:] & k[..., :-1]).sum())
-        return 2 * edges
+        return _at_weight(self.surface_curve(), min_weight)
 
     def meshing_weight(self, options) -> float:
-        """The weight threshold the mesh is extracted at: options.meshing_weight, raised by
-        whole observations while the surface (surface_triangles) exceeds
-        options.extraction_bound, so that extracting it stays within memory.
+        """The weight threshold the mesh is extracted at.
+
+        options.meshing_weight, raised by whole observations while the surface
+        (surface_curve) exceeds options.extraction_bound, so that extracting it stays within
+        memory.
 
         Args:
             options: FusionOptions (weight_threshold, max_extracted, max_triangles).
@@ -363,7 +382,8 @@ class TsdfVolume:
         weight, ceiling = options.meshing_weight, options.extraction_bound
         if ceiling <= 0:
             return weight
-        while self.surface_triangles(weight) > ceiling:
+        curve = self.surface_curve()
+        while _at_weight(curve, weight) > ceiling:
             weight += 1.0
         return weight
 
@@ -405,6 +425,17 @@ class TsdfVolume:
             return o3d.geometry.PointCloud()
         threshold = (self.meshing_weight(options) if weight is None else weight) - 0.5
         return canonical_points(_extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud))
+
+
+def _host(values) -> np.ndarray:
+    """A numpy array of an Open3D tensor on any device (numpy arrays pass through)."""
+    return values if isinstance(values, np.ndarray) else values.cpu().numpy()
+
+
+def _at_weight(curve: np.ndarray, min_weight: float) -> int:
+    """A surface_curve's entry for voxels of weight > min_weight - 0.5 (whole weights)."""
+    index = max(0, math.floor(min_weight - 0.5) + 1)
+    return int(curve[index]) if index < len(curve) else 0
 
 
 # Open3D extracts vertices and points in the order of its hash map's buffer, which its
@@ -508,15 +539,20 @@ def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh
     """
     vertices = np.asarray(mesh.vertices)
     order = _position_order(vertices)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
+    rank = np.empty(len(order), np.int32)
+    rank[order] = np.arange(len(order), dtype=np.int32)
     triangles = rank[np.asarray(mesh.triangles)]
     if len(triangles):
+        # Column by column (np.choose): whole-array index arithmetic would hold 64-bit copies.
+        first, second, third = triangles.T
         start = np.argmin(triangles, axis=1)
-        triangles = np.take_along_axis(triangles, (start[:, None] + np.arange(3)) % 3, axis=1)
-        triangles = triangles[np.lexsort((triangles[:, 2], triangles[:, 1], triangles[:, 0]))]
+        columns = [np.choose(start, turn) for turn in ((first, second, third), (second, third, first),
+                                                       (third, first, second))]
+        del first, second, third, triangles
+        order_t = np.lexsort(columns[::-1])
+        triangles = np.stack([column[order_t] for column in columns], axis=1)
     out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices[order]),
-                                    o3d.utility.Vector3iVector(triangles.astype(np.int32)))
+                                    o3d.utility.Vector3iVector(triangles))
     if mesh.has_vertex_colors():
         out.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_colors)[order])
     if mesh.has_vertex_normals():
