@@ -218,8 +218,10 @@ def _window_sequence(video: TrackedVideo, store: FrameStore, pos: np.ndarray, un
 
 def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, seq: Sequence, options):
     """The TSDF volume sized from the prior depth of all depth frames, brought to the scale
-    of the first window's adjusted depth (the only adjusted depth known when it opens)."""
-    from ..fusion import TsdfVolume, estimate_block_count, fusion_device, volume_size
+    of the first window's adjusted depth (the only adjusted depth known when it opens). Its
+    far clip also reaches as far as the first window's final depth: the median ratio
+    understates the far end where MEDeA stretched the prior's range."""
+    from ..fusion import TsdfVolume, auto_max_depth, estimate_block_count, fusion_device, volume_size
 
     prior, valid = seq.prior_depth, (seq.prior_depth > 0) & (adjusted > 0)
     ratio = float(np.median(adjusted[valid] / prior[valid])) if valid.any() else 1.0
@@ -227,6 +229,9 @@ def _open_volume(video: TrackedVideo, final: np.ndarray, adjusted: np.ndarray, s
     if values.size == 0:
         raise ReconInputError("TSDF fusion: no frame has valid depth and a valid pose")
     voxel, trunc, max_depth = volume_size(values, options)
+    finished = final[:, ::4, ::4]
+    if options.max_depth is None and (finished > 0).any():
+        max_depth = max(max_depth, auto_max_depth(finished[finished > 0]))
     estimate = estimate_block_count(final, seq.poses, seq.intrinsics, voxel, trunc, max_depth,
                                     options.block_resolution)
     # The first window sees part of the scene; the hash map grows past this when needed.
