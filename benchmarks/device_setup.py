@@ -62,7 +62,8 @@ def stand_in_for_open3d() -> None:
                                          upright=estimate_upright(np.asarray(poses), empty.vertices))
 
     recon.fusion.fuse = fuse
-    recon.fusion.tsdf.finished_mesh = lambda volume, options, confidence_used: (empty, None, 0, 0)
+    recon.fusion.tsdf.finished_mesh = lambda volume, options, confidence_used: (empty, None, 0, 0,
+                                                                                options.meshing_weight)
     # A streamed run's volume: made on a stand-in device, and its ray casting (which anchors a
     # window to the surface fused so far) sees nothing, so windows anchor to shared frames.
     recon.fusion.tsdf.o3d_device = lambda device: f"stand-in for {device}"
