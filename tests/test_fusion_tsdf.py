@@ -413,10 +413,10 @@ def test_the_surface_estimate_follows_what_marching_cubes_extracts(fusion_room, 
     assert extracted[1] > 1.1 * extracted[2] > 0
     budget = int(0.5 * (extracted[1] + extracted[2])) // EXTRACTION_BUDGET_FACTOR + 1
     options = FusionOptions(weight_threshold=1, max_triangles=budget, min_fragment_triangles=0)
-    assert volume.meshing_weight(options) == 2
-    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_triangles=0)) == 1
-    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_extracted=0)) == 1
-    assert volume.meshing_weight(FusionOptions(weight_threshold=1, max_extracted=volume.surface_triangles(3) - 1)) == 4
+    assert volume.bounded_weight(options) == 2
+    assert volume.bounded_weight(FusionOptions(weight_threshold=1, max_triangles=0)) == 1
+    assert volume.bounded_weight(FusionOptions(weight_threshold=1, max_extracted=0)) == 1
+    assert volume.bounded_weight(FusionOptions(weight_threshold=1, max_extracted=volume.surface_triangles(3) - 1)) == 4
     with caplog.at_level(logging.WARNING):
         *_, used = finished_mesh(volume, options, confidence_used=False)
     assert used == 2 and "meshing the surface seen by 2 instead" in caplog.text

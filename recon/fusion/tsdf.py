@@ -108,7 +108,7 @@ class FusionOptions:
     """The most triangles marching cubes may make before the budget thins them (none: 4 x max_triangles; 0: no bound).
 
     A surface counted above it is meshed at a higher weight threshold, a frame at a time
-    (``TsdfVolume.meshing_weight``, with a warning): extraction and the cleanup after it
+    (``TsdfVolume.bounded_weight``, with a warning): extraction and the cleanup after it
     hold about 0.25 GB per million triangles.
     """
     metric: bool = True
@@ -364,7 +364,7 @@ def finished_mesh(volume: TsdfVolume, options: FusionOptions, confidence_used: b
         (mesh within options.max_triangles, point cloud or None, fragment triangles removed,
         triangles before the budget, the weight threshold the mesh was extracted at).
     """
-    weight = volume.meshing_weight(options)
+    weight = volume.bounded_weight(options)
     if weight > options.meshing_weight:
         log.warning("TSDF fusion: the surface seen by %g frames would mesh to about %.1f M triangles, over the %.1f M "
                     "that fit in memory (fusion.max_extracted); meshing the surface seen by %g instead "

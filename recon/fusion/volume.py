@@ -36,7 +36,7 @@ BUDGET_FILL = 0.8
 BUDGET_TRIES = 3
 # Marching cubes and the cleanup after it hold about 0.25 GB per million triangles extracted:
 # by default a surface estimated above this many times the triangle budget is meshed at a
-# higher weight threshold (FusionOptions.max_extracted, meshing_weight).
+# higher weight threshold (FusionOptions.max_extracted, bounded_weight).
 # why: docs/decisions.md#the-frames-a-meshed-voxel-needs
 EXTRACTION_BUDGET_FACTOR = 4
 # Voxel blocks read per pass when counting the surface (bounds the copy: 4 MB of tsdf).
@@ -366,7 +366,7 @@ class TsdfVolume:
         """
         return _at_weight(self.surface_curve(), min_weight)
 
-    def meshing_weight(self, options) -> float:
+    def bounded_weight(self, options) -> float:
         """The weight threshold the mesh is extracted at.
 
         options.meshing_weight, raised by whole observations while the surface
@@ -395,7 +395,7 @@ class TsdfVolume:
         Args:
             options: FusionOptions (weight_threshold, max_extracted, min_fragment_triangles,
                 min_fragment_fraction).
-            weight: observations a meshed voxel needs (None: meshing_weight(options)).
+            weight: observations a meshed voxel needs (None: bounded_weight(options)).
 
         Returns:
             (legacy TriangleMesh in world coordinates and canonical order, triangles removed
@@ -404,7 +404,7 @@ class TsdfVolume:
         # Open3D keeps voxels with weight > threshold; weights count observations (1 per frame).
         if self.blocks_used == 0:  # nothing integrated (Open3D raises on an empty hash map)
             return o3d.geometry.TriangleMesh(), 0
-        threshold = (self.meshing_weight(options) if weight is None else weight) - 0.5
+        threshold = (self.bounded_weight(options) if weight is None else weight) - 0.5
         mesh = _extract(lambda: self.grid.extract_triangle_mesh(threshold), o3d.geometry.TriangleMesh)
         mesh, removed = remove_fragments(mesh, options.min_fragment_triangles, options.min_fragment_fraction)
         if mesh.has_vertex_colors():
@@ -416,14 +416,14 @@ class TsdfVolume:
 
         Args:
             options: FusionOptions (weight_threshold, max_extracted).
-            weight: observations a voxel needs (None: meshing_weight(options)).
+            weight: observations a voxel needs (None: bounded_weight(options)).
 
         Returns:
             Legacy PointCloud in world coordinates, in canonical order (canonical_points).
         """
         if self.blocks_used == 0:
             return o3d.geometry.PointCloud()
-        threshold = (self.meshing_weight(options) if weight is None else weight) - 0.5
+        threshold = (self.bounded_weight(options) if weight is None else weight) - 0.5
         return canonical_points(_extract(lambda: self.grid.extract_point_cloud(threshold), o3d.geometry.PointCloud))
 
 
