@@ -112,6 +112,15 @@ class MedeaConfig:
     """
     min_sample_validity: float = 0.999
     """A warped pixel counts only if this share of its bilinear footprint lies on valid depth in frame j."""
+    min_pair_overlap: float = 0.0
+    """A Stage I pair is scored only if frame j covers this share of view i (0: every pair, the paper's).
+
+    The share is measured once, at the depths Stage I starts from. Keyframes far apart in
+    time can share almost nothing; such a pair has no evidence for the depths, only a pull.
+    When the pairs left do not join every keyframe, Stage I is skipped and Stage II
+    optimises every frame.
+    why: docs/decisions.md#keyframe-pairs-that-overlap-little
+    """
     scale_search: bool = False
     """Search one factor on every frame's prior before Stage I (off: the paper's start, the prior as it is).
 
@@ -164,6 +173,7 @@ class MedeaConfig:
             "feature_weight": self.feature_weight >= 0,
             "feature_eps": self.feature_eps >= 0,
             "min_sample_validity": 0 <= self.min_sample_validity <= 1,
+            "min_pair_overlap": 0 <= self.min_pair_overlap < 1,
             "scale_search_min_gain": 0 <= self.scale_search_min_gain < 1,
         }
         for stage in ("stage1", "stage2"):

@@ -10,7 +10,7 @@ import torch
 
 from .config import MedeaConfig
 from .frames import FrameData, Level
-from .geometry import depth_in_view_i, pixel_grid, reproject, sample
+from .geometry import depth_in_view_i, pair_transforms, pixel_grid, reproject, sample
 from .grid import sample_scale_field, scale_field
 from .losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss, relative_depth_loss
 
@@ -89,6 +89,42 @@ def warp_level(
     mask = rep.valid & valid_i & (sampled_valid >= min_validity)
     depth_j_in_i = depth_in_view_i(sampled_depth, rep.uv_j, level.intrinsics[batch.j], batch.j_to_i)
     return maps_i, depth_i, warped_maps, depth_j_in_i, mask
+
+
+@torch.no_grad()
+def pair_overlap(
+    data: FrameData,
+    pairs: torch.Tensor,
+    log_scales: torch.Tensor,
+    min_validity: float,
+    stride: int = 2,
+    chunk: int = 128,
+) -> torch.Tensor:
+    """The share of view i that frame j covers, per pair, at the current depths.
+
+    The valid_fraction of pair_losses, measured once on a fixed lattice (every
+    stride-th pixel, phase 0): how much of view i the pair can score at all.
+
+    Args:
+        data: the frames' levels and poses (see prepare_frames).
+        pairs: (P, 2) frame pairs (i, j), on the frames' device.
+        log_scales: (N, h, w) log-scale grids of every frame.
+        min_validity: as MedeaConfig.min_sample_validity.
+        stride: score every stride-th row and column of view i.
+        chunk: pairs warped at once.
+
+    Returns:
+        (P,) share of view i's lattice pixels whose reprojection into j is valid.
+    """
+    level = data.image
+    lattice = (slice(0, level.size[0], stride), slice(0, level.size[1], stride))
+    i_to_j, j_to_i = pair_transforms(data.poses, pairs)
+    shares = []
+    for rows in torch.arange(pairs.shape[0], device=pairs.device).split(chunk):
+        batch = PairBatch(pairs[rows, 0], pairs[rows, 1], i_to_j[rows], j_to_i[rows])
+        *_, mask = warp_level(level, batch, log_scales[batch.i], log_scales[batch.j], min_validity, lattice)
+        shares.append(mask.flatten(1).float().mean(1))
+    return torch.cat(shares) if shares else torch.zeros(0, device=pairs.device)
 
 
 def pair_losses(

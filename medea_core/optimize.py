@@ -24,8 +24,8 @@ from .frames import FrameData, prepare_frames
 from .geometry import pair_transforms
 from .global_scale import GlobalScale, search_configured_scale
 from .grid import adjust_depth
-from .objective import PairBatch, pair_losses
-from .pairs import nearest_keyframe, stage_pairs
+from .objective import PairBatch, pair_losses, pair_overlap
+from .pairs import connects, nearest_keyframe, stage_pairs
 from .propagate import propagate_scales
 
 # progress(stage_name, epoch, epoch_losses) is called after every epoch.
@@ -34,12 +34,37 @@ ProgressCallback = Callable[[str, int, dict], None]
 
 @dataclass
 class StageHistory:
-    """Per-epoch mean loss of each term over the stage's pairs."""
+    """Per-epoch mean loss of each term over the stage's pairs; the pairs scored, those left
+    out for overlapping too little (Stage I: MedeaConfig.min_pair_overlap), and whether the
+    stage was skipped because the pairs left do not connect its keyframes."""
 
     losses: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
     epochs: int = 0
     stopped_early: bool = False
     seconds: float = 0.0
+    pairs: int = 0
+    pairs_left_out: int = 0
+    skipped: bool = False
+
+
+def overlapping_pairs(data: FrameData, pairs: torch.Tensor, log_scales: torch.Tensor,
+                      config: MedeaConfig) -> tuple[torch.Tensor, int]:
+    """The pairs whose view i frame j covers at least config.min_pair_overlap at the current depths.
+
+    Args:
+        data: frames at working resolution (see prepare_frames).
+        pairs: (P, 2) frame pairs (i, j) on the CPU.
+        log_scales: (N, h, w) the grids the overlap is measured at.
+        config: min_pair_overlap (0 keeps every pair) and min_sample_validity.
+
+    Returns:
+        ((P', 2) pairs kept, in their order; the number left out).
+    """
+    if config.min_pair_overlap <= 0 or pairs.numel() == 0:
+        return pairs, 0
+    overlap = pair_overlap(data, pairs.to(log_scales.device), log_scales, config.min_sample_validity)
+    keep = (overlap >= config.min_pair_overlap).cpu()
+    return pairs[keep], int((~keep).sum())
 
 
 @dataclass
@@ -99,6 +124,7 @@ def optimise_stage(
     start = time.perf_counter()
     device = log_scales.device
     num, grid = log_scales.shape[0], tuple(log_scales.shape[1:])
+    history.pairs = int(pairs.shape[0])
     if pairs.numel() == 0 or not bool(trainable.any()) or stage.epochs <= 0:
         return log_scales.clone(), history
     pairs_dev = pairs.to(device)
@@ -217,15 +243,27 @@ def run_medea(
         seconds["scale_search"] = time.perf_counter() - start
 
     history: dict[str, StageHistory] = {}
-    if config.run_stage1:
-        log_scales, history["stage1"] = optimise_stage(
-            data, log_scales, is_key, pairs1, config.stage1, config, generator, "stage1", progress
-        )
+    run_stage1 = config.run_stage1
+    if run_stage1:
+        # Keyframes far apart can share almost nothing: such pairs only pull the depths.
+        # Stage I fixes the keyframes' scale relative to each other, which needs pairs that
+        # join them all; where the overlapping pairs do not, every frame goes to Stage II.
+        pairs1, left_out = overlapping_pairs(data, pairs1, log_scales, config)
+        if connects(pairs1, keyframes):
+            log_scales, history["stage1"] = optimise_stage(
+                data, log_scales, is_key, pairs1, config.stage1, config, generator, "stage1", progress
+            )
+        else:
+            run_stage1 = False
+            history["stage1"] = StageHistory(pairs=int(pairs1.shape[0]), skipped=True)
+            if pairs2.numel() == 0:  # a short sequence: every frame was a keyframe
+                pairs2 = pairs1
+        history["stage1"].pairs_left_out = left_out
     seconds["stage1"] = history["stage1"].seconds if "stage1" in history else 0.0
 
     start = time.perf_counter()
     others = torch.nonzero(~is_key).flatten()
-    if config.run_stage1 and config.propagate_scale and others.numel() > 0:
+    if run_stage1 and config.propagate_scale and others.numel() > 0:
         sources = nearest_keyframe(num, keyframes)[others]
         log_scales[others.to(device)] = propagate_scales(
             data, log_scales, others, sources, config.batch_pairs, config.min_sample_validity
@@ -234,7 +272,7 @@ def run_medea(
 
     if config.run_stage2:
         # Without Stage I there is nothing to freeze: every frame is optimised.
-        trainable = ~is_key if config.run_stage1 else torch.ones(num, dtype=torch.bool)
+        trainable = ~is_key if run_stage1 else torch.ones(num, dtype=torch.bool)
         log_scales, history["stage2"] = optimise_stage(
             data, log_scales, trainable, pairs2, config.stage2, config, generator, "stage2", progress
         )

@@ -50,6 +50,34 @@ def frames_in(pairs: torch.Tensor) -> torch.Tensor:
     return torch.unique(pairs.flatten())
 
 
+def connects(pairs: torch.Tensor, frames: torch.Tensor) -> bool:
+    """Whether the pairs, as undirected edges, join all of `frames` into one component.
+
+    Args:
+        pairs: (P, 2) frame pairs (i, j).
+        frames: (K,) the frames to be joined.
+
+    Returns:
+        True when every frame is reachable from every other through the pairs (one frame
+        or none: True).
+    """
+    frames = frames.tolist()
+    if len(frames) <= 1:
+        return True
+    root = {f: f for f in frames}
+
+    def find(f: int) -> int:
+        while root[f] != f:
+            root[f] = root[root[f]]
+            f = root[f]
+        return f
+
+    for i, j in pairs.tolist():
+        if i in root and j in root:
+            root[find(i)] = find(j)
+    return len({find(f) for f in frames}) == 1
+
+
 def nearest_keyframe(num_frames: int, keyframes: torch.Tensor) -> torch.Tensor:
     """Temporally nearest keyframe of every frame (the earlier one on ties).
 

@@ -13,6 +13,8 @@ from medea_core.frames import prepare_frames
 from medea_core.geometry import depth_in_view_i, pair_transforms, pixel_grid, reproject, sample
 from medea_core.grid import median_pool_to_grid, scale_field
 from medea_core.losses import depth_loss, feature_loss_m, feature_loss_s, photometric_loss, relative_depth_loss
+from medea_core.objective import pair_overlap
+from medea_core.pairs import connects
 from medea_core.propagate import propagate_scales
 
 from helpers import look_at, plane_depth
@@ -264,3 +266,56 @@ def test_a_stage_setting_that_cannot_work_names_its_stage():
         config.validate()
     MedeaConfig().validate()
     MedeaConfig.fast().validate()
+
+
+def _wall_pair_data(shift_x: float, image_scale: float = 0.5):
+    """Two views of a fronto-parallel wall 3 m away, the second moved shift_x metres right."""
+    poses = np.stack([look_at([0.0, 0.0, 0.0], [0.0, 0.0, 3.0]), look_at([shift_x, 0.0, 0.0], [shift_x, 0.0, 3.0])])
+    depth = np.stack([plane_depth(p, INTR, H, W, [0.0, 0.0, 1.0], 3.0) for p in poses])
+    images = torch.rand((2, 3, H, W), generator=torch.Generator().manual_seed(0))
+    return prepare_frames(images, torch.as_tensor(depth), torch.as_tensor(poses), torch.tensor(INTR), None,
+                          image_scale, "cpu")
+
+
+@pytest.mark.parametrize("shift_x", [0.0, 0.5, 1.5, 4.0])
+def test_pair_overlap_is_the_share_of_view_i_that_j_sees(shift_x):
+    """Moving sideways by t in front of a wall at 3 m shifts every pixel by f t / 3: view i
+    keeps the columns that still land inside j (1 - shift / width, 0 once the shift passes it)."""
+    data = _wall_pair_data(shift_x)
+    (h, w), fx = data.image.size, float(data.image.intrinsics[0, 0])
+    expected = max(0.0, 1.0 - fx * shift_x / 3.0 / w)
+    overlap = pair_overlap(data, torch.tensor([[0, 1], [1, 0]]), torch.zeros(2, 8, 10), 0.999, stride=1)
+    # Bilinear validity at 0.999 loses the last column of j; the lattice is whole pixels.
+    assert overlap.tolist() == pytest.approx([expected, expected], abs=2.5 / w)
+
+
+@pytest.mark.parametrize("pairs, joined", [([[0, 8], [8, 16]], True), ([[16, 8], [0, 8]], True),
+                                            ([[0, 8]], False), ([[0, 8], [8, 0], [3, 16]], False), ([], False)])
+def test_connects_asks_whether_the_pairs_join_every_keyframe(pairs, joined):
+    assert connects(torch.tensor(pairs, dtype=torch.long).reshape(-1, 2), torch.tensor([0, 8, 16])) is joined
+
+
+def _sideways_sequence(step: float, num_frames: int = 17):
+    """Frames of a wall 3 m away from a camera moving `step` metres sideways per frame."""
+    poses = np.stack([look_at([step * k, 0.0, 0.0], [step * k, 0.0, 3.0]) for k in range(num_frames)])
+    depth = np.stack([plane_depth(p, INTR, H, W, [0.0, 0.0, 1.0], 3.0) for p in poses])
+    images = torch.rand((num_frames, 3, H, W), generator=torch.Generator().manual_seed(0))
+    return images, torch.as_tensor(depth), torch.as_tensor(poses), torch.tensor(INTR)
+
+
+@pytest.mark.parametrize("step, skipped", [(0.05, False), (0.3, True)])
+def test_stage1_is_skipped_when_its_overlapping_pairs_leave_keyframes_apart(step, skipped):
+    """Keyframes 8 frames apart: 0.4 m (they share 88 % of the view) or 2.4 m (nothing).
+    Apart, every Stage I pair is left out, Stage I is skipped and Stage II moves every
+    frame's grid, the keyframes' included; together, Stage I runs on all its pairs."""
+    images, depth, poses, intr = _sideways_sequence(step)
+    config = MedeaConfig(image_scale=0.5, min_pair_overlap=0.5)
+    config.stage1.epochs, config.stage2.epochs = 3, 3
+    result = run_medea(images, depth, poses, intr, None, config)
+    stage1, stage2 = result.history["stage1"], result.history["stage2"]
+    total = stage_pairs(17, config.stage1_levels, config.stage2_levels)[0].shape[0]
+    assert stage1.skipped is skipped
+    assert (stage1.pairs, stage1.pairs_left_out) == ((0, total) if skipped else (total, 0))
+    assert stage1.epochs == (0 if skipped else 3) and stage2.epochs == 3
+    keyframes_moved = result.log_scales[result.keyframes].abs().amax() > 0
+    assert bool(keyframes_moved)  # by Stage I, or when it was skipped by Stage II

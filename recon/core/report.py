@@ -47,6 +47,8 @@ def medea_summary(result) -> dict:
         out["stages"][name] = {
             "epochs": int(history.epochs),
             "stopped_early": bool(history.stopped_early),
+            "pairs": int(history.pairs), "pairs_left_out": int(history.pairs_left_out),
+            "skipped": bool(history.skipped),
             "first": {t: v[0] for t, v in losses.items() if v},
             "last": {t: v[-1] for t, v in losses.items() if v},
         }
