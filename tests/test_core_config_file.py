@@ -138,15 +138,17 @@ def test_the_command_line_of_a_config_makes_that_config(tmp_path):
 @pytest.mark.parametrize("name", ["fast", "paper"])
 def test_presets_are_shipped_config_files(name, tmp_path):
     """--preset NAME reads recon/core/presets/NAME.yaml (inherit: defaults, and a medea section), which
-    is medea_core's preset of that name; the same file works as --config."""
+    is recon's MEDeA of that name (fast: the default, pipeline_medea; paper: MedeaConfig()); the same
+    file works as --config."""
     import yaml
 
     from medea_core import MedeaConfig
+    from recon.core.config import pipeline_medea
     from recon.core.config_file import preset_path
 
     path = preset_path(name)
     assert set(yaml.safe_load(path.read_text())) == {"inherit", "medea"}  # the rest: defaults.yaml's
-    expected = MedeaConfig.fast() if name == "fast" else MedeaConfig()
+    expected = pipeline_medea() if name == "fast" else MedeaConfig()
     assert _config("in.mp4", "-o", "out", "--preset", name).medea == expected
     assert _config("in.mp4", "-o", "out", "--config", str(path)).medea == expected
     # The other settings of the file are a bare run's: --config PRESET changes MEDeA only.

@@ -28,6 +28,7 @@ from ..eval.depth import depth_metrics, multiview_inconsistency
 from ..eval.mesh import mesh_metrics, visible_mask
 from ..fusion import FusionOptions, fuse
 from ..io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
+from ..core.config import pipeline_medea
 from ..pipeline import PipelineConfig, PipelineResult, run_pipeline
 from ..synthetic import SyntheticSequence, render_sequence, simulate_prior
 from .cli_args import build_parser
@@ -76,7 +77,7 @@ class DemoOptions:
     prior: str = "simulated"
     compare_prior: bool = True
     adjust: bool = True
-    medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
+    medea: MedeaConfig = field(default_factory=pipeline_medea)
     rerun: str = "save"
     device: str = "cpu"
     progress: bool = True

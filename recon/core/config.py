@@ -46,6 +46,21 @@ def device_index(name: str) -> int | None:
     return None if match.group(1) is None else int(match.group(1))
 
 
+# Share of a keyframe's view its Stage I partner must cover for the pair to be scored.
+# why: docs/decisions.md#keyframe-pairs-that-overlap-little
+MIN_KEYFRAME_OVERLAP = 0.5
+
+
+def pipeline_medea() -> MedeaConfig:
+    """MEDeA as `recon run` runs it: the fast preset (MedeaConfig.fast), with Stage I scoring
+    only keyframe pairs that share at least MIN_KEYFRAME_OVERLAP of the view.
+
+    Returns:
+        A new MedeaConfig.
+    """
+    return MedeaConfig.fast(min_pair_overlap=MIN_KEYFRAME_OVERLAP)
+
+
 @dataclass
 class PipelineConfig:
     """Everything `recon run` can be told; defaults suit a phone video on a CPU.
@@ -210,8 +225,8 @@ class PipelineConfig:
     too far. Estimated poses take their scale from the prior, so nothing is searched then.
     why: docs/decisions.md#the-priors-scale-under-given-poses
     """
-    medea: MedeaConfig = field(default_factory=MedeaConfig.fast)
-    """MEDeA's settings (medea_core.MedeaConfig; the fast preset)."""
+    medea: MedeaConfig = field(default_factory=pipeline_medea)
+    """MEDeA's settings (medea_core.MedeaConfig; the fast preset, Stage I on overlapping pairs: pipeline_medea)."""
     refine: str = "mvs"
     """The multi-view stereo refinement after MEDeA: mvs, or none (MEDeA's depth, the paper's pipeline).
 
