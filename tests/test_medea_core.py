@@ -282,7 +282,7 @@ def test_pair_overlap_is_the_share_of_view_i_that_j_sees(shift_x):
     """Moving sideways by t in front of a wall at 3 m shifts every pixel by f t / 3: view i
     keeps the columns that still land inside j (1 - shift / width, 0 once the shift passes it)."""
     data = _wall_pair_data(shift_x)
-    (h, w), fx = data.image.size, float(data.image.intrinsics[0, 0])
+    w, fx = data.image.size[1], float(data.image.intrinsics[0, 0])
     expected = max(0.0, 1.0 - fx * shift_x / 3.0 / w)
     overlap = pair_overlap(data, torch.tensor([[0, 1], [1, 0]]), torch.zeros(2, 8, 10), 0.999, stride=1)
     # Bilinear validity at 0.999 loses the last column of j; the lattice is whole pixels.

@@ -23,12 +23,12 @@ import numpy as np
 from medea_core import MedeaConfig
 
 from ..choices import DEMO_PRIORS, POSE_CHOICES
+from ..core.config import pipeline_medea
 from ..errors import ReconInputError
 from ..eval.depth import depth_metrics, multiview_inconsistency
 from ..eval.mesh import mesh_metrics, visible_mask
 from ..fusion import FusionOptions, fuse
 from ..io.output_folder import REPORT_JSON, OutputFolder, atomic_write_bytes, frame_name, json_bytes, npy_bytes
-from ..core.config import pipeline_medea
 from ..pipeline import PipelineConfig, PipelineResult, run_pipeline
 from ..synthetic import SyntheticSequence, render_sequence, simulate_prior
 from .cli_args import build_parser
