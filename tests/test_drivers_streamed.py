@@ -62,6 +62,11 @@ def test_streamed_run_matches_the_one_shot_run(room_video, both_runs):
     assert all(w["medea_seconds"]["stage1"] > 0 and w["medea_seconds"]["stage2"] > 0 for w in each)
     # Given poses: each window searched the prior's scale against them, and reports it.
     assert all(w["prior_factor"]["pairs"] > 0 for w in each)
+    # A smooth walk's keyframes overlap: every window ran Stage I, and the report adds them up.
+    windows = streamed.report["windows"]
+    assert windows["stage1_skipped"] == 0 and not any(w["stage1_skipped"] for w in each)
+    assert windows["stage1_pairs_left_out"] == sum(w["stage1_pairs_left_out"] for w in each)
+    assert batch.report["medea"]["stages"]["stage1"]["skipped"] is False
     # The first window's surface is fused after tracking and that window's depth, well before the end.
     first = streamed.report["windows"]["first_result_s"]
     seconds = streamed.report["seconds"]

@@ -201,6 +201,8 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                     "overlap": config.window_overlap,
                     "anchor_factors": {"min": min(anchors, default=1.0), "max": max(anchors, default=1.0)},
                     "medea_skipped": sum(1 for w in windows if w.get("medea_skipped")),
+                    "stage1_skipped": sum(1 for w in windows if w.get("stage1_skipped")),
+                    "stage1_pairs_left_out": sum(int(w.get("stage1_pairs_left_out", 0)) for w in windows),
                     "each": windows, "first_result_s": first_result_s},
         "refine": {"method": config.refine},
         **_closing_sections(config, fusion, min_confidence, seconds, len(video.indices),

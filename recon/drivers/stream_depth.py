@@ -61,6 +61,10 @@ class _WindowRecord:
     medea_skipped: str | None = None
     # Given poses: the factor MEDeA's search put on the window's prior (medea_core.global_scale).
     prior_factor: dict | None = None
+    # MEDeA's Stage I: keyframe pairs left out for overlapping too little, and whether the
+    # pairs left did not join the keyframes (Stage I skipped: MedeaConfig.min_pair_overlap).
+    stage1_pairs_left_out: int = 0
+    stage1_skipped: bool = False
 
 
 def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, store: FrameStore,
@@ -149,7 +153,7 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
                                      0 if refined is None else len(pos) - first, _seconds(medea),
                                      int(seq.indices[0]), int(seq.indices[-1]), skipped,
                                      None if medea is None or medea.global_scale is None
-                                     else medea.global_scale.to_dict()))
+                                     else medea.global_scale.to_dict(), *_stage1(medea)))
     bar.close()
     warn_scale_disagreement(records, config)
     return (volume, options), records, shifts
@@ -258,6 +262,11 @@ def _log_mesh(logger, volume, options, index: int) -> None:
 
 def _seconds(medea) -> dict:
     return {} if medea is None else {name: round(float(value), 3) for name, value in medea.seconds.items()}
+
+
+def _stage1(medea) -> tuple[int, bool]:
+    stage1 = None if medea is None else medea.history.get("stage1")
+    return (0, False) if stage1 is None else (int(stage1.pairs_left_out), bool(stage1.skipped))
 
 
 def _epochs(medea) -> dict:
