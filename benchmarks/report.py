@@ -11,8 +11,9 @@ speed table is only as good as the machine is quiet. Frames: every `--step`-th f
 -> every frame). Everything else is fixed so that the tables are comparable run to run:
 
 * Depth prior: FastDepth with stride-8 encoder features, exactly as `recon run` builds it
-  (computed once per recording, shared by every row). MEDeA: `MedeaConfig.fast()`, the
-  pipeline's default preset (its feature loss is S), with feature loss S, M or none.
+  (computed once per recording, shared by every row). MEDeA: `MedeaConfig.fast()` (its
+  feature loss is S), with feature loss S, M or none; table D runs `recon run`'s own
+  (`recon.core.config.pipeline_medea`: the same, Stage I on overlapping keyframe pairs).
 * Table A (paper Table 1): ground-truth poses, metric depth, no alignment. Rows: prior,
   MEDeA-S, MEDeA-M, MEDeA without feature loss, and sensor depth (the reference: 0 error
   against itself by construction; its multi-view inconsistency is the floor that real

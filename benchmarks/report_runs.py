@@ -121,9 +121,9 @@ def _pipeline_child(options: dict) -> dict:
 
 def run_pipeline_fresh(path: Path, out: Path, step: int, max_frames: int | None, poses: str, threads: int,
                        quick: bool) -> dict:
-    from medea_core import MedeaConfig
+    from recon.core.config import pipeline_medea
 
-    medea = MedeaConfig.fast()
+    medea = pipeline_medea()  # what `recon run` runs
     if quick:
         medea.stage1.epochs, medea.stage2.epochs = 20, 5
     options = dict(input=path, output=out, overwrite=True, stride=step, max_frames=max_frames, poses=poses,
