@@ -93,9 +93,14 @@ TARGET_FRAMES = 100
 
 
 def default_datasets() -> list[Path]:
+    """Every recording in DATA with sensor depth: tables A-C score depth and meshes against it."""
     if not DATA.is_dir():
         return []
-    return sorted(p for p in DATA.iterdir() if p.is_dir() and detect_kind(p) is not None)
+    found = sorted(p for p in DATA.iterdir() if p.is_dir() and detect_kind(p) is not None)
+    without = [p.name for p in found if not open_dataset(p).has_depth]
+    if without:
+        print(f"report: skipping {', '.join(without)} (no sensor depth to score against)", flush=True)
+    return [p for p in found if p.name not in without]
 
 
 def resolve_dataset(spec: str) -> Path:
@@ -104,7 +109,7 @@ def resolve_dataset(spec: str) -> Path:
         return path.resolve()
     if (DATA / spec).is_dir():
         return DATA / spec
-    matches = [p for p in default_datasets() if p.name.startswith(spec)]
+    matches = [p for p in sorted(DATA.iterdir()) if p.is_dir() and p.name.startswith(spec)] if DATA.is_dir() else []
     if len(matches) == 1:
         return matches[0]
     sys.exit(f"report: no dataset folder {spec!r} (neither a path nor a recording in {DATA})")
@@ -157,7 +162,10 @@ def main() -> None:
     paths = [resolve_dataset(s) for s in args.datasets] if args.datasets is not None else default_datasets()
     paths += [resolve_dataset(s) for s in args.extra]
     if not paths:
-        sys.exit(f"report: no recordings (none found in {DATA}; pass dataset folders)")
+        sys.exit(f"report: no recordings (none with sensor depth in {DATA}; pass dataset folders)")
+    no_depth = [p.name for p in paths if not open_dataset(p).has_depth]
+    if no_depth:
+        sys.exit(f"report: {', '.join(no_depth)} has no sensor depth; tables A-C need it")
     default_step, named_steps = parse_steps(args.step)
     start = time.perf_counter()
     payload = {"command": " ".join(["python benchmarks/report.py", *sys.argv[1:]]),
