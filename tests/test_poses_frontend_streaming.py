@@ -91,16 +91,20 @@ def _with_vanishing_focal(pose_room, caplog, monkeypatch, share_of_true: float, 
 
 def test_vanishing_points_most_frames_agree_on_replace_the_search(pose_room, caplog, monkeypatch):
     """Where most frames agree on the vanishing points, tracking runs with their focal
-    length, near the search's or not (then the warning gives the range they leave open),
-    and the warning says where it came from."""
+    length, the flow search (whose value could not change the choice) is not made, and the
+    warning says where the value came from; a value far from the truth is tracked with too,
+    its range widened by the rotation's estimate where that one is trusted."""
     f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.97)
     assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal_source"] == "vanishing points"
-    assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0] and "open" not in said[0]
+    assert "focal_search" not in res.diagnostics and "flow" not in res.diagnostics["focal"]["candidates"]
+    assert len(said) == 1 and "vanishing points" in said[0] and f"{f_vp:.1f} px" in said[0]
     caplog.clear()
     f_vp, res, said = _with_vanishing_focal(pose_room, caplog, monkeypatch, 0.6)
-    assert res.intrinsics[0] == pytest.approx(f_vp) and res.diagnostics["focal"]["disagree"]
-    searched = res.diagnostics["focal_search"]["focal"]
-    assert len(said) == 1 and f"{f_vp:.0f}-{searched:.0f} px open" in said[0]
+    assert res.intrinsics[0] == pytest.approx(f_vp) and "focal_search" not in res.diagnostics
+    choice = res.diagnostics["focal"]
+    assert choice["low"] == pytest.approx(min(choice["candidates"].values()))
+    assert choice["high"] == pytest.approx(max(choice["candidates"].values()))
+    assert len(said) == 1 and (f"{f_vp:.0f}-" in said[0]) == choice["disagree"]
 
 
 def test_vanishing_points_few_frames_agree_on_leave_the_search_standing(pose_room, caplog, monkeypatch):

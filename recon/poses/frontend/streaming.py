@@ -31,7 +31,7 @@ from recon.poses.frontend.track_state import TrackState
 from recon.poses.frontend.tracker import Tracker
 from recon.poses.intrinsics import plumb_line, rotation_focal, vanishing
 from recon.poses.intrinsics.calib import estimate_focal
-from recon.poses.intrinsics.focal_choice import choose_focal
+from recon.poses.intrinsics.focal_choice import agreed_on, choose_focal
 from recon.poses.matching import flow as fl
 from recon.poses.result import (
     FrameNumbers,
@@ -231,13 +231,17 @@ class StreamingFrontend:
             lens = plumb_line.estimate_lens(frames)
             self.diagnostics["plumb_line"] = lens.to_dict()
             lens = lens if lens.trusted else None
-        search = estimate_focal(frames, self.prior, self.cfg, lens)
-        self.diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
-                                            "evaluations": search.evaluations}
         vp = None
         if self.cfg.vanishing_points:
             vp = vanishing.estimate_focal_vp(frames, lens)
             self.diagnostics["vanishing_points"] = vp.to_dict()
+        search = None
+        if not agreed_on(vp, self.cfg):
+            # The flow search's BA over the first keyframes is the calibration's largest cost;
+            # where the vanishing points are agreed on, their value is taken whatever it says.
+            search = estimate_focal(frames, self.prior, self.cfg, lens)
+            self.diagnostics["focal_search"] = {"focal": search.focal, "bracketed": search.bracketed,
+                                                "evaluations": search.evaluations}
         rotation = None
         if self.cfg.rotation_focal:
             rotation = rotation_focal.estimate_focal_rotation(frames)

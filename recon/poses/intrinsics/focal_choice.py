@@ -110,19 +110,28 @@ def flat_range(search: FocalSearch, flat: float = FLAT_SCORE) -> tuple[float, fl
     return min(near), max(near)
 
 
-def choose_focal(search: FocalSearch, vp: VanishingFocal | None, cfg, rotation: RotationFocal | None = None
+def agreed_on(vp: VanishingFocal | None, cfg) -> bool:
+    """Whether the vanishing points' value is taken (trusted, and agreed on by at least
+    ``cfg.vanishing_min_share`` of the frames): then no other estimate can change the choice."""
+    return vp is not None and vp.focal > 0 and vp.trusted and vp.share >= cfg.vanishing_min_share
+
+
+def choose_focal(search: FocalSearch | None, vp: VanishingFocal | None, cfg, rotation: RotationFocal | None = None
                  ) -> FocalChoice:
     """The focal length to track with (module docstring), from the flow search's result, the
-    vanishing points' estimate `vp` and the rotation's `rotation` (None when not made); cfg:
-    the FrontendConfig (``vanishing_min_share``)."""
-    candidates = {"flow": float(search.focal)}
+    vanishing points' estimate `vp` and the rotation's `rotation` (None when not made; the
+    search is not made where the vanishing points are ``agreed_on``); cfg: the FrontendConfig
+    (``vanishing_min_share``)."""
+    candidates = {} if search is None else {"flow": float(search.focal)}
     if rotation is not None and rotation.trusted:
         candidates["rotation"] = float(rotation.focal)
     if vp is not None and vp.focal > 0:
         candidates["vanishing points"] = float(vp.focal)
-        if vp.trusted and vp.share >= cfg.vanishing_min_share:
+        if agreed_on(vp, cfg):
             values = candidates.values()
             return FocalChoice(float(vp.focal), "vanishing points", min(values), max(values), candidates)
+    if search is None:
+        raise ValueError("choose_focal: the flow search is needed where the vanishing points are not agreed on")
     if "rotation" in candidates:
         # The search's own value is no evidence against it where its minimum was not bracketed.
         values = [rotation.low, rotation.high] + ([search.focal] if search.bracketed else [])
@@ -139,5 +148,5 @@ def choose_focal(search: FocalSearch, vp: VanishingFocal | None, cfg, rotation: 
                        search.bracketed)
 
 
-__all__ = ["DISAGREEMENT", "FLAT_SCORE", "TAKEOVER_TOLERANCE", "VANISHING_ACCURACY", "FocalChoice", "choose_focal",
-           "flat_range"]
+__all__ = ["DISAGREEMENT", "FLAT_SCORE", "TAKEOVER_TOLERANCE", "VANISHING_ACCURACY", "FocalChoice", "agreed_on",
+           "choose_focal", "flat_range"]
