@@ -78,17 +78,18 @@ def auto_max_depth(values: np.ndarray) -> float:
     return float(MAX_DEPTH_MARGIN * np.percentile(values, MAX_DEPTH_PERCENTILE))
 
 
-def auto_voxel_size(median_depth: float, metric: bool = True) -> float:
-    """The automatic voxel size: clamp(median depth / 200, 5 mm, 5 cm).
+def auto_voxel_size(median_depth: float, metric: bool = True, per_depth: float = VOXEL_PER_DEPTH) -> float:
+    """The automatic voxel size: clamp(median depth x per_depth, 5 mm, 5 cm).
 
     Args:
         median_depth: median valid depth in metres.
         metric: the depth's metres are to be trusted; False drops the bounds.
+        per_depth: the voxel as a share of the median depth (default 1/200).
 
     Returns:
         The voxel size in metres.
     """
-    voxel = median_depth * VOXEL_PER_DEPTH
+    voxel = median_depth * per_depth
     return float(np.clip(voxel, MIN_VOXEL, MAX_VOXEL) if metric else voxel)
 
 

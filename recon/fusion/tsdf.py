@@ -24,6 +24,7 @@ from recon.errors import ReconInputError
 
 from .sizing import (
     BYTES_PER_VOXEL,
+    VOXEL_PER_DEPTH,
     auto_max_depth,
     auto_voxel_size,
     depth_sample,
@@ -53,7 +54,9 @@ class FusionOptions:
     """Settings of :func:`fuse`; None means "choose from the data" (module docstring)."""
 
     voxel_size: float | None = None
-    """The voxel's edge in metres (none: from the median depth, clamped)."""
+    """The voxel's edge in metres (none: voxel_per_depth x the median depth, clamped to 5-50 mm)."""
+    voxel_per_depth: float = VOXEL_PER_DEPTH
+    """The automatic voxel's edge as a share of the median depth (when voxel_size is none)."""
     trunc: float | None = None
     """The truncation distance in metres (none: trunc_voxels x the voxel)."""
     trunc_voxels: float = 8.0
@@ -139,7 +142,8 @@ class FusionOptions:
 
     def validate(self) -> None:
         """One-line ReconInputError for values that cannot work (they come from the CLI)."""
-        positive = {"voxel_size": self.voxel_size, "trunc": self.trunc, "max_depth": self.max_depth}
+        positive = {"voxel_size": self.voxel_size, "trunc": self.trunc, "max_depth": self.max_depth,
+                    "voxel_per_depth": self.voxel_per_depth}
         for name, value in positive.items():
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise ReconInputError(f"fusion option {name} must be > 0, got {value}")
@@ -329,7 +333,7 @@ def volume_size(values: np.ndarray, options: FusionOptions) -> tuple[float, floa
     max_depth = options.max_depth or auto_max_depth(values)
     in_range = values[values <= max_depth]
     median = float(np.median(in_range if in_range.size else values))
-    voxel = options.voxel_size or auto_voxel_size(median, options.metric)
+    voxel = options.voxel_size or auto_voxel_size(median, options.metric, options.voxel_per_depth)
     return float(voxel), float(options.trunc or options.trunc_voxels * voxel), float(max_depth)
 
 
