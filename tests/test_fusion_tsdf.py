@@ -5,7 +5,6 @@ The room and its fusion (conftest: fusion_room, fused_room) are shared with the 
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
@@ -57,11 +56,9 @@ def test_automatic_parameters_follow_the_rule(fusion_room, fused_room):
     r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5),
              FusionOptions(voxel_size=0.02, trunc=0.05, max_depth=3.0, **QUIET))
     assert (r.voxel_size, r.trunc, r.max_depth) == pytest.approx((0.02, 0.05, 3.0))
-    # recon run's grid: median / 150 with a band of 6 voxels, the same band in metres.
-    from recon.core.config import PipelineConfig
-
-    run = PipelineConfig("in.mp4", "out").fusion
-    r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5), replace(run, progress=False))
+    # The voxel as another share of the median depth (fusion.voxel_per_depth).
+    r = fuse(flat, None, poses, (30.0, 30.0, 15.5, 11.5),
+             FusionOptions(voxel_per_depth=1 / 150, trunc_voxels=6, **QUIET))
     assert (r.voxel_size, r.trunc) == pytest.approx((2.0 / 150, 0.08))
 
 

@@ -61,24 +61,6 @@ def pipeline_medea() -> MedeaConfig:
     return MedeaConfig.fast(min_pair_overlap=MIN_KEYFRAME_OVERLAP)
 
 
-# The voxel `recon run` integrates at, as a share of the median depth, and its truncation in
-# voxels: the band stays 4 % of the median depth as at FusionOptions' 1/200 and 8 voxels,
-# on a grid whose meshes of real recordings are about the triangle budget they were thinned
-# to. why: docs/decisions.md#the-voxel-the-mesh-keeps
-MESH_VOXEL_PER_DEPTH = 1.0 / 150.0
-MESH_TRUNC_VOXELS = 6.0
-
-
-def pipeline_fusion() -> FusionOptions:
-    """Fusion as `recon run` runs it: FusionOptions with the voxel at MESH_VOXEL_PER_DEPTH of
-    the median depth and the truncation MESH_TRUNC_VOXELS voxels.
-
-    Returns:
-        A new FusionOptions.
-    """
-    return FusionOptions(voxel_per_depth=MESH_VOXEL_PER_DEPTH, trunc_voxels=MESH_TRUNC_VOXELS)
-
-
 @dataclass
 class PipelineConfig:
     """Everything `recon run` can be told; defaults suit a phone video on a CPU.
@@ -260,7 +242,7 @@ class PipelineConfig:
     """
     polish_config: PolishConfig = field(default_factory=PolishConfig)
     """The polish's settings (recon.poses.given.polish.PolishConfig)."""
-    fusion: FusionOptions = field(default_factory=pipeline_fusion)
+    fusion: FusionOptions = field(default_factory=FusionOptions)
     """TSDF fusion's settings (recon.fusion.FusionOptions)."""
     rerun: str = "off"
     """Rerun inspection: spawn, save, serve or off."""
