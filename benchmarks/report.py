@@ -159,11 +159,12 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    paths = [resolve_dataset(s) for s in args.datasets] if args.datasets is not None else default_datasets()
-    paths += [resolve_dataset(s) for s in args.extra]
+    named = [resolve_dataset(s) for s in [*(args.datasets or []), *args.extra]]
+    paths = named if args.datasets is not None else default_datasets() + named
     if not paths:
         sys.exit(f"report: no recordings (none with sensor depth in {DATA}; pass dataset folders)")
-    no_depth = [p.name for p in paths if not open_dataset(p).has_depth]
+    # default_datasets() has left out those without depth already; a named one is refused.
+    no_depth = [p.name for p in named if not open_dataset(p).has_depth]
     if no_depth:
         sys.exit(f"report: {', '.join(no_depth)} has no sensor depth; tables A-C need it")
     default_step, named_steps = parse_steps(args.step)
