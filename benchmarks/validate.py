@@ -231,6 +231,7 @@ def scores(rec: Recording, mode: str, out: Path) -> dict:
     seconds = report["seconds"]
     width = report["frames"]["working_size"][0]
     row = {"frames": tracked, "depth_frames": frames.get("depth_frames", frames["count"]),
+           "depth_by_gap": frames.get("depth_by_gap", 0),
            "s_per_frame": sum(seconds.values()) / max(tracked, 1),
            "pose_s_per_frame": seconds.get("poses", 0.0) / max(tracked, 1),
            "peak_rss_mb": report.get("memory", {}).get("peak_rss_mb"),

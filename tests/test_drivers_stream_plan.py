@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.drivers.stream_plan import MotionSelector, anchor_factor, parse_depth_frames, plan_windows
+from recon.drivers.stream_plan import MotionSelector, anchor_factor, depth_gap, parse_depth_frames, plan_windows
 
 
 def _walk(steps: np.ndarray, turns_deg: np.ndarray | None = None) -> np.ndarray:
@@ -64,3 +64,20 @@ def test_anchor_factor_is_the_median_ratio_and_ignores_invalid_pixels():
     finished[1, :2] *= 5  # outliers do not move a median
     assert anchor_factor(finished, current) == pytest.approx(1.07, rel=1e-5)
     assert anchor_factor(np.zeros_like(current), current) == 1.0
+
+
+def test_a_still_camera_still_gets_the_floor_of_depth_frames():
+    count = 80
+    still = MotionSelector(motion=0.02, rotation=2.0, max_gap=depth_gap(count, 30))
+    taken = np.flatnonzero([still(np.eye(4), 2.0) for _ in range(count)])
+    assert len(taken) >= 30 and np.all(np.diff(taken) == 2)
+    assert still.by_gap == len(taken) - 1  # the first frame is motion's
+    # A moving camera takes its frames by motion; the floor adds none.
+    poses = _walk(np.full(count, 0.011))
+    moving = MotionSelector(motion=0.02, rotation=90.0, max_gap=depth_gap(count, 10))
+    assert np.all(np.diff(np.flatnonzero([moving(p, 2.0) for p in poses])) == 4) and moving.by_gap == 0
+
+
+def test_depth_gap_bounds_the_frames_between_depth_frames():
+    assert depth_gap(80, 40) == 2 and depth_gap(100, 40) == 2 and depth_gap(30, 40) == 1
+    assert depth_gap(300, 40) == 7 and depth_gap(100, 0) is None and depth_gap(0, 40) is None

@@ -74,12 +74,13 @@ def room_walk(tmp_path_factory):
     return seq, inputs, far["prior"]
 
 
-def _tracked(seq, inputs, prior_path, scale_prior: bool, max_frames: int | None = None):
+def _tracked(seq, inputs, prior_path, scale_prior: bool, max_frames: int | None = None, depth_frames_min: int = 0):
     config = PipelineConfig(input=inputs["video"], output=inputs["video"].parent / "unused", width=None,
                             max_frames=max_frames,
                             intrinsics=seq.intrinsics, poses=str(inputs["poses"]), prior="folder",
                             prior_path=prior_path, stream="on", depth_frames="motion", scale_prior=scale_prior,
-                            depth_rotation=45.0, progress=False)  # the path's turns take no frame here
+                            depth_rotation=45.0, depth_frames_min=depth_frames_min,
+                            progress=False)  # the path's turns take no frame here
     source = select_frames(config.input, max_frames=max_frames, frame_budget=None)
     with FrameStore() as store:
         return stream_track.track_video(config, source, plan_poses(config.poses, source), (seq.intrinsics, "given"),
@@ -99,6 +100,12 @@ def test_given_poses_choose_depth_frames_at_their_own_scale(room_walk):
     assert not near.prior_scale["applied"]
     assert abs(int(scaled.depth_frame.sum()) - int(near.depth_frame.sum())) <= 2
     assert unscaled.prior_scale is None
+    # With a floor of 20 depth frames over the 40, the far prior's run takes one every 2nd
+    # frame at least, those motion did not take counted apart.
+    floored = _tracked(seq, inputs, far, scale_prior=False, depth_frames_min=20)
+    gaps = np.diff(np.flatnonzero(floored.depth_frame))
+    assert floored.depth_frame.sum() >= 20 and gaps.max() <= 2
+    assert floored.depth_frame.sum() - floored.depth_by_gap <= unscaled.depth_frame.sum() < floored.depth_by_gap
     # Every frame is tracked once, in order, with the given pose.
     for video in (near, scaled):
         assert list(video.indices) == list(range(40))

@@ -105,13 +105,22 @@ class PipelineConfig:
     """Which tracked frames of a streamed run get depth and are fused: motion, all, or every K-th.
 
     motion: a frame each time the camera moved depth_motion x the median depth or turned
-    depth_rotation degrees since the last one.
+    depth_rotation degrees since the last one (with given poses, at least depth_frames_min
+    frames over the input).
     """
     depth_motion: float = 0.02
     """Streamed runs, depth_frames motion: the camera's movement that takes a frame, as a
     fraction of the median depth."""
     depth_rotation: float = 2.0
     """Streamed runs, depth_frames motion: the turn in degrees that takes a frame."""
+    depth_frames_min: int = 30
+    """Streamed runs with given poses, depth_frames motion: at least this many depth frames over
+    the input (a frame is also taken count // depth_frames_min frames after the last one; 0:
+    motion alone).
+
+    A short or slow clip then still gives the refinement its source views.
+    why: docs/decisions.md#depth-frames-of-a-streamed-run
+    """
     window: int = 48
     """Frames per MEDeA window of a streamed run, counted at 640x480 like frame_budget.
 
@@ -302,6 +311,8 @@ class PipelineConfig:
         if not (self.depth_frames in ("motion", "all") or (self.depth_frames.isdigit() and int(self.depth_frames) > 0)):
             raise ReconInputError(
                 f"depth frames must be motion, all or a positive whole number, got {self.depth_frames!r}")
+        if self.depth_frames_min < 0:
+            raise ReconInputError(f"depth_frames_min must be >= 0, got {self.depth_frames_min}")
         if not (self.depth_motion > 0 and self.depth_rotation > 0):
             raise ReconInputError(f"depth motion and depth rotation must be > 0, got {self.depth_motion} and "
                                   f"{self.depth_rotation}")

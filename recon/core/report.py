@@ -193,7 +193,7 @@ def stream_report(*, config, source, video, windows: list[dict], fusion, min_con
                    "depth_frames": len(depth_idx), "depth_indices": depth_idx.tolist(),
                    "depth_names": [video.names[k] for k in np.flatnonzero(video.depth_frame)],
                    "working_size": _wh(video.size), "depth_frames_rule": config.depth_frames,
-                   "prior_scale": video.prior_scale},
+                   "depth_by_gap": video.depth_by_gap, "prior_scale": video.prior_scale},
         "intrinsics": _intrinsics_section(video.intrinsics, video.intrinsics_from, source),
         "poses": {"source": video.pose_source, **video.pose_info, "lens_k1": video.lens_k1},
         "prior": {"name": config.prior, "kind": "metric", "info": video.prior_info, "features": video.feature_shape},

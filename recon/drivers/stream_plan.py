@@ -2,7 +2,9 @@
 
 * Depth frames by motion (:class:`MotionSelector`): a frame is taken when the camera has
   moved ``motion`` x the median depth, or turned ``rotation`` degrees, since the last one
-  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems).
+  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems), or when
+  ``max_gap`` frames passed since then (:func:`depth_gap`: a short input still gets the
+  depth frames the refinement's source views need).
   why: docs/decisions.md#depth-frames-of-a-streamed-run
 * Windows (:func:`plan_windows`): ``window`` depth frames, the first ``overlap`` shared
   with the previous window, which give the new one its context and its anchor.
@@ -28,14 +30,19 @@ def parse_depth_frames(choice: str) -> int | None:
 class MotionSelector:
     """Picks depth frames one at a time (module docstring). motion: translation as a
     fraction of the median depth; rotation: degrees; step: take every step-th frame
-    instead (None: by motion). depth: the median depth of the last frame taken, metres
-    (the scale of ``motion``; 1 m until a frame with depth was taken)."""
+    instead (None: by motion); max_gap: by motion, also take a frame this many frames
+    after the last one taken (None: motion alone). depth: the median depth of the last
+    frame taken, metres (the scale of ``motion``; 1 m until a frame with depth was taken).
+    ``by_gap`` counts the frames taken for the gap alone."""
 
     motion: float = 0.02
     rotation: float = 2.0
     step: int | None = None
+    max_gap: int | None = None
     depth: float = 1.0
+    by_gap: int = 0
     _last_pose: np.ndarray | None = None
+    _last_position: int = 0
     _count: int = 0
 
     def __call__(self, pose: np.ndarray, median_depth: float | None = None) -> bool:
@@ -54,11 +61,22 @@ class MotionSelector:
             moved = float(np.linalg.norm(pose[:3, 3] - self._last_pose[:3, 3]))
             turned = rotation_angle(self._last_pose[:3, :3].T @ pose[:3, :3])
             take = moved >= self.motion * max(self.depth, 1e-3) or turned >= self.rotation
+            if not take and self.max_gap is not None and position - self._last_position >= self.max_gap:
+                take, self.by_gap = True, self.by_gap + 1
         if take:
-            self._last_pose = pose
+            self._last_pose, self._last_position = pose, position
             if median_depth is not None and median_depth > 0:
                 self.depth = float(median_depth)
         return take
+
+
+def depth_gap(count: int, min_frames: int) -> int | None:
+    """The most frames between two depth frames such that an input of ``count`` frames gets at
+    least ``min_frames`` of them (None: no bound, where ``min_frames`` is 0 or the count is not
+    known)."""
+    if min_frames <= 0 or count <= 0:
+        return None
+    return max(1, count // min_frames)
 
 
 def rotation_angle(rotation: np.ndarray) -> float:
@@ -114,5 +132,5 @@ def anchor_factor(finished: np.ndarray, current: np.ndarray, min_pixels: int = 1
     return float(np.exp(np.median(np.log(finished[valid] / current[valid]))))
 
 
-__all__ = ["MotionSelector", "Window", "anchor_factor", "anchor_pixels", "parse_depth_frames", "plan_windows",
-           "rotation_angle"]
+__all__ = ["MotionSelector", "Window", "anchor_factor", "anchor_pixels", "depth_gap", "parse_depth_frames",
+           "plan_windows", "rotation_angle"]

@@ -35,7 +35,7 @@ from ..io.frame_store import FrameStore
 from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
 from .segments import estimator_options
-from .stream_plan import MotionSelector, parse_depth_frames
+from .stream_plan import MotionSelector, depth_gap, parse_depth_frames
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,8 @@ class TrackedVideo:
     # Given poses, depth frames by motion: the prior's factor the motion rule measured in
     # (GlobalScale.to_dict and the frames searched), else None.
     prior_scale: dict | None = None
+    # Depth frames by motion: how many were taken for depth_frames_min alone.
+    depth_by_gap: int = 0
 
 
 
@@ -112,8 +114,12 @@ class _TrackLoop:
         self.to_check: list[tuple[np.ndarray, np.ndarray]] | None = None if plan.estimated else []
         self.pose_check: dict | None = None
         self.medea_skipped: str | None = None
+        # The floor of depth frames is for given poses: estimated ones already take most frames
+        # (docs/decisions.md#depth-frames-of-a-streamed-run).
         self.select = MotionSelector(config.depth_motion, config.depth_rotation,
-                                     parse_depth_frames(config.depth_frames))
+                                     parse_depth_frames(config.depth_frames),
+                                     max_gap=None if plan.estimated else depth_gap(source.count,
+                                                                                   config.depth_frames_min))
         self.names_of = _frame_namer(source)
         self.indices, self.stamps, self.names, self.live, self.chosen, self.sample = [], [], [], [], [], []
         self.prior_info, self.feature_shape = {}, None
@@ -301,7 +307,7 @@ class _TrackLoop:
             size=tuple(self.source.shape), lens_k1=closed.lens_k1, pose_source=closed.source,
             pose_info=closed.info if self.pose_check is None else {**closed.info, "check": self.pose_check},
             depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
-            medea_skipped=self.medea_skipped, prior_scale=self.prior_scale,
+            medea_skipped=self.medea_skipped, prior_scale=self.prior_scale, depth_by_gap=self.select.by_gap,
         )
 
 
