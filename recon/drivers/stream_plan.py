@@ -2,10 +2,8 @@
 
 * Depth frames by motion (:class:`MotionSelector`): a frame is taken when the camera has
   moved ``motion`` x the median depth, or turned ``rotation`` degrees, since the last one
-  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems), or when
-  ``max_gap`` frames passed since then (:func:`depth_gap`: a short input still gets the
-  depth frames the refinement's source views need).
-  why: docs/decisions.md#depth-frames-of-a-streamed-run
+  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems), or ``max_gap``
+  frames after it (:func:`depth_gap`). why: docs/decisions.md#depth-frames-of-a-streamed-run
 * Windows (:func:`plan_windows`): ``window`` depth frames, the first ``overlap`` shared
   with the previous window, which give the new one its context and its anchor.
 More: docs/running.md#how-a-streamed-run-works
