@@ -2,9 +2,9 @@
 "Implementation details"): Stage I on keyframe pairs, scale propagation, Stage II on
 short-range pairs with keyframe grids frozen.
 
-The optimiser is Adam applied lazily per frame (torch's SparseAdam over an embedding
-table of grids): a frame's grid and moments change only in steps whose batch contains
-it. With one batch per epoch (Stage I on typical lengths) this is exactly Adam; with
+The optimiser is Adam applied lazily per frame (:mod:`medea_core.lazy_adam`, over an
+embedding table of grids): a frame's grid and moments change only in steps whose batch
+contains it. With one batch per epoch (Stage I on typical lengths) this is exactly Adam; with
 several it avoids moving frames on stale momentum from other batches.
 """
 
@@ -24,6 +24,7 @@ from .frames import FrameData, prepare_frames
 from .geometry import pair_transforms
 from .global_scale import GlobalScale, search_configured_scale
 from .grid import adjust_depth
+from .lazy_adam import AdamMoments, lazy_adam_step
 from .objective import PairBatch, pair_losses, pair_overlap
 from .pairs import connects, nearest_keyframe, stage_pairs
 from .propagate import propagate_scales
@@ -132,8 +133,7 @@ def optimise_stage(
     frozen = log_scales.detach().reshape(num, -1).clone()
     table = frozen.clone().requires_grad_(True)
     trainable = trainable.to(device)
-    optimiser = torch.optim.SparseAdam([table], lr=stage.lr, eps=stage.adam_eps)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma=stage.gamma)
+    moments, lr = AdamMoments.zeros_like(table), stage.lr
     best, stall = float("inf"), 0
     for epoch in range(stage.epochs):
         sums: dict[str, float] = defaultdict(float)
@@ -153,15 +153,15 @@ def optimise_stage(
             if not bool(overlapping.any()):
                 continue
             loss = terms["total"][overlapping].mean()
-            optimiser.zero_grad(set_to_none=True)
+            table.grad = None
             loss.backward()
-            optimiser.step()
+            lazy_adam_step(table, table.grad, moments, lr, eps=stage.adam_eps)
             counted += int(overlapping.sum())
             for key, value in terms.items():
                 sums[key] += float(value.detach()[overlapping].sum())
         if counted == 0:
             break
-        scheduler.step()  # after an epoch that stepped the optimiser (torch warns otherwise)
+        lr *= stage.gamma  # the learning rate decays once per epoch
         epoch_losses = {key: value / counted for key, value in sums.items()}
         for key, value in epoch_losses.items():
             history.losses[key].append(value)
