@@ -47,8 +47,10 @@ def _wait_for_ctrl_c(url: str | None) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from ..export.tools import ExportOptions, export_folder, parse_formats
+    from ..memory import freeze_imported
     from ..pipeline import format_summary, run_pipeline
 
+    freeze_imported()
     formats = parse_formats(args.export) if args.export is not None else ()  # bad names fail before the run
     config = pipeline_config_from_args(args, build_parser())
     result = run_pipeline(config, on_stage=None if args.quiet else lambda stage: print(stage, flush=True))
@@ -99,9 +101,11 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from ..memory import freeze_imported
     from ..pipeline import format_summary
     from .demo import DemoOptions, default_output, format_demo, run_demo
 
+    freeze_imported()
     medea = medea_config_from_args(args)
     pose_options = pose_options_from_args(args)
     mode, path = rerun_mode(args, "save")
