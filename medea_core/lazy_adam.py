@@ -32,7 +32,14 @@ class AdamMoments:
 
     @classmethod
     def zeros_like(cls, table: torch.Tensor) -> AdamMoments:
-        """No step taken, zero moments for every row of ``table`` (N, D)."""
+        """No step taken, zero moments for every row of a table.
+
+        Args:
+            table: (N, D) the parameters.
+
+        Returns:
+            AdamMoments with step 0 and (N, D) zero moments.
+        """
         return cls(0, torch.zeros_like(table), torch.zeros_like(table))
 
 

@@ -1,17 +1,12 @@
 """Handing freed memory back to the operating system between stages.
 
-glibc's malloc keeps what a process frees in its heap for reuse (only blocks above a
-threshold that grows with use are unmapped at once), so after a stage that built large
-arrays has dropped them, the process's resident memory stays at that stage's peak, and
-the next stage adds its own on top. ``release_memory`` collects Python's garbage and asks
-glibc to return the free pages at the heap's top and inside it (``malloc_trim(0)``); it
-is a no-op where there is no glibc. The pipeline calls it at the end of every timed stage
-(recon.core.clock.StageClock).
-
-Each full collection walks every object the collector tracks, and the libraries a run imports
-(torch, Open3D, OpenCV, SciPy) hold about a quarter of a million of them for the process's
-whole life: ``freeze_imported`` moves them out of the collector's reach once they are
-imported (``gc.freeze``), so a collection walks only what the run itself made.
+glibc's malloc keeps freed memory in its heap, so a stage's peak would stay resident and
+the next stage's would stack on it: ``release_memory`` (called at the end of every timed
+stage, recon.core.clock.StageClock) collects Python's garbage and asks glibc to return
+the free pages (``malloc_trim(0)``; a no-op without glibc). ``freeze_imported`` takes the
+libraries' own objects (torch, Open3D, OpenCV, SciPy: about a quarter of a million, alive
+until exit) out of the collector's reach (``gc.freeze``), so that a collection walks only
+what the run itself made.
 """
 
 from __future__ import annotations
