@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.drivers.stream_plan import MotionSelector, anchor_factor, depth_gap, parse_depth_frames, plan_windows
+from recon.drivers.stream_plan import (
+    MotionSelector,
+    anchor_factor,
+    depth_gap,
+    parse_depth_frames,
+    plan_windows,
+    select_later,
+)
 
 
 def _walk(steps: np.ndarray, turns_deg: np.ndarray | None = None) -> np.ndarray:
@@ -81,3 +88,22 @@ def test_a_still_camera_still_gets_the_floor_of_depth_frames():
 def test_depth_gap_bounds_the_frames_between_depth_frames():
     assert depth_gap(80, 40) == 2 and depth_gap(100, 40) == 2 and depth_gap(30, 40) == 1
     assert depth_gap(300, 40) == 7 and depth_gap(100, 0) is None and depth_gap(0, 40) is None
+
+
+def test_frames_posed_later_are_chosen_as_the_rule_would_have_in_order():
+    # The 80 frames a focal search buffered, walking 1.1 cm a frame 2 m away: every 4th by
+    # motion, as if they had been posed while tracked; a frame without a pose is left out.
+    poses = _walk(np.full(80, 0.011))
+    poses[41] = np.nan
+    taken, by_gap = select_later(poses, np.full(80, 2.0), 0.02, 2.0)
+    live = MotionSelector(motion=0.02, rotation=2.0)
+    expected = np.array([live(p, 2.0) for p in poses])
+    assert np.array_equal(taken, expected) and not taken[41] and by_gap == 0
+    assert taken[0] and 18 <= taken.sum() <= 21
+    # The floor and a step apply as while tracking; a still camera gets the floor's frames.
+    still, by_gap = select_later(np.repeat(np.eye(4)[None], 80, 0), np.full(80, 2.0), 0.02, 2.0,
+                                 max_gap=depth_gap(80, 30))
+    assert np.all(np.diff(np.flatnonzero(still)) == 2) and by_gap == still.sum() - 1
+    every_third, _ = select_later(poses, np.full(80, 2.0), 0.02, 2.0, step=3)
+    assert np.array_equal(np.flatnonzero(every_third), np.arange(0, 80, 3))
+    assert select_later(np.zeros((0, 4, 4)), np.zeros(0), 0.02, 2.0)[0].shape == (0,)

@@ -1,6 +1,7 @@
 """The streamed run's tracking pass (recon.drivers.stream_track): SfM's second opinion, asked on
 the depth frames where the front end doubts its trajectory (with --pose-method auto, not under
---on-break keep); with given poses, depth frames chosen at the poses' scale, not the prior's."""
+--on-break keep); with given poses, depth frames chosen at the poses' scale, not the prior's;
+frames the front end posed only later chosen by the same rule at close."""
 
 from __future__ import annotations
 
@@ -119,3 +120,20 @@ def test_a_video_shorter_than_the_scale_probe_is_tracked_whole(room_walk):
     assert list(video.indices) == list(range(count)) and video.prior_scale["frames"] == count
     assert video.prior_scale["applied"] and 0.17 < video.prior_scale["factor"] < 0.23
     assert video.depth_frame[0] and 2 <= video.depth_frame.sum() < count
+
+
+def test_frames_tracked_before_they_had_a_pose_are_chosen_at_close():
+    # 100 frames walking 1.1 cm a frame, 2 m away; the first 60 waited for the focal search
+    # (taken while tracked, no pose yet), the rest were chosen on their live poses.
+    poses = np.repeat(np.eye(4)[None], 100, axis=0)
+    poses[:, 0, 3] = np.cumsum(np.full(100, 0.011))
+    loop = stream_track._TrackLoop.__new__(stream_track._TrackLoop)
+    loop.select = stream_track.MotionSelector(0.02, 2.0, max_gap=stream_track.depth_gap(100, 10))
+    loop.unposed = {position: 2.0 for position in range(60)}
+    loop.chosen = [True] * 60 + [loop.select(pose, 2.0) for pose in poses[60:]]
+    chosen, by_gap = loop._choose_unposed(poses)
+    assert np.array_equal(np.flatnonzero(chosen[:60]), np.arange(0, 60, 4))  # by motion, as if posed
+    assert np.array_equal(chosen[60:], loop.chosen[60:]) and by_gap == 0
+    # Without a frame waiting, the choice is the one made while tracking.
+    loop.unposed = {}
+    assert np.array_equal(loop._choose_unposed(poses)[0], loop.chosen)

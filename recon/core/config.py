@@ -105,8 +105,8 @@ class PipelineConfig:
     """Which tracked frames of a streamed run get depth and are fused: motion, all, or every K-th.
 
     motion: a frame each time the camera moved depth_motion x the median depth or turned
-    depth_rotation degrees since the last one (with given poses, at least depth_frames_min
-    frames over the input).
+    depth_rotation degrees since the last one (at least depth_frames_min frames over the
+    input); frames the pose front end had no pose for yet are chosen once it has.
     """
     depth_motion: float = 0.02
     """Streamed runs, depth_frames motion: the camera's movement that takes a frame, as a
@@ -114,9 +114,8 @@ class PipelineConfig:
     depth_rotation: float = 2.0
     """Streamed runs, depth_frames motion: the turn in degrees that takes a frame."""
     depth_frames_min: int = 30
-    """Streamed runs with given poses, depth_frames motion: at least this many depth frames over
-    the input (a frame is also taken count // depth_frames_min frames after the last one; 0:
-    motion alone).
+    """Streamed runs, depth_frames motion: at least this many depth frames over the input (a
+    frame is also taken count // depth_frames_min frames after the last one; 0: motion alone).
 
     A short or slow clip then still gives the refinement its source views.
     why: docs/decisions.md#depth-frames-of-a-streamed-run

@@ -1,9 +1,9 @@
 """The rules of the streamed pipeline that decide what to work on, as pure functions.
 
-* Depth frames by motion (:class:`MotionSelector`): a frame is taken when the camera has
-  moved ``motion`` x the median depth, or turned ``rotation`` degrees, since the last one
-  taken (the keyframe rule of KinectFusion- and DROID-SLAM-style systems), or ``max_gap``
-  frames after it (:func:`depth_gap`). why: docs/decisions.md#depth-frames-of-a-streamed-run
+* Depth frames by motion (:class:`MotionSelector`, :func:`select_later`): a frame is taken
+  when the camera has moved ``motion`` x the median depth, or turned ``rotation`` degrees,
+  since the last one taken (the keyframe rule of KinectFusion- and DROID-SLAM-style
+  systems), or ``max_gap`` frames after it. why: docs/decisions.md#depth-frames-of-a-streamed-run
 * Windows (:func:`plan_windows`): ``window`` depth frames, the first ``overlap`` shared
   with the previous window, which give the new one its context and its anchor.
 More: docs/running.md#how-a-streamed-run-works
@@ -66,6 +66,24 @@ class MotionSelector:
             if median_depth is not None and median_depth > 0:
                 self.depth = float(median_depth)
         return take
+
+
+def select_later(poses: np.ndarray, median_depths: np.ndarray, motion: float, rotation: float,
+                 step: int | None = None, max_gap: int | None = None) -> tuple[np.ndarray, int]:
+    """The depth frames among frames whose poses came after them, chosen as MotionSelector
+    would have chosen them in order (frames the front end buffered for its focal search).
+
+    Args:
+        poses: (N, 4, 4) camera-to-world, in order (NaN: no pose, not taken).
+        median_depths: (N,) the prior's median depth of each frame in metres.
+        motion, rotation, step, max_gap: as MotionSelector.
+
+    Returns:
+        ((N,) bool: the frames taken, the number taken for max_gap alone).
+    """
+    select = MotionSelector(motion, rotation, step, max_gap=max_gap)
+    taken = np.array([select(pose, float(depth)) for pose, depth in zip(poses, median_depths)], bool)
+    return taken.reshape(len(poses)), select.by_gap
 
 
 def depth_gap(count: int, min_frames: int) -> int | None:

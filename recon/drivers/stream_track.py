@@ -35,7 +35,7 @@ from ..io.frame_store import FrameStore
 from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
 from .segments import estimator_options
-from .stream_plan import MotionSelector, depth_gap, parse_depth_frames
+from .stream_plan import MotionSelector, depth_gap, parse_depth_frames, select_later
 
 log = logging.getLogger(__name__)
 
@@ -114,12 +114,13 @@ class _TrackLoop:
         self.to_check: list[tuple[np.ndarray, np.ndarray]] | None = None if plan.estimated else []
         self.pose_check: dict | None = None
         self.medea_skipped: str | None = None
-        # The floor of depth frames is for given poses: estimated ones already take most frames
-        # (docs/decisions.md#depth-frames-of-a-streamed-run).
         self.select = MotionSelector(config.depth_motion, config.depth_rotation,
                                      parse_depth_frames(config.depth_frames),
-                                     max_gap=None if plan.estimated else depth_gap(source.count,
-                                                                                   config.depth_frames_min))
+                                     max_gap=depth_gap(source.count, config.depth_frames_min))
+        # Frames the front end had no pose for yet (its focal search buffers the first ones):
+        # position -> the prior's median depth; taken for now (the store keeps their colour
+        # and prior), the motion rule chooses among them once close() has their poses.
+        self.unposed: dict[int, float] = {}
         self.names_of = _frame_namer(source)
         self.indices, self.stamps, self.names, self.live, self.chosen, self.sample = [], [], [], [], [], []
         self.prior_info, self.feature_shape = {}, None
@@ -179,12 +180,16 @@ class _TrackLoop:
         if self.poser.estimating:
             # The front end needs every frame's prior; the depth frames are chosen on its
             # live poses. A frame without a pose yet (the focal search still buffering)
-            # keeps its prior: the motion rule cannot judge it.
+            # keeps its prior until close() judges it (self.unposed).
             out = self._prior(batch, positions)
             with self.clock.stage("poses"):
                 poses = self.poser.batch(positions, batch, out.depth)
-            take = np.array([self.select(pose, _median_depth(out.depth[k])) if np.isfinite(pose).all() else True
-                             for k, pose in enumerate(poses)], bool)
+            take = np.ones(len(batch), bool)
+            for k, pose in enumerate(poses):
+                if np.isfinite(pose).all():
+                    take[k] = self.select(pose, _median_depth(out.depth[k]))
+                else:
+                    self.unposed[int(positions[k])] = _median_depth(out.depth[k])
             rows = np.arange(len(batch))
         else:
             # Given poses: only the depth frames need a prior.
@@ -289,6 +294,7 @@ class _TrackLoop:
             self._check(None, None)
             closed, camera_from = self.poser.close(self.store, indices, np.asarray(self.live))
         keep = np.isfinite(closed.poses).all(axis=(1, 2))
+        chosen, by_gap = self._choose_unposed(closed.poses)
         if closed.dropped_note:
             log.warning(closed.dropped_note)
         camera = closed.intrinsics
@@ -302,13 +308,25 @@ class _TrackLoop:
             values = values[np.linspace(0, len(values) - 1, _SAMPLE_MAX).astype(np.int64)]
         return TrackedVideo(
             indices=indices, timestamps=stamps, names=self.names, poses=closed.poses,
-            depth_frame=np.asarray(self.chosen, bool) & keep, intrinsics=tuple(float(v) for v in camera),
+            depth_frame=chosen & keep, intrinsics=tuple(float(v) for v in camera),
             intrinsics_from=self.intrinsics_from if self.intrinsics is not None else camera_from,
             size=tuple(self.source.shape), lens_k1=closed.lens_k1, pose_source=closed.source,
             pose_info=closed.info if self.pose_check is None else {**closed.info, "check": self.pose_check},
             depth_sample=values, prior_info=self.prior_info, feature_shape=self.feature_shape,
-            medea_skipped=self.medea_skipped, prior_scale=self.prior_scale, depth_by_gap=self.select.by_gap,
+            medea_skipped=self.medea_skipped, prior_scale=self.prior_scale, depth_by_gap=by_gap,
         )
+
+    def _choose_unposed(self, poses: np.ndarray) -> tuple[np.ndarray, int]:
+        """Every frame's depth-frame choice, the frames tracked before they had a pose chosen
+        now on their final ``poses`` (N, 4, 4) by the same rule, and the count the floor took."""
+        chosen = np.asarray(self.chosen, bool).copy()
+        if not self.unposed:
+            return chosen, self.select.by_gap
+        later = np.fromiter(self.unposed, np.int64, len(self.unposed))
+        taken, by_gap = select_later(poses[later], np.fromiter(self.unposed.values(), np.float64, len(later)),
+                                     self.select.motion, self.select.rotation, self.select.step, self.select.max_gap)
+        chosen[later] = taken
+        return chosen, self.select.by_gap + by_gap
 
 
 def _frame_namer(source: FrameSource) -> Callable[[np.ndarray, np.ndarray], list[str]]:
