@@ -83,7 +83,7 @@ def select_later(poses: np.ndarray, median_depths: np.ndarray, motion: float, ro
     """
     select = MotionSelector(motion, rotation, step, max_gap=max_gap)
     taken = np.array([select(pose, float(depth)) for pose, depth in zip(poses, median_depths)], bool)
-    return taken.reshape(len(poses)), select.by_gap
+    return taken, select.by_gap
 
 
 def depth_gap(count: int, min_frames: int) -> int | None:

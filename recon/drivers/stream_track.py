@@ -186,10 +186,11 @@ class _TrackLoop:
                 poses = self.poser.batch(positions, batch, out.depth)
             take = np.ones(len(batch), bool)
             for k, pose in enumerate(poses):
+                depth = _median_depth(out.depth[k])
                 if np.isfinite(pose).all():
-                    take[k] = self.select(pose, _median_depth(out.depth[k]))
+                    take[k] = self.select(pose, depth)
                 else:
-                    self.unposed[int(positions[k])] = _median_depth(out.depth[k])
+                    self.unposed[int(positions[k])] = depth
             rows = np.arange(len(batch))
         else:
             # Given poses: only the depth frames need a prior.
