@@ -299,26 +299,6 @@ def test_the_same_frames_give_the_same_mesh_file(fusion_room, tmp_path):
         assert np.array_equal(np.asarray(mesh.triangles), np.asarray(meshes[0].triangles))
 
 
-def test_a_mesh_over_the_triangle_budget_is_decimated_in_place():
-    """A coloured sphere of 180 k triangles within a budget of 5 000: at most 5 000 triangles
-    on the same surface (every vertex within 1 % of the radius), colours kept in [0, 1]; a
-    budget of 0 or one it is under leaves it as it is."""
-    import open3d as o3d
-
-    from recon.fusion.volume import within_budget
-
-    sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=300)
-    sphere.vertex_colors = o3d.utility.Vector3dVector(np.abs(np.asarray(sphere.vertices)))
-    small = within_budget(sphere, 5000)
-    assert 4000 <= len(small.triangles) <= 5000 and small.has_vertex_colors()
-    radius = np.linalg.norm(np.asarray(small.vertices), axis=1)
-    assert np.abs(radius - 1.0).max() < 0.01
-    colours = np.asarray(small.vertex_colors)
-    assert colours.min() >= 0 and colours.max() <= 1
-    np.testing.assert_allclose(colours, np.abs(np.asarray(small.vertices)), atol=0.05)
-    assert within_budget(sphere, 0) is sphere and within_budget(sphere, 10**7) is sphere
-
-
 def test_the_voxel_follows_the_depth_alone_where_its_metres_are_not_trusted():
     """A metric scene's voxel is held within 5 mm - 5 cm; where the prior cannot vouch for the
     scale (a close-up 5x too far, a street 25x too near) it follows the depth alone."""

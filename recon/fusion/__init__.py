@@ -1,6 +1,6 @@
 """TSDF fusion of metric depth maps into a mesh: `sizing` (the voxel, the depth range and the
 memory budget), `tsdf` (the whole-sequence fuse), `volume` (one growing volume, extraction
-and clean-up)."""
+and clean-up), `decimate` (a mesh thinned to the triangle budget)."""
 
 from .sizing import auto_max_depth, auto_voxel_size, estimate_block_count
 from .tsdf import (

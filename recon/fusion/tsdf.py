@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from recon.errors import ReconInputError
 
+from .decimate import within_budget
 from .sizing import (
     BYTES_PER_VOXEL,
     VOXEL_PER_DEPTH,
@@ -38,7 +39,6 @@ from .volume import (  # noqa: F401 (re-exported)
     clean_depth,
     remove_fragments,
     triangle_components,
-    within_budget,
 )
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,7 @@ class FusionOptions:
     max_triangles: int = 1_000_000
     """The mesh's triangle budget: a larger mesh is thinned to 80-100 % of it (0 keeps the full mesh).
 
-    ``volume.within_budget``: vertex clustering, colours kept.
+    ``decimate.within_budget``: vertex clustering, colours kept.
     """
     max_extracted: int | None = None
     """The most triangles marching cubes may make before the budget thins them (none: 4 x max_triangles; 0: no bound).

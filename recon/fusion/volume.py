@@ -10,14 +10,11 @@ size, truncation and depth range is :mod:`recon.fusion.tsdf`'s.
 
 from __future__ import annotations
 
-import logging
 import math
 
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
-
-log = logging.getLogger(__name__)
 
 # Ray casting's range map resolution (render_depth): full resolution. With Open3D's default
 # of 8 a different 2-10 % of the rays came back empty or on another surface from one call to
@@ -30,10 +27,6 @@ RANGE_MAP_DOWN_FACTOR = 1
 # passes of at most RANGE_TILE_BUDGET tiles (measured: docs/history/validation.md).
 RANGE_TILE = 16
 RANGE_TILE_BUDGET = 32_768
-# The triangle budget (within_budget): a thinned mesh keeps at least this share of the
-# budget, found in at most BUDGET_TRIES clusterings (each ~2 s for 2.4 M triangles).
-BUDGET_FILL = 0.8
-BUDGET_TRIES = 3
 # Marching cubes and the cleanup after it hold about 0.25 GB per million triangles extracted:
 # by default a surface estimated above this many times the triangle budget is meshed at a
 # higher weight threshold (FusionOptions.max_extracted, bounded_weight).
@@ -465,65 +458,6 @@ def canonical_points(cloud: o3d.geometry.PointCloud) -> o3d.geometry.PointCloud:
     if cloud.has_normals():
         out.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals)[order])
     return out
-
-
-def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.geometry.TriangleMesh:
-    """The mesh thinned to at most `max_triangles` triangles by vertex clustering.
-
-    Rossignac and Borrel 1993: the vertices in each cell of a grid merged into their mean,
-    vertex colours averaged with them. Web viewers and phone AR stall on meshes of millions
-    of triangles. A TSDF mesh is already a grid surface, so a coarser grid thins it evenly;
-    the cell size is chosen from the mesh's mean edge length so that the triangles land
-    between BUDGET_FILL and 1 of the budget (a triangle count falls with the square of the
-    cell). why: docs/decisions.md#the-triangle-budget
-
-    Args:
-        mesh: legacy TriangleMesh.
-        max_triangles: triangle budget; 0 = no limit.
-
-    Returns:
-        The mesh itself when within budget, else a thinned mesh in canonical order.
-    """
-    if max_triangles <= 0 or len(mesh.triangles) <= max_triangles:
-        return mesh
-    cell = mean_edge_length(mesh) * math.sqrt(len(mesh.triangles) / max_triangles)
-    small = mesh
-    for _ in range(BUDGET_TRIES):
-        small = mesh.simplify_vertex_clustering(voxel_size=cell,
-                                                contraction=o3d.geometry.SimplificationContraction.Average)
-        count = max(len(small.triangles), 1)
-        if BUDGET_FILL * max_triangles <= count <= max_triangles:
-            break
-        # Aim at the middle of the band: the count follows 1 / cell^2.
-        cell *= math.sqrt(count / (0.5 * (1.0 + BUDGET_FILL) * max_triangles))
-    if len(small.triangles) > max_triangles:  # the band missed on every try: thin until it fits
-        while len(small.triangles) > max_triangles:
-            cell *= math.sqrt(len(small.triangles) / max_triangles) * 1.05
-            small = mesh.simplify_vertex_clustering(voxel_size=cell,
-                                                    contraction=o3d.geometry.SimplificationContraction.Average)
-    log.info("mesh thinned from %d to %d triangles (--max-triangles; 0 keeps the full mesh)",
-             len(mesh.triangles), len(small.triangles))
-    small.remove_degenerate_triangles()
-    if mesh.has_vertex_colors():
-        small.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(small.vertex_colors), 0, 1))
-    small.compute_vertex_normals()
-    return canonical_mesh(small)
-
-
-def mean_edge_length(mesh: o3d.geometry.TriangleMesh, sample: int = 100_000) -> float:
-    """Mean length of the mesh's triangle edges (each edge counted once per triangle).
-
-    Args:
-        mesh: legacy TriangleMesh with at least one triangle.
-        sample: about this many triangles are taken evenly through the list (all of a
-            smaller mesh).
-
-    Returns:
-        The mean edge length in the mesh's units (metres).
-    """
-    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    corners = vertices[triangles[:: max(1, len(triangles) // sample)]]  # (T', 3, 3)
-    return float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
 
 
 def canonical_mesh(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
