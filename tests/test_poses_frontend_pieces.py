@@ -248,7 +248,7 @@ def test_a_refused_first_piece_is_said_with_the_loss_and_sfm_tried(pose_room, mo
 
     seq, prior = pose_room
 
-    def scripted(intrinsics, prior, config, number):
+    def scripted(intrinsics, prior, config, number, park=None):
         return StreamingPieces(lambda first, intr, lens: _Scripted(first, intr, lens, 29 if first == 0 else None,
                                                                    first == 0),
                                intrinsics, min_frames=22, keep=LOSS + 1)

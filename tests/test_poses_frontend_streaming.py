@@ -342,6 +342,35 @@ def test_streaming_frontend_gives_the_batch_poses_and_live_poses(pose_room):
     assert all(t.numel() <= 16 for t in tensors)
 
 
+def test_the_filler_takes_trackings_flow_from_the_park_instead_of_making_it_again(pose_room, monkeypatch):
+    """With a park, finish makes one flow pair fewer per non-keyframe tracking aligned
+    unseeded (the filler takes that flow, pooled, from the park) and returns the same poses
+    bit for bit; a parked flow against another keyframe is not taken."""
+    from recon.poses.frontend.park import MemoryPark
+    from recon.poses.frontend.streaming import StreamingFrontend
+    from recon.poses.matching import flow as fl
+
+    seq, prior = pose_room
+    made = []
+    flow_pair = fl.flow_pair
+    monkeypatch.setattr(fl, "flow_pair", lambda *args, **kwargs: made.append(1) or flow_pair(*args, **kwargs))
+    results, flows = [], []
+    for park in (None, MemoryPark()):
+        stream = StreamingFrontend(seq.intrinsics, lambda i, frame: prior[i], park=park)
+        for i, frame in enumerate(seq.rgb):
+            stream.add(i, frame)
+        made.clear()
+        results.append(stream.finish(lambda i: seq.rgb[i]))
+        flows.append(len(made))
+    state = stream.state
+    unseeded = [i for i, (_, seeded) in state.refs.items() if not seeded]
+    assert len(unseeded) >= 20 and all(state.tracked_edge(i, state.refs[i][0]) is not None for i in unseeded)
+    assert flows[0] - flows[1] == len(unseeded)
+    assert np.array_equal(results[0].poses, results[1].poses)
+    i = unseeded[0]
+    assert state.tracked_edge(i, next(k for k in range(len(state.graph)) if k != state.refs[i][0])) is None
+
+
 def test_finish_forgets_frames_from_stop_keyframes_included(pose_room):
     """finish(stop=...) (where a new piece takes over) forgets the later frames, keyframes and
     their edges included, and solves the rest again: poses of frames [0, stop) only, every

@@ -375,8 +375,9 @@ class _Poser:
             # camera, as the one-shot run does, instead of stopping the streamed run.
             options = estimator_options(config, frontend_only=True)
             self.frontend_config = _frontend_config(options, config.device)
+            # Tracking parks what the filler needs again of each frame in the store, on disk.
             self.frontend = streaming_frontend(intrinsics, self._prior, self.frontend_config,
-                                               self.frame_number.__getitem__)
+                                               self.frame_number.__getitem__, store)
 
     def _prior(self, position: int, frame) -> np.ndarray:
         # Recent frames from memory; older ones (frames buffered for the focal search,

@@ -1,7 +1,7 @@
 """The front end's trajectory filler (DROID-SLAM's ``trajectory_filler``): once the
 keyframes are final, every other frame is aligned, motion only, against the keyframes
-before and after it (and the one tracking aligned it to, whose flow is made again: the
-state keeps no flow per frame); a frame without reliable flow to either gets the geodesic
+before and after it (and the one tracking aligned it to, whose flow tracking parked, or
+else is made again: the state keeps no flow per frame); a frame without reliable flow to either gets the geodesic
 between them and is marked "interpolated".
 
 ``align_to_keyframes`` is shared with the SfM fallback, which registers the frames COLMAP
@@ -54,7 +54,7 @@ def realigned(state: TrackState, frames_lookup, num_frames: int, progress: bool 
     prior_of = None if state.prior.is_callable else (lambda i: state.prior_disp(i, None))
     return align_to_keyframes(jobs, lambda i: fl.prepare_gray(frames_lookup(i), state.geo.flow_shape),
                               kf_frames, g.gray, T_kf, g.disps(), state.intr, state.cfg, init_of, state.refs,
-                              prior_of, progress, state.k1)
+                              prior_of, progress, state.k1, state.tracked_edge)
 
 
 def _between(i: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:
@@ -63,7 +63,8 @@ def _between(i: int, kf_frames: np.ndarray, T_kf: torch.Tensor) -> torch.Tensor:
 
 
 def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, cfg: FrontendConfig, init_of=None,
-                       known=None, prior_of=None, progress: bool = False, k1: float = 0.0) -> dict:
+                       known=None, prior_of=None, progress: bool = False, k1: float = 0.0,
+                       tracked_edge=None) -> dict:
     """Motion-only alignment of frames `jobs` against their neighbouring keyframes.
 
     kf_frames (K,) sorted frame indices of the keyframes, kf_gray their flow-resolution grey
@@ -77,7 +78,9 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
     before and after such a frame are left out when, by its tracked pose, they do not see
     its view (a revisit: they were made elsewhere in the room). prior_of(i):
     (prior inverse depth, tie weight) on the BA grid, for the per-frame metric ratio
-    (``frame_depth_ratios``); k1: the lens' radial term.
+    (``frame_depth_ratios``); k1: the lens' radial term. tracked_edge(i, k): the unseeded
+    flow tracking made from keyframe k to frame i, pooled to the BA grid (target, weight),
+    or None: used instead of making it again.
     Returns {i: (T_cw (4, 4), ok, ratio, inlier)}: inlier is the share of the flow confidence
     the alignment explains (NaN without flow to any keyframe); ok is False when the alignment kept less than
     ``cfg.lost_inlier`` of its flow confidence (a keyframe whose flow fails
@@ -106,10 +109,13 @@ def align_to_keyframes(jobs, gray_of, kf_frames, kf_gray, T_kf, disp_kf, intr, c
             gray = None
             if i in known:
                 k, seeded = known[i]
-                gray = gray_of(i)
-                seed = gr.seed_flows(T_kf[k], T_init[-1], disp_kf[k], intr, gray.shape, k1) if seeded else ()
-                fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow, *seed)
-                t, w = fl.pool_edge(fwd, cf, 2, cfg.flow)
+                edge = None if seeded or tracked_edge is None else tracked_edge(i, k)
+                if edge is None:
+                    gray = gray_of(i)
+                    seed = gr.seed_flows(T_kf[k], T_init[-1], disp_kf[k], intr, gray.shape, k1) if seeded else ()
+                    fwd, _, cf, _ = fl.flow_pair(kf_gray[k], gray, cfg.flow, *seed)
+                    edge = fl.pool_edge(fwd, cf, 2, cfg.flow)
+                t, w = edge
                 frame_idx.append(m), kfs.append(k), targets.append(t), weights.append(w)
             for k in (prev, nxt):
                 if k < 0 or k >= K or (i in known and known[i][0] == k):

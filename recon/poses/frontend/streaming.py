@@ -26,6 +26,7 @@ from recon.poses.ba import bundle as ba
 from recon.poses.checks import motion_checks, normal_flow, prior_agreement, quality, scale_watch
 from recon.poses.config import FrontendConfig, calibrates_lens, make_geometry
 from recon.poses.frontend import backend, filler
+from recon.poses.frontend.park import FramePark, MemoryPark, ShiftedPark
 from recon.poses.frontend.pieces import StreamingPieces
 from recon.poses.frontend.track_state import TrackState
 from recon.poses.frontend.tracker import Tracker
@@ -65,7 +66,8 @@ class StreamingFrontend:
     ``prior(index, frame)`` -> (h, w) metric depth (0 invalid), called for the frames that
     need it (keyframes), or an (N, h, w) array (see :class:`PriorSource`). number: how its
     errors and log lines name frame `index` (``result.FrameNumbers``: the video's frame
-    numbers; default: the index).
+    numbers; default: the index). park: where tracking parks what ``finish`` needs again
+    of each frame (``park.FramePark``, by index; None: ``finish`` makes it again).
 
     Memory (``TrackState``): frames are not kept (the previous one excepted, which may
     become a keyframe); what grows is the keyframe graph, per keyframe its grey image,
@@ -74,8 +76,10 @@ class StreamingFrontend:
     ``frame_lookup``.
     """
 
-    def __init__(self, intrinsics, prior, config: FrontendConfig | None = None, number: FrameNumbers = by_position):
+    def __init__(self, intrinsics, prior, config: FrontendConfig | None = None, number: FrameNumbers = by_position,
+                 park: FramePark | None = None):
         self.prior = prior if isinstance(prior, PriorSource) else PriorSource(prior)
+        self.park = park
         self.number = number
         self.intrinsics = parse_intrinsics(intrinsics)
         config = config or FrontendConfig()
@@ -216,7 +220,7 @@ class StreamingFrontend:
     def _track(self, index: int, frame: np.ndarray) -> None:
         if self.state is None:
             geo = make_geometry(frame.shape[:2], self.cfg.ba_stride)
-            self.state = TrackState(self.intrinsics, geo, self.prior, self.cfg)
+            self.state = TrackState(self.intrinsics, geo, self.prior, self.cfg, self.park)
             self.tracker = Tracker(self.state, self.number)
             self.tracker.start(index, frame)
         else:
@@ -391,15 +395,15 @@ class StreamingFrontend:
         )
 
 
-def streaming_frontend(intrinsics, prior, config: FrontendConfig,
-                       number: FrameNumbers = by_position) -> StreamingFrontend | StreamingPieces:
+def streaming_frontend(intrinsics, prior, config: FrontendConfig, number: FrameNumbers = by_position,
+                       park: FramePark | None = None) -> StreamingFrontend | StreamingPieces:
     """The streaming front end for a video: with ``config.restart_after_loss`` one that starts
     again where it loses the camera (``recon.poses.frontend.pieces.StreamingPieces``: pieces of at
     least twice a loss's length, each with the first piece's camera and lens), else one
-    that stops there. prior and number: as :class:`StreamingFrontend` takes them, by
+    that stops there. prior, number and park: as :class:`StreamingFrontend` takes them, by
     position in the video."""
     if not config.restart_after_loss:
-        return StreamingFrontend(intrinsics, prior, config, number)
+        return StreamingFrontend(intrinsics, prior, config, number, park)
     source = prior if isinstance(prior, PriorSource) else PriorSource(prior)
 
     def piece(first: int, intr, k1) -> StreamingFrontend:
@@ -408,7 +412,8 @@ def streaming_frontend(intrinsics, prior, config: FrontendConfig,
         # every frame's prior for the metric scale only when it is not asked for one by one.
         piece_prior = source.prior[first:] if not source.is_callable else \
             (lambda i, frame: source.get(first + i, frame))
-        return StreamingFrontend(intr, piece_prior, piece_config, lambda i: number(first + i))
+        return StreamingFrontend(intr, piece_prior, piece_config, lambda i: number(first + i),
+                                 None if park is None else ShiftedPark(park, first))
 
     loss = config.max_lost + 1
     return StreamingPieces(piece, intrinsics, min_frames=2 * loss, keep=loss + 1,
@@ -442,7 +447,9 @@ def estimate_poses_frontend(frames, prior_depth, intrinsics=None, progress: bool
     prior = PriorSource(prior_depth)
     if not prior.is_callable and len(prior) != len(frames_list):
         raise ReconInputError(f"prior depth has {len(prior)} frames but the video has {len(frames_list)}")
-    stream = streaming_frontend(intrinsics, prior, config or FrontendConfig(), numbered(frame_numbers))
+    # Every frame is in memory here: what tracking parks for the filler (115 KB a frame at
+    # 640x480) adds an eighth.
+    stream = streaming_frontend(intrinsics, prior, config or FrontendConfig(), numbered(frame_numbers), MemoryPark())
     try:
         for i, frame in enumerate(tqdm(frames_list, desc="tracking", unit="frame", disable=not progress,
                                        leave=False)):

@@ -21,6 +21,7 @@ from recon.geometry import projective as pj
 from recon.poses.ba import bundle as ba
 from recon.poses.ba import graph as gr
 from recon.poses.config import FrontendConfig, Geometry, disp_from_depth
+from recon.poses.frontend.park import FramePark
 from recon.poses.matching import flow as fl
 from recon.poses.result import PriorSource, pool_depth
 
@@ -31,8 +32,11 @@ class TrackState:
     graph: keyframes (frame index, grey image, pose, BA depth, prior) and flow edges.
     frame_T: {frame: T_cw (4, 4)} every frame tracked so far (keyframes: their graph pose).
     refs: {non-keyframe: (keyframe id, seeded)}: the keyframe whose flow aligned it and
-        whether DIS was seeded; the filler makes that flow again from the frame (keeping
-        the flow, 115 KB a frame at 640x480, made the state grow with the video).
+        whether DIS was seeded. The filler uses that flow again, pooled to the BA grid, from
+        ``park`` (``park_edge``, ``tracked_edge``) where it was parked; else it makes it again
+        from the frame (keeping it here, 115 KB a frame at 640x480, would make the state grow
+        with the video).
+    park: a ``park.FramePark`` for those flows, or None (the filler makes them again).
     rel: {non-keyframe: T_frame <- T_keyframe (4, 4)} its pose relative to that keyframe, so
         that it follows the keyframe through later BA.
     status: {frame: one of result.FRAME_STATES, or "lost" while tracking}.
@@ -52,8 +56,10 @@ class TrackState:
         many frames went on from an older keyframe instead of becoming one).
     """
 
-    def __init__(self, intrinsics, geo: Geometry, prior: PriorSource, cfg: FrontendConfig):
+    def __init__(self, intrinsics, geo: Geometry, prior: PriorSource, cfg: FrontendConfig,
+                 park: FramePark | None = None):
         self.cfg = cfg
+        self.park = park
         self.geo = geo
         self.prior = prior
         self.intrinsics = intrinsics
@@ -115,6 +121,23 @@ class TrackState:
     def edge_targets(self, flow: np.ndarray, conf: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """A flow-resolution flow and confidence pooled to a BA target and weight."""
         return fl.pool_edge(flow, conf, self.geo.flow_factor, self.cfg.flow)
+
+    def park_edge(self, index: int, kf: int, target: torch.Tensor, weight: torch.Tensor) -> None:
+        """Park frame index's unseeded flow from keyframe kf, pooled to the BA grid (target
+        (h, w, 2), weight (h, w); ``edge_targets``), for the filler (``tracked_edge``)."""
+        if self.park is not None:
+            self.park.put(index, edge_target=target.numpy(), edge_weight=weight.numpy(),
+                          edge_keyframe=np.array([self.graph.frames[kf]], np.int64))
+
+    def tracked_edge(self, index: int, kf: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The BA target and weight parked for frame index against keyframe kf (``park_edge``),
+        or None where none was parked against that keyframe."""
+        if self.park is None or not self.park.has(index, "edge_keyframe"):
+            return None
+        if int(self.park.get(index, "edge_keyframe")[0]) != self.graph.frames[kf]:
+            return None
+        return (torch.from_numpy(self.park.get(index, "edge_target")),
+                torch.from_numpy(self.park.get(index, "edge_weight")))
 
     def whitening(self, gray: np.ndarray) -> torch.Tensor | None:
         """The residual factors (h, w, 2, 2) of edges from a keyframe with flow-resolution

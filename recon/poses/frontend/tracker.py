@@ -11,6 +11,7 @@ policy is ``motion_filter``'s, the edges and BA ``backend``'s.
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -26,6 +27,23 @@ from recon.poses.matching import flow as fl
 from recon.poses.result import FrameNumbers, TrackingLostError, by_position
 
 log = logging.getLogger(__name__)
+
+
+class Alignment(NamedTuple):
+    """A frame aligned to keyframe ``kf``: its pose T (4, 4) world-to-camera, the flows
+    keyframe -> frame ``fwd`` and back ``bwd`` (h, w, 2) with their confidences ``cf``, ``cb``
+    (h, w) at the flow resolution, whether DIS was seeded, and the forward flow pooled to
+    the BA grid (``TrackState.edge_targets``: ``target`` (h', w', 2), ``weight`` (h', w'))."""
+
+    kf: int
+    T: torch.Tensor
+    fwd: np.ndarray
+    bwd: np.ndarray
+    cf: np.ndarray
+    cb: np.ndarray
+    seeded: bool
+    target: torch.Tensor
+    weight: torch.Tensor
 
 
 class Tracker:
@@ -65,49 +83,49 @@ class Tracker:
             if found is None:
                 self._lost(index)
                 return
-            s.ref_kf = found[0]
+            s.ref_kf = found.kf
             status = "relocalised"
         s.lost_run = []
         flows, motion, parallax = self._record(index, found, status)
         if motion_filter.is_keyframe(motion, parallax, s.cfg):
             revisit = self._revisit(gray, s.frame_T[index])
             if revisit is None:
-                self._add_keyframe(index, frame, gray, s.frame_T[index], found[0], flows)
+                self._add_keyframe(index, frame, gray, s.frame_T[index], found.kf, flows)
                 s.previous = None
                 return
             found, measured = revisit
-            s.ref_kf = found[0]
+            s.ref_kf = found.kf
             s.revisits += 1
             flows, _, _ = self._record(index, found, status, measured)
         s.previous = (index, frame, gray, s.frame_T[index], s.refs[index][0], flows)
+        if not found.seeded:
+            s.park_edge(index, found.kf, found.target, found.weight)
 
-    def _measure(self, found: tuple) -> tuple[torch.Tensor, float, float]:
-        """(pose relative to its keyframe (4, 4), motion, parallax) of an alignment
-        (``_against``'s tuple): what the keyframe policy judges."""
+    def _measure(self, found: Alignment) -> tuple[torch.Tensor, float, float]:
+        """(pose relative to its keyframe (4, 4), motion, parallax) of an alignment: what the
+        keyframe policy judges."""
         s = self.state
-        kf, T, fwd, _, cf, _, _ = found
-        rel = T @ lie.inv(s.graph.poses([kf])[0])
-        return (rel, *motion_filter.motion_and_parallax(fwd, cf, rel, s.intrinsics, s.geo))
+        rel = found.T @ lie.inv(s.graph.poses([found.kf])[0])
+        return (rel, *motion_filter.motion_and_parallax(found.fwd, found.cf, rel, s.intrinsics, s.geo))
 
-    def _record(self, index: int, found: tuple, status: str, measured: tuple | None = None
+    def _record(self, index: int, found: Alignment, status: str, measured: tuple | None = None
                 ) -> tuple[tuple, float, float]:
-        """Keep a frame's alignment (``_against``'s tuple) to its keyframe; returns its flows
-        and the motion and parallax they measure from that keyframe (``measured``: what
-        ``_measure`` already said of it)."""
+        """Keep a frame's alignment to its keyframe; returns its flows and the motion and
+        parallax they measure from that keyframe (``measured``: what ``_measure`` already
+        said of it)."""
         s = self.state
-        kf, T, fwd, bwd, cf, cb, seeded = found
         rel, motion, parallax = measured or self._measure(found)
-        s.frame_T[index] = T
-        s.refs[index] = (kf, seeded)
+        s.frame_T[index] = found.T
+        s.refs[index] = (found.kf, found.seeded)
         s.rel[index] = rel
         s.status[index] = status
         s.inlier[index] = s.last_inlier
-        return (fwd, bwd, cf, cb), motion, parallax
+        return (found.fwd, found.bwd, found.cf, found.cb), motion, parallax
 
     def _revisit(self, gray: np.ndarray, T: torch.Tensor):
         """An older keyframe that already sees what a frame due to become a keyframe sees
         (``FrontendConfig.revisit_flow``), judged at the frame's tracked pose T (4, 4): the
-        frame's alignment to it (``_against``'s tuple) and ``_measure``'s figures for it, when
+        frame's ``Alignment`` to it and ``_measure``'s figures for it, when
         the map predicts little parallax and the measured flow confirms that the frame is no
         keyframe from there; else None."""
         s = self.state
@@ -190,11 +208,10 @@ class Tracker:
         )
         return T[0], float(inl[0])
 
-    def _against(self, kf: int, gray: np.ndarray, T0: torch.Tensor, seed=None):
+    def _against(self, kf: int, gray: np.ndarray, T0: torch.Tensor, seed=None) -> Alignment | None:
         """Flow from keyframe kf to a frame (seed: predicted flows both ways, or None) and
-        the frame's pose aligned to it from T0: (kf, T, flows fwd, bwd, confidences cf, cb,
-        seeded), or None when the flow or the alignment is not to be trusted
-        (``last_failure`` says why)."""
+        the frame's pose aligned to it from T0, or None when the flow or the alignment is not
+        to be trusted (``last_failure`` says why)."""
         s = self.state
         cfg = s.cfg
         fwd, bwd, cf, cb = fl.flow_pair(s.graph.gray[kf], gray, cfg.flow, *(seed or (None, None)))
@@ -215,7 +232,7 @@ class Tracker:
             s.last_failure = f"inlier fraction {inl:.2f} < {cfg.lost_inlier}"
             return None
         s.last_inlier = inl
-        return kf, T, fwd, bwd, cf, cb, seed is not None
+        return Alignment(kf, T, fwd, bwd, cf, cb, seed is not None, target, weight)
 
     def _promote_previous(self, index: int) -> bool:
         """Make the previous frame a keyframe when it tracked (and is not one already)."""
