@@ -95,15 +95,17 @@ def test_frames_posed_later_are_chosen_as_the_rule_would_have_in_order():
     # motion, as if they had been posed while tracked; a frame without a pose is left out.
     poses = _walk(np.full(80, 0.011))
     poses[41] = np.nan
-    taken, by_gap = select_later(poses, np.full(80, 2.0), 0.02, 2.0)
+    asked = []
+    taken, by_gap = select_later(poses, lambda k: asked.append(k) or 2.0, 0.02, 2.0)
     live = MotionSelector(motion=0.02, rotation=2.0)
     expected = np.array([live(p, 2.0) for p in poses])
     assert np.array_equal(taken, expected) and not taken[41] and by_gap == 0
     assert taken[0] and 18 <= taken.sum() <= 21
+    assert asked == np.flatnonzero(taken).tolist()  # the depth of the frames taken alone
     # The floor and a step apply as while tracking; a still camera gets the floor's frames.
-    still, by_gap = select_later(np.repeat(np.eye(4)[None], 80, 0), np.full(80, 2.0), 0.02, 2.0,
+    still, by_gap = select_later(np.repeat(np.eye(4)[None], 80, 0), lambda k: 2.0, 0.02, 2.0,
                                  max_gap=depth_gap(80, 30))
     assert np.all(np.diff(np.flatnonzero(still)) == 2) and by_gap == still.sum() - 1
-    every_third, _ = select_later(poses, np.full(80, 2.0), 0.02, 2.0, step=3)
+    every_third, _ = select_later(poses, lambda k: 2.0, 0.02, 2.0, step=3)
     assert np.array_equal(np.flatnonzero(every_third), np.arange(0, 80, 3))
-    assert select_later(np.zeros((0, 4, 4)), np.zeros(0), 0.02, 2.0)[0].shape == (0,)
+    assert select_later(np.zeros((0, 4, 4)), lambda k: 2.0, 0.02, 2.0)[0].shape == (0,)

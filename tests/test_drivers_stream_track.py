@@ -127,13 +127,21 @@ def test_frames_tracked_before_they_had_a_pose_are_chosen_at_close():
     # (taken while tracked, no pose yet), the rest were chosen on their live poses.
     poses = np.repeat(np.eye(4)[None], 100, axis=0)
     poses[:, 0, 3] = np.cumsum(np.full(100, 0.011))
+    # Their prior is made for the frames chosen, and kept in the store.
+    from recon.priors.base import PriorOutput
+
     loop = stream_track._TrackLoop.__new__(stream_track._TrackLoop)
     loop.select = stream_track.MotionSelector(0.02, 2.0, max_gap=stream_track.depth_gap(100, 10))
-    loop.unposed = {position: 2.0 for position in range(60)}
+    loop.unposed = list(range(60))
     loop.chosen = [True] * 60 + [loop.select(pose, 2.0) for pose in poses[60:]]
+    made, kept = [], []
+    flat = PriorOutput(np.full((1, 8, 8), 2.0, np.float32), "metric")
+    loop._frame_prior = lambda position: made.append(int(position)) or flat
+    loop._keep_prior = lambda position, depth, features: kept.append(int(position))
     chosen, by_gap = loop._choose_unposed(poses)
     assert np.array_equal(np.flatnonzero(chosen[:60]), np.arange(0, 60, 4))  # by motion, as if posed
     assert np.array_equal(chosen[60:], loop.chosen[60:]) and by_gap == 0
+    assert sorted(set(made)) == kept == list(range(0, 60, 4))
     # Without a frame waiting, the choice is the one made while tracking.
-    loop.unposed = {}
+    loop.unposed = []
     assert np.array_equal(loop._choose_unposed(poses)[0], loop.chosen)

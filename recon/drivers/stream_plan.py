@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -43,10 +44,11 @@ class MotionSelector:
     _last_position: int = 0
     _count: int = 0
 
-    def __call__(self, pose: np.ndarray, median_depth: float | None = None) -> bool:
+    def __call__(self, pose: np.ndarray, median_depth: float | Callable[[], float] | None = None) -> bool:
         """Whether the next frame (camera-to-world ``pose``) is a depth frame; median_depth:
-        its prior's median depth in metres, which becomes the scale when it is taken (None:
-        not known yet, set ``depth`` once it is)."""
+        its prior's median depth in metres, which becomes the scale when it is taken, or a
+        function that gives it, called only then (None: not known yet, set ``depth`` once it
+        is)."""
         position, self._count = self._count, self._count + 1
         if self.step is not None:
             return position % self.step == 0
@@ -63,26 +65,29 @@ class MotionSelector:
                 take, self.by_gap = True, self.by_gap + 1
         if take:
             self._last_pose, self._last_position = pose, position
+            if callable(median_depth):
+                median_depth = median_depth()
             if median_depth is not None and median_depth > 0:
                 self.depth = float(median_depth)
         return take
 
 
-def select_later(poses: np.ndarray, median_depths: np.ndarray, motion: float, rotation: float,
+def select_later(poses: np.ndarray, median_depth: Callable[[int], float], motion: float, rotation: float,
                  step: int | None = None, max_gap: int | None = None) -> tuple[np.ndarray, int]:
     """The depth frames among frames whose poses came after them, chosen as MotionSelector
     would have chosen them in order (frames the front end buffered for its focal search).
 
     Args:
         poses: (N, 4, 4) camera-to-world, in order (NaN: no pose, not taken).
-        median_depths: (N,) the prior's median depth of each frame in metres.
+        median_depth: median_depth(k), the prior's median depth of the k-th frame in metres;
+            asked for the frames taken only.
         motion, rotation, step, max_gap: as MotionSelector.
 
     Returns:
         ((N,) bool: the frames taken, the number taken for max_gap alone).
     """
     select = MotionSelector(motion, rotation, step, max_gap=max_gap)
-    taken = np.array([select(pose, float(depth)) for pose, depth in zip(poses, median_depths)], bool)
+    taken = np.array([select(pose, lambda k=k: median_depth(k)) for k, pose in enumerate(poses)], bool)
     return taken, select.by_gap
 
 

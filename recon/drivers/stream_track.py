@@ -1,11 +1,13 @@
 """The streamed pipeline's first pass (:mod:`recon.drivers.streamed`): decode, prior, track.
 
-Frames are decoded in order, given their prior in batches of PRIOR_BATCH and tracked one at
-a time (:class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given poses), each
-parked in a :class:`~recon.io.frame_store.FrameStore`; the depth frames
+Frames are decoded in order, PRIOR_BATCH at a time, and tracked one at a time
+(:class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given poses), each parked
+in a :class:`~recon.io.frame_store.FrameStore`; the depth frames
 (:class:`recon.drivers.stream_plan.MotionSelector`; given poses: at their scale, searched on
-the first frames) with their prior and features. At the end the estimate is closed and
-passes the quality gate as in a one-shot run; the depth pass gets a :class:`TrackedVideo`.
+the first frames) with their prior and features. Only the frames that need a prior get one:
+the depth frames and, with estimated poses, the front end's keyframes (which it asks for).
+At the end the estimate is closed and passes the quality gate as in a one-shot run; the
+depth pass gets a :class:`TrackedVideo`.
 More: docs/running.md#how-a-streamed-run-works
 """
 
@@ -34,12 +36,13 @@ from ..errors import ReconInputError
 from ..io.frame_store import FrameStore
 from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
+from ..priors.base import PriorOutput, concat_outputs
 from .segments import estimator_options
 from .stream_plan import MotionSelector, depth_gap, parse_depth_frames, select_later
 
 log = logging.getLogger(__name__)
 
-# Frames given their prior at once (FastDepth runs faster on a batch than frame by frame).
+# Frames decoded at once; with given poses, the depth frames among them get their prior at once.
 PRIOR_BATCH = 8
 # Given poses: the first frames, held back until the prior's scale against the poses is known.
 SCALE_PROBE_FRAMES = 32
@@ -106,7 +109,11 @@ class _TrackLoop:
         self.prior = prior_function(source, config.prior, path=config.prior_path, weights=config.weights,
                                     features=config.features and config.adjust, align=config.prior_align,
                                     device=config.device, progress=False)
-        self.poser = _Poser(config, source, plan, self.intrinsics, store)
+        # Estimated poses: each frame's prior, made when first asked for (by the front end for a
+        # keyframe, or for a depth frame), kept for the recent frames (_frame_prior).
+        self.priors: dict[int, PriorOutput] = {}
+        self._batch: Sequence | None = None  # the batch being added
+        self.poser = _Poser(config, source, plan, self.intrinsics, store, self._front_end_prior)
         if plan.polishes(config):
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
                         "once); MEDeA and the refinement use the poses as given")
@@ -118,9 +125,9 @@ class _TrackLoop:
                                      parse_depth_frames(config.depth_frames),
                                      max_gap=depth_gap(source.count, config.depth_frames_min))
         # Frames the front end had no pose for yet (its focal search buffers the first ones):
-        # position -> the prior's median depth; taken for now (the store keeps their colour
-        # and prior), the motion rule chooses among them once close() has their poses.
-        self.unposed: dict[int, float] = {}
+        # their positions; the store keeps their colour, and the motion rule chooses among
+        # them once close() has their poses.
+        self.unposed: list[int] = []
         self.names_of = _frame_namer(source)
         self.indices, self.stamps, self.names, self.live, self.chosen, self.sample = [], [], [], [], [], []
         self.prior_info, self.feature_shape = {}, None
@@ -155,7 +162,7 @@ class _TrackLoop:
         positions = np.arange(len(self.indices), len(self.indices) + len(seq))
         seq = seq.with_(names=self.names_of(seq.indices, positions), intrinsics=self.intrinsics)
         with self.clock.stage("poses"):
-            poses = self.poser.batch(positions, seq, None)
+            poses = self.poser.batch(positions, seq)
         posed = np.flatnonzero(np.isfinite(poses).all(axis=(1, 2)))
         out = self._prior(seq.take(posed), positions[posed]) if len(posed) else None
         if len(posed) >= 2:
@@ -177,25 +184,31 @@ class _TrackLoop:
         its frames as (PriorOutput, their rows in the batch)."""
         positions = np.arange(len(self.indices), len(self.indices) + len(batch))
         batch = batch.with_(names=self.names_of(batch.indices, positions), intrinsics=self.intrinsics)
+        self.indices += [int(i) for i in batch.indices]
+        self.stamps += [float(t) for t in batch.timestamps]
+        self.names += list(batch.names)
         if self.poser.estimating:
-            # The front end needs every frame's prior; the depth frames are chosen on its
-            # live poses. A frame without a pose yet (the focal search still buffering)
-            # keeps its prior until close() judges it (self.unposed).
-            out = self._prior(batch, positions)
+            # The depth frames are chosen on the front end's live poses; the prior is made
+            # for the frames taken (and the keyframes the front end asks for). A frame
+            # without a pose yet (the focal search still buffering) waits for close()
+            # (self.unposed); the store keeps its colour until then.
+            self._batch = batch
             with self.clock.stage("poses"):
-                poses = self.poser.batch(positions, batch, out.depth)
+                poses = self.poser.batch(positions, batch)
             take = np.ones(len(batch), bool)
             for k, pose in enumerate(poses):
-                depth = _median_depth(out.depth[k])
                 if np.isfinite(pose).all():
-                    take[k] = self.select(pose, depth)
+                    take[k] = self.select(pose, lambda k=k: _median_depth(self._frame_prior(positions[k]).depth[0]))
                 else:
-                    self.unposed[int(positions[k])] = depth
-            rows = np.arange(len(batch))
+                    self.unposed.append(int(positions[k]))
+            rows = np.flatnonzero(take & np.isfinite(poses).all(axis=(1, 2)))
+            out = concat_outputs([self._frame_prior(positions[k]) for k in rows]) if len(rows) else None
+            for old in [p for p in self.priors if p < positions[0] - 2 * PRIOR_BATCH]:
+                del self.priors[old]  # the front end asks for a frame's prior up to one frame later
         else:
             # Given poses: only the depth frames need a prior.
             with self.clock.stage("poses"):
-                poses = self.poser.batch(positions, batch, None)
+                poses = self.poser.batch(positions, batch)
             take = np.array([self.select(pose) for pose in poses], bool)
             with self.clock.stage("poses"):
                 self._check(batch, poses)
@@ -212,13 +225,7 @@ class _TrackLoop:
                 elif self.poser.estimating:
                     self.store.put(position, grey=self.poser.frontend.finish_image(batch.rgb[k]))
             for row, k in enumerate(rows):
-                if take[k]:
-                    self.store.put(positions[k], prior=out.depth[row],
-                                   features=None if out.features is None else out.features[row])
-                    self.sample.append(out.depth[row][::_SAMPLE_STEP, ::_SAMPLE_STEP].ravel())
-        self.indices += [int(i) for i in batch.indices]
-        self.stamps += [float(t) for t in batch.timestamps]
-        self.names += list(batch.names)
+                self._keep_prior(positions[k], out.depth[row], None if out.features is None else out.features[row])
         self.live += list(poses)
         self.chosen += list(take)
         self._log(batch, poses)
@@ -236,6 +243,29 @@ class _TrackLoop:
         held, held_rows = ready
         at = np.searchsorted(held_rows, rows)
         return replace(held, depth=held.depth[at], features=None if held.features is None else held.features[at])
+
+    def _keep_prior(self, position: int, depth: np.ndarray, features: np.ndarray | None) -> None:
+        """Park a depth frame's prior (and features) in the store, and sample its depth."""
+        self.store.put(position, prior=depth, features=features)
+        self.sample.append(depth[::_SAMPLE_STEP, ::_SAMPLE_STEP].ravel())
+
+    def _frame_prior(self, position: int, rgb: np.ndarray | None = None):
+        """The prior (PriorOutput of one frame) of the frame at ``position``, made once while
+        recent: its colour ``rgb`` (H, W, 3), else the current batch's frame, else the one in
+        the store."""
+        position = int(position)
+        if position not in self.priors:
+            if rgb is None:
+                first = len(self.indices) - (0 if self._batch is None else len(self._batch))
+                rgb = self._batch.rgb[position - first] if position >= first else self.store.get(position, "rgb")
+            one = Sequence(np.array([self.indices[position]], np.int64), np.array([self.stamps[position]]), rgb[None],
+                           [self.names[position]], self.intrinsics)
+            self.priors[position] = self._prior(one, np.array([position]))
+        return self.priors[position]
+
+    def _front_end_prior(self, position: int, frame: np.ndarray) -> np.ndarray:
+        """The prior depth (H, W) the front end asks for (a keyframe's, of the frame it gives)."""
+        return self._frame_prior(position, frame).depth[0]
 
     def _check(self, batch: Sequence | None, poses: np.ndarray | None) -> None:
         """Collect the first frames with given poses; judge them once there are enough (or,
@@ -323,9 +353,12 @@ class _TrackLoop:
         chosen = np.asarray(self.chosen, bool).copy()
         if not self.unposed:
             return chosen, self.select.by_gap
-        later = np.fromiter(self.unposed, np.int64, len(self.unposed))
-        taken, by_gap = select_later(poses[later], np.fromiter(self.unposed.values(), np.float64, len(later)),
+        later = np.asarray(self.unposed, np.int64)
+        taken, by_gap = select_later(poses[later], lambda k: _median_depth(self._frame_prior(later[k]).depth[0]),
                                      self.select.motion, self.select.rotation, self.select.step, self.select.max_gap)
+        for position in later[taken]:  # their prior is made now
+            out = self._frame_prior(position)
+            self._keep_prior(position, out.depth[0], None if out.features is None else out.features[0])
         chosen[later] = taken
         return chosen, self.select.by_gap + by_gap
 
@@ -357,13 +390,13 @@ class _Poser:
     """Poses frame by frame during tracking: the streaming front end, the dataset's ground
     truth or a pose file, then closed once every frame is in."""
 
-    def __init__(self, config: PipelineConfig, source: FrameSource, plan: PosePlan, intrinsics, store: FrameStore):
+    def __init__(self, config: PipelineConfig, source: FrameSource, plan: PosePlan, intrinsics, store: FrameStore,
+                 prior: Callable[[int, np.ndarray], np.ndarray]):
         self.plan, self.source, self.config, self.store = plan, source, config, store
         self.estimating = plan.estimated
         self.intrinsics = intrinsics
         self.file_intrinsics = None
         self.frontend = None
-        self.recent_prior: dict[int, np.ndarray] = {}
         # Position -> the video's frame number, for what tracking says (recon.poses.result.FrameNumbers).
         self.frame_number: dict[int, int] = {}
         if self.estimating:
@@ -376,17 +409,10 @@ class _Poser:
             options = estimator_options(config, frontend_only=True)
             self.frontend_config = _frontend_config(options, config.device)
             # Tracking parks what the filler needs again of each frame in the store, on disk.
-            self.frontend = streaming_frontend(intrinsics, self._prior, self.frontend_config,
+            self.frontend = streaming_frontend(intrinsics, prior, self.frontend_config,
                                                self.frame_number.__getitem__, store)
 
-    def _prior(self, position: int, frame) -> np.ndarray:
-        # Recent frames from memory; older ones (frames buffered for the focal search,
-        # which have no pose yet and so keep their prior) from the store.
-        if position in self.recent_prior:
-            return self.recent_prior[position]
-        return self.store.get(position, "prior")
-
-    def batch(self, positions, seq: Sequence, prior_depth: np.ndarray) -> np.ndarray:
+    def batch(self, positions, seq: Sequence) -> np.ndarray:
         """(B, 4, 4) camera-to-world poses of a batch as known now (NaN where none)."""
         if self.plan.kind == "gt":
             return np.asarray(self.source.poses[positions], np.float64)
@@ -395,14 +421,9 @@ class _Poser:
             return np.asarray(poses, np.float64)
         out = []
         for k, position in enumerate(positions):
-            self.recent_prior[int(position)] = prior_depth[k]
             self.frame_number[int(position)] = int(seq.indices[k])
             _, pose = self.frontend.add(int(position), seq.rgb[k])
             out.append(np.full((4, 4), np.nan) if pose is None else pose)
-        # The tracker asks for a frame's prior when it tracks it or promotes it to a
-        # keyframe one frame later: a short history is enough.
-        for old in [p for p in self.recent_prior if p < positions[0] - 2 * PRIOR_BATCH]:
-            del self.recent_prior[old]
         return np.asarray(out, np.float64)
 
     def close(self, store: FrameStore, indices, live: np.ndarray) -> tuple[PoseStage, str]:
