@@ -11,8 +11,6 @@ More: docs/depth.md#how-the-refinement-works
 
 from __future__ import annotations
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -22,9 +20,7 @@ from medea_core.geometry import intrinsics_matrix, pixel_grid
 def box_mean(maps: torch.Tensor, radius: int) -> torch.Tensor:
     """Mean over (2 radius + 1)^2 windows, borders replicated (so that the image edge is no texture).
 
-    The cost does not grow with the window: OpenCV's running-sum box filter on the CPU
-    (float32 without gradients: 2x faster than the integral images, and as exact), integral
-    images elsewhere.
+    Computed by integral images: the cost does not grow with the window.
 
     Args:
         maps: (..., H, W) maps.
@@ -33,8 +29,6 @@ def box_mean(maps: torch.Tensor, radius: int) -> torch.Tensor:
     Returns:
         (..., H, W) window means.
     """
-    if maps.device.type == "cpu" and maps.dtype == torch.float32 and not maps.requires_grad:
-        return _box_mean_opencv(maps, radius)
     k = 2 * radius + 1
     shape = maps.shape
     padded = F.pad(maps.reshape(-1, 1, *shape[-2:]), (radius, radius, radius, radius), mode="replicate")
@@ -42,16 +36,6 @@ def box_mean(maps: torch.Tensor, radius: int) -> torch.Tensor:
     rows = c[..., k:] - c[..., :-k]
     c = F.pad(rows, (0, 0, 1, 0)).cumsum(-2)
     return ((c[..., k:, :] - c[..., :-k, :]) / float(k * k)).reshape(shape)
-
-
-def _box_mean_opencv(maps: torch.Tensor, radius: int) -> torch.Tensor:
-    """box_mean of float32 maps on the CPU, one cv2.boxFilter per (H, W) map."""
-    k = 2 * radius + 1
-    flat = maps.detach().reshape(-1, *maps.shape[-2:]).contiguous().numpy()
-    out = np.empty_like(flat)
-    for plane, mean in zip(flat, out):
-        cv2.boxFilter(plane, -1, (k, k), dst=mean, normalize=True, borderType=cv2.BORDER_REPLICATE)
-    return torch.from_numpy(out).reshape(maps.shape)
 
 
 def patch_statistics(grey: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -162,19 +162,3 @@ def test_frames_swept_before_are_sources_only_and_give_the_same_answer():
     assert float(tail.reconstructed.float().mean()) > 0.3
     with pytest.raises(ValueError, match="known swept depth"):
         refine_depth(*args, known=full.swept)
-
-
-def test_the_box_filter_is_the_same_mean_on_either_path():
-    """box_mean on float32 CPU maps (OpenCV's box filter) against the integral images (the
-    path other devices and dtypes take, here float64): the same window means, borders
-    replicated, to float32's precision."""
-    from mvs_core.sweep import box_mean
-
-    maps = torch.rand(3, 2, 17, 23, generator=torch.Generator().manual_seed(0))
-    fast, exact = box_mean(maps, 3), box_mean(maps.double(), 3)
-    assert fast.dtype == torch.float32 and fast.shape == maps.shape
-    torch.testing.assert_close(fast.double(), exact, atol=1e-6, rtol=0)
-    # The corner's window holds the corner pixel 16 times (replicated borders) and its row and column 4 times.
-    corner = (16 * maps[..., 0, 0] + 4 * maps[..., 0, 1:4].sum(-1) + 4 * maps[..., 1:4, 0].sum(-1)
-              + maps[..., 1:4, 1:4].sum((-1, -2))) / 49
-    torch.testing.assert_close(fast[..., 0, 0], corner, atol=1e-6, rtol=0)
