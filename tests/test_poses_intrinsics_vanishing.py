@@ -85,6 +85,28 @@ def test_wide_frames_are_measured_downscaled():
     assert abs(estimate.focal / 1000.0 - 1.0) < 0.02, estimate.focal
 
 
+def test_the_edge_regions_found_once_serve_the_lens_and_the_vanishing_points_alike():
+    """The regions the front end finds once (plumb_line.sample_regions) give the lens and the
+    focal length each estimator finds on its own, to the bit; made for other frame settings,
+    they are not used."""
+    from dataclasses import replace
+
+    from recon.poses.intrinsics.plumb_line import PlumbLineConfig, sample_regions
+
+    focal, k1 = 500.0, -0.08
+    intr = (focal, focal, (WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0)
+    recorded = list(distort_images(_room_frames(focal, 12, seed=1), intr, k1))
+    cfg, vp_cfg = PlumbLineConfig(), VanishingConfig(min_frames=4)
+    regions = sample_regions(recorded, cfg, cfg.max_frames, cfg.max_width)
+    lens, shared_lens = estimate_lens(recorded), estimate_lens(recorded, cfg, regions)
+    assert shared_lens == lens and lens.trusted
+    alone, shared = estimate_focal_vp(recorded, lens, vp_cfg), estimate_focal_vp(recorded, lens, vp_cfg, regions)
+    assert shared == alone and shared.trusted
+    fewer = replace(vp_cfg, max_frames=6)
+    assert estimate_focal_vp(recorded, lens, fewer, regions) == estimate_focal_vp(recorded, lens, fewer)
+    assert estimate_focal_vp(recorded, lens, fewer).frames == 6
+
+
 def test_through_the_lens_from_straight_edges():
     """Recorded through a barrel lens, the segments bend; undistorted with the lens the
     straight edges give, the focal length is found again within 2 %."""

@@ -230,14 +230,17 @@ class StreamingFrontend:
         """Focal search on the buffered first frames, then track them."""
         frames, self._pending = self._pending, []
         height, width = frames[0].shape[:2]
-        lens = None
+        lens, regions = None, None
         if self.cfg.plumb_line and self.cfg.calibrate_lens and self.cfg.lens_k1 == 0.0:
-            lens = plumb_line.estimate_lens(frames)
+            # The straight edges' regions, found once for the lens and the vanishing points.
+            edges = plumb_line.PlumbLineConfig()
+            regions = plumb_line.sample_regions(frames, edges, edges.max_frames, edges.max_width)
+            lens = plumb_line.estimate_lens(frames, edges, regions)
             self.diagnostics["plumb_line"] = lens.to_dict()
             lens = lens if lens.trusted else None
         vp = None
         if self.cfg.vanishing_points:
-            vp = vanishing.estimate_focal_vp(frames, lens)
+            vp = vanishing.estimate_focal_vp(frames, lens, regions=regions)
             self.diagnostics["vanishing_points"] = vp.to_dict()
         search = None
         if not agreed_on(vp, self.cfg):

@@ -92,9 +92,36 @@ def sample_grays(frames, max_frames: int, max_width: int) -> tuple[list[np.ndarr
     return grays, scale
 
 
-def line_support(gray: np.ndarray, cfg: PlumbLineConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel edge points (P, 2) (x, y) of a grey frame (H, W) uint8 and their region ids
-    (P,) int64, 0..regions-1; only regions at least ``cfg.min_length`` x W long."""
+@dataclass(frozen=True)
+class EdgeRegions:
+    """The edge pixels of one grey frame grouped into regions, before the length filter of
+    :func:`line_support`: per gradient-direction bin (8 bins, at two offsets) the sub-pixel
+    edge points (n, 2) (x, y), their connected-component label (n,) (0: none) and every
+    label's extent in pixels (L,). width: the frame's width."""
+
+    width: int
+    bins: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+
+
+@dataclass(frozen=True)
+class SampledRegions:
+    """``edge_regions`` of the frames ``sample_grays`` picks for (max_frames, max_width), with
+    that downscale and the grey frames' shape (H', W'): made once, read by
+    :func:`estimate_lens` and ``vanishing.estimate_focal_vp`` when their settings match."""
+
+    regions: tuple[EdgeRegions, ...]
+    scale: float
+    shape: tuple[int, int]
+    max_frames: int
+    max_width: int
+
+    def serves(self, max_frames: int, max_width: int) -> bool:
+        return (self.max_frames, self.max_width) == (max_frames, max_width)
+
+
+def edge_regions(gray: np.ndarray, cfg: PlumbLineConfig) -> EdgeRegions:
+    """Sub-pixel edge points of a grey frame (H, W) uint8 grouped into connected regions of
+    like gradient direction (cfg: blur_sigma, canny_low, canny_high)."""
     height, width = gray.shape
     g = cv2.GaussianBlur(gray, (0, 0), cfg.blur_sigma).astype(np.float32)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
@@ -117,30 +144,52 @@ def line_support(gray: np.ndarray, cfg: PlumbLineConfig) -> tuple[np.ndarray, np
 
     bins = 8
     angle = np.mod(np.arctan2(ny, nx), np.pi) / (np.pi / bins)
-    min_extent = cfg.min_length * width
-    all_points, all_ids, count = [], [], 0
+    found = []
     for offset in (0.0, 0.5):
         label_of_bin = np.floor(angle + offset).astype(np.int64) % bins
         for b in range(bins):
             sel = label_of_bin == b
             mask = np.zeros((height, width), np.uint8)
             mask[ys[sel], xs[sel]] = 1
-            n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
             extent = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-            keep = np.nonzero(extent >= min_extent)[0]
-            keep = keep[keep > 0]  # label 0 is the background
-            if len(keep) == 0:
-                continue
-            region = np.full(n, -1, dtype=np.int64)
-            region[keep] = np.arange(len(keep)) + count
-            ids = region[labels[ys[sel], xs[sel]]]
-            inside = ids >= 0
-            all_points.append(points[sel][inside])
-            all_ids.append(ids[inside])
-            count += len(keep)
+            found.append((points[sel], labels[ys[sel], xs[sel]], extent))
+    return EdgeRegions(width, tuple(found))
+
+
+def regions_longer(regions: EdgeRegions, min_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """The edge points (P, 2) (x, y) of the regions at least ``min_length`` x W long and their
+    region ids (P,) int64, 0..regions-1 (``line_support``)."""
+    min_extent = min_length * regions.width
+    all_points, all_ids, count = [], [], 0
+    for points, labels, extent in regions.bins:
+        keep = np.nonzero(extent >= min_extent)[0]
+        keep = keep[keep > 0]  # label 0 is the background
+        if len(keep) == 0:
+            continue
+        region = np.full(len(extent), -1, dtype=np.int64)
+        region[keep] = np.arange(len(keep)) + count
+        ids = region[labels]
+        inside = ids >= 0
+        all_points.append(points[inside])
+        all_ids.append(ids[inside])
+        count += len(keep)
     if not all_points:
         return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     return np.concatenate(all_points), np.concatenate(all_ids)
+
+
+def line_support(gray: np.ndarray, cfg: PlumbLineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel edge points (P, 2) (x, y) of a grey frame (H, W) uint8 and their region ids
+    (P,) int64, 0..regions-1; only regions at least ``cfg.min_length`` x W long."""
+    return regions_longer(edge_regions(gray, cfg), cfg.min_length)
+
+
+def sample_regions(frames, cfg: PlumbLineConfig, max_frames: int, max_width: int) -> SampledRegions:
+    """``edge_regions`` (cfg's edge settings) of the frames (list of (H, W, 3) uint8 RGB)
+    ``sample_grays`` picks for max_frames and max_width."""
+    grays, scale = sample_grays(frames, max_frames, max_width)
+    return SampledRegions(tuple(edge_regions(g, cfg) for g in grays), scale, grays[0].shape, max_frames, max_width)
 
 
 def line_rms(points: torch.Tensor, ids: torch.Tensor, centre: tuple[float, float], half_diagonal: float,
@@ -168,18 +217,21 @@ def line_rms(points: torch.Tensor, ids: torch.Tensor, centre: tuple[float, float
     return torch.stack(rms, 1)
 
 
-def estimate_lens(frames, cfg: PlumbLineConfig | None = None) -> LensEstimate:
+def estimate_lens(frames, cfg: PlumbLineConfig | None = None, regions: SampledRegions | None = None) -> LensEstimate:
     """The radial lens of frames (list of (H, W, 3) uint8 RGB, one camera) from their straight
-    edges, principal point at the image centre. An untrusted estimate has corner_shift 0."""
+    edges, principal point at the image centre. An untrusted estimate has corner_shift 0.
+    regions: the frames' ``sample_regions`` with cfg's edge settings, made once for this and
+    the vanishing points (None, or made for other frame settings: made here)."""
     cfg = cfg or PlumbLineConfig()
     height, width = frames[0].shape[:2]
     half_diagonal = 0.5 * float(np.hypot(width - 1, height - 1))
-    grays, _ = sample_grays(frames, cfg.max_frames, cfg.max_width)
-    size = grays[0].shape[::-1]
+    if regions is None or not regions.serves(cfg.max_frames, cfg.max_width):
+        regions = sample_regions(frames, cfg, cfg.max_frames, cfg.max_width)
+    size = regions.shape[::-1]
     centre = ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0)
     points, ids, count = [], [], 0
-    for gray in grays:
-        p, r = line_support(gray, cfg)
+    for frame_regions in regions.regions:
+        p, r = regions_longer(frame_regions, cfg.min_length)
         points.append(p)
         ids.append(r + count)
         count += int(r.max()) + 1 if len(r) else 0
@@ -204,4 +256,5 @@ def estimate_lens(frames, cfg: PlumbLineConfig | None = None) -> LensEstimate:
     return LensEstimate(float(vertex), half_diagonal, regions, True, scores.tolist())
 
 
-__all__ = ["LensEstimate", "PlumbLineConfig", "estimate_lens", "line_rms", "line_support", "sample_grays"]
+__all__ = ["EdgeRegions", "LensEstimate", "PlumbLineConfig", "SampledRegions", "edge_regions", "estimate_lens",
+           "line_rms", "line_support", "regions_longer", "sample_grays", "sample_regions"]

@@ -13,7 +13,7 @@ More: docs/poses.md#vanishing-points
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -84,13 +84,15 @@ def candidate_focals(width: int, cfg: VanishingConfig) -> np.ndarray:
     return np.exp(np.linspace(math.log(wide), math.log(narrow), cfg.candidates))
 
 
-def line_segments(gray: np.ndarray, corner_shift: float, cfg: VanishingConfig) -> tuple[np.ndarray, ...]:
-    """Straight segments of a grey frame (H, W) uint8 seen through a lens of relative corner
-    shift `corner_shift` (``plumb_line.LensEstimate``): lines (S, 3) (a, b, c) with a x + b y
-    + c = 0 and (a, b) a unit normal, centres (S, 2) (the mean of a segment's points) and
-    lengths (S,), in undistorted pixels about the image centre."""
-    height, width = gray.shape
-    points, ids = pl.line_support(gray, replace(pl.PlumbLineConfig(), min_length=cfg.min_length))
+def line_segments(regions: pl.EdgeRegions, shape: tuple[int, int], corner_shift: float,
+                  cfg: VanishingConfig) -> tuple[np.ndarray, ...]:
+    """Straight segments of a grey frame of shape (H, W) (its ``plumb_line.edge_regions``)
+    seen through a lens of relative corner shift `corner_shift` (``plumb_line.LensEstimate``):
+    lines (S, 3) (a, b, c) with a x + b y + c = 0 and (a, b) a unit normal, centres (S, 2)
+    (the mean of a segment's points) and lengths (S,), in undistorted pixels about the image
+    centre."""
+    height, width = shape
+    points, ids = pl.regions_longer(regions, cfg.min_length)
     if len(ids) == 0:
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
     centre = ((width - 1) / 2.0, (height - 1) / 2.0)
@@ -188,19 +190,23 @@ def agreeing_group(values: np.ndarray, agree: float) -> np.ndarray:
     return close[int(close.sum(1).argmax())]
 
 
-def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None,
-                      cfg: VanishingConfig | None = None) -> VanishingFocal:
+def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None, cfg: VanishingConfig | None = None,
+                      regions: pl.SampledRegions | None = None) -> VanishingFocal:
     """The focal length (pixels, principal point at the centre) of frames (list of (H, W, 3)
     uint8 RGB, one camera) from their vanishing points; `lens`: measured from straight
-    edges (None or untrusted: a pinhole camera)."""
+    edges (None or untrusted: a pinhole camera). regions: the frames' edge regions
+    (``plumb_line.sample_regions`` with the plumb line's default edge settings), made once
+    for this and the lens (None, or made for other frame settings: made here)."""
     cfg = cfg or VanishingConfig()
-    grays, scale = pl.sample_grays(frames, cfg.max_frames, cfg.max_width)
+    if regions is None or not regions.serves(cfg.max_frames, cfg.max_width):
+        regions = pl.sample_regions(frames, pl.PlumbLineConfig(), cfg.max_frames, cfg.max_width)
+    scale = regions.scale
     corner_shift = lens.corner_shift if lens is not None and lens.trusted else 0.0
-    focals = candidate_focals(grays[0].shape[1], cfg)
+    focals = candidate_focals(regions.shape[1], cfg)
     rng = np.random.default_rng(cfg.seed)
     peaks = []
-    for gray in grays:
-        lines, centres, lengths = line_segments(gray, corner_shift, cfg)
+    for frame_regions in regions.regions:
+        lines, centres, lengths = line_segments(frame_regions, regions.shape, corner_shift, cfg)
         if len(lines) < 3:
             continue
         triples = rng.integers(0, len(lines), (cfg.triads, 3))
@@ -213,13 +219,13 @@ def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None,
         if peak is not None:
             peaks.append(peak)
     if not peaks:
-        return VanishingFocal(0.0, 0.0, 0, 0, len(grays), False)
+        return VanishingFocal(0.0, 0.0, 0, 0, len(regions.regions), False)
     peaks = np.asarray(peaks)
     group = agreeing_group(peaks, cfg.agree)
-    share = float(group.sum()) / len(grays)
+    share = float(group.sum()) / len(regions.regions)
     trusted = share >= cfg.min_share and int(group.sum()) >= cfg.min_frames
-    return VanishingFocal(float(np.median(peaks[group])) / scale, share, int(group.sum()), len(peaks), len(grays),
-                          trusted)
+    return VanishingFocal(float(np.median(peaks[group])) / scale, share, int(group.sum()), len(peaks),
+                          len(regions.regions), trusted)
 
 
 __all__ = ["VanishingConfig", "VanishingFocal", "agreeing_group", "candidate_focals",
