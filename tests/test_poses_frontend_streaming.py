@@ -83,7 +83,7 @@ def _with_vanishing_focal(pose_room, caplog, monkeypatch, share_of_true: float, 
     seq, prior = pose_room
     f_vp = share_of_true * seq.intrinsics[0]
     found = vanishing.VanishingFocal(f_vp, agreeing, int(40 * agreeing), 36, 40, True)
-    monkeypatch.setattr(vanishing, "estimate_focal_vp", lambda frames, lens=None, cfg=None: found)
+    monkeypatch.setattr(vanishing, "estimate_focal_vp", lambda frames, lens=None, cfg=None, regions=None: found)
     with caplog.at_level(logging.WARNING, logger="recon"):
         res = estimate_poses(seq.rgb, prior, None, method="frontend", progress=False)
     return f_vp, res, [r.getMessage() for r in caplog.records if "focal length estimated" in r.getMessage()]

@@ -4,10 +4,9 @@ Frames are decoded in order, PRIOR_BATCH at a time, and tracked one at a time
 (:class:`recon.poses.frontend.streaming.StreamingFrontend`, or the given poses), each parked
 in a :class:`~recon.io.frame_store.FrameStore`; the depth frames
 (:class:`recon.drivers.stream_plan.MotionSelector`; given poses: at their scale, searched on
-the first frames) with their prior and features. Only the frames that need a prior get one:
-the depth frames and, with estimated poses, the front end's keyframes (which it asks for).
-At the end the estimate is closed and passes the quality gate as in a one-shot run; the
-depth pass gets a :class:`TrackedVideo`.
+the first frames) with their prior and features, the only frames with a prior besides the
+front end's keyframes. The estimate is closed and gated as in a one-shot run; the depth
+pass gets a :class:`TrackedVideo`.
 More: docs/running.md#how-a-streamed-run-works
 """
 
