@@ -111,7 +111,6 @@ class _TrackLoop:
         # Estimated poses: each frame's prior, made when first asked for (by the front end for a
         # keyframe, or for a depth frame), kept for the recent frames (_frame_prior).
         self.priors: dict[int, PriorOutput] = {}
-        self._batch: Sequence | None = None  # the batch being added
         self.poser = _Poser(config, source, plan, self.intrinsics, store, self._front_end_prior)
         if plan.polishes(config):
             log.warning("streamed runs do not polish given poses against the frames (that needs every frame at "
@@ -191,17 +190,18 @@ class _TrackLoop:
             # for the frames taken (and the keyframes the front end asks for). A frame
             # without a pose yet (the focal search still buffering) waits for close()
             # (self.unposed); the store keeps its colour until then.
-            self._batch = batch
             with self.clock.stage("poses"):
                 poses = self.poser.batch(positions, batch)
+            posed = np.isfinite(poses).all(axis=(1, 2))
             take = np.ones(len(batch), bool)
-            for k, pose in enumerate(poses):
-                if np.isfinite(pose).all():
-                    take[k] = self.select(pose, lambda k=k: _median_depth(self._frame_prior(positions[k]).depth[0]))
+            for k in range(len(batch)):
+                if posed[k]:
+                    take[k] = self.select(poses[k], lambda k=k: _median_depth(
+                        self._frame_prior(positions[k], batch.rgb[k]).depth[0]))
                 else:
                     self.unposed.append(int(positions[k]))
-            rows = np.flatnonzero(take & np.isfinite(poses).all(axis=(1, 2)))
-            out = concat_outputs([self._frame_prior(positions[k]) for k in rows]) if len(rows) else None
+            rows = np.flatnonzero(take & posed)
+            out = concat_outputs([self._frame_prior(positions[k], batch.rgb[k]) for k in rows]) if len(rows) else None
             for old in [p for p in self.priors if p < positions[0] - 2 * PRIOR_BATCH]:
                 del self.priors[old]  # the front end asks for a frame's prior up to one frame later
         else:
@@ -250,13 +250,10 @@ class _TrackLoop:
 
     def _frame_prior(self, position: int, rgb: np.ndarray | None = None):
         """The prior (PriorOutput of one frame) of the frame at ``position``, made once while
-        recent: its colour ``rgb`` (H, W, 3), else the current batch's frame, else the one in
-        the store."""
+        recent, of its colour ``rgb`` (H, W, 3), or of the one in the store (None)."""
         position = int(position)
         if position not in self.priors:
-            if rgb is None:
-                first = len(self.indices) - (0 if self._batch is None else len(self._batch))
-                rgb = self._batch.rgb[position - first] if position >= first else self.store.get(position, "rgb")
+            rgb = self.store.get(position, "rgb") if rgb is None else rgb
             one = Sequence(np.array([self.indices[position]], np.int64), np.array([self.stamps[position]]), rgb[None],
                            [self.names[position]], self.intrinsics)
             self.priors[position] = self._prior(one, np.array([position]))
