@@ -97,26 +97,36 @@ class EdgeRegions:
     """The edge pixels of one grey frame grouped into regions, before the length filter of
     :func:`line_support`: per gradient-direction bin (8 bins, at two offsets) the sub-pixel
     edge points (n, 2) (x, y), their connected-component label (n,) (0: none) and every
-    label's extent in pixels (L,). width: the frame's width."""
+    label's extent in pixels (L,). shape: the frame's (H, W)."""
 
-    width: int
+    shape: tuple[int, int]
     bins: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
 
 
 @dataclass(frozen=True)
 class SampledRegions:
-    """``edge_regions`` of the frames ``sample_grays`` picks for (max_frames, max_width), with
-    that downscale and the grey frames' shape (H', W'): made once, read by
-    :func:`estimate_lens` and ``vanishing.estimate_focal_vp`` when their settings match."""
+    """``edge_regions`` (with ``edges``' settings) of the frames ``sample_grays`` picks for
+    (max_frames, max_width), with that downscale: made once, read by :func:`estimate_lens`
+    and ``vanishing.estimate_focal_vp`` when their settings match (``serves``)."""
 
     regions: tuple[EdgeRegions, ...]
     scale: float
-    shape: tuple[int, int]
+    edges: PlumbLineConfig
     max_frames: int
     max_width: int
 
-    def serves(self, max_frames: int, max_width: int) -> bool:
-        return (self.max_frames, self.max_width) == (max_frames, max_width)
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The grey frames' (H', W')."""
+        return self.regions[0].shape
+
+    def serves(self, edges: PlumbLineConfig, max_frames: int, max_width: int) -> bool:
+        """Whether these are the regions an estimator with these edge and frame settings finds."""
+        def edge_settings(cfg: PlumbLineConfig) -> tuple:
+            return cfg.blur_sigma, cfg.canny_low, cfg.canny_high
+
+        return (edge_settings(self.edges), self.max_frames, self.max_width) == (edge_settings(edges), max_frames,
+                                                                               max_width)
 
 
 def edge_regions(gray: np.ndarray, cfg: PlumbLineConfig) -> EdgeRegions:
@@ -154,13 +164,13 @@ def edge_regions(gray: np.ndarray, cfg: PlumbLineConfig) -> EdgeRegions:
             _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
             extent = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
             found.append((points[sel], labels[ys[sel], xs[sel]], extent))
-    return EdgeRegions(width, tuple(found))
+    return EdgeRegions((height, width), tuple(found))
 
 
 def regions_longer(regions: EdgeRegions, min_length: float) -> tuple[np.ndarray, np.ndarray]:
     """The edge points (P, 2) (x, y) of the regions at least ``min_length`` x W long and their
     region ids (P,) int64, 0..regions-1 (``line_support``)."""
-    min_extent = min_length * regions.width
+    min_extent = min_length * regions.shape[1]
     all_points, all_ids, count = [], [], 0
     for points, labels, extent in regions.bins:
         keep = np.nonzero(extent >= min_extent)[0]
@@ -189,7 +199,7 @@ def sample_regions(frames, cfg: PlumbLineConfig, max_frames: int, max_width: int
     """``edge_regions`` (cfg's edge settings) of the frames (list of (H, W, 3) uint8 RGB)
     ``sample_grays`` picks for max_frames and max_width."""
     grays, scale = sample_grays(frames, max_frames, max_width)
-    return SampledRegions(tuple(edge_regions(g, cfg) for g in grays), scale, grays[0].shape, max_frames, max_width)
+    return SampledRegions(tuple(edge_regions(g, cfg) for g in grays), scale, cfg, max_frames, max_width)
 
 
 def line_rms(points: torch.Tensor, ids: torch.Tensor, centre: tuple[float, float], half_diagonal: float,
@@ -225,7 +235,7 @@ def estimate_lens(frames, cfg: PlumbLineConfig | None = None, regions: SampledRe
     cfg = cfg or PlumbLineConfig()
     height, width = frames[0].shape[:2]
     half_diagonal = 0.5 * float(np.hypot(width - 1, height - 1))
-    if regions is None or not regions.serves(cfg.max_frames, cfg.max_width):
+    if regions is None or not regions.serves(cfg, cfg.max_frames, cfg.max_width):
         regions = sample_regions(frames, cfg, cfg.max_frames, cfg.max_width)
     size = regions.shape[::-1]
     centre = ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0)

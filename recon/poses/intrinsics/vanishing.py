@@ -84,14 +84,12 @@ def candidate_focals(width: int, cfg: VanishingConfig) -> np.ndarray:
     return np.exp(np.linspace(math.log(wide), math.log(narrow), cfg.candidates))
 
 
-def line_segments(regions: pl.EdgeRegions, shape: tuple[int, int], corner_shift: float,
-                  cfg: VanishingConfig) -> tuple[np.ndarray, ...]:
-    """Straight segments of a grey frame of shape (H, W) (its ``plumb_line.edge_regions``)
-    seen through a lens of relative corner shift `corner_shift` (``plumb_line.LensEstimate``):
-    lines (S, 3) (a, b, c) with a x + b y + c = 0 and (a, b) a unit normal, centres (S, 2)
-    (the mean of a segment's points) and lengths (S,), in undistorted pixels about the image
-    centre."""
-    height, width = shape
+def line_segments(regions: pl.EdgeRegions, corner_shift: float, cfg: VanishingConfig) -> tuple[np.ndarray, ...]:
+    """Straight segments of a grey frame (its ``plumb_line.edge_regions``) seen through a lens
+    of relative corner shift `corner_shift` (``plumb_line.LensEstimate``): lines (S, 3) (a, b,
+    c) with a x + b y + c = 0 and (a, b) a unit normal, centres (S, 2) (the mean of a segment's
+    points) and lengths (S,), in undistorted pixels about the image centre."""
+    height, width = regions.shape
     points, ids = pl.regions_longer(regions, cfg.min_length)
     if len(ids) == 0:
         return np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0)
@@ -198,15 +196,16 @@ def estimate_focal_vp(frames, lens: pl.LensEstimate | None = None, cfg: Vanishin
     (``plumb_line.sample_regions`` with the plumb line's default edge settings), made once
     for this and the lens (None, or made for other frame settings: made here)."""
     cfg = cfg or VanishingConfig()
-    if regions is None or not regions.serves(cfg.max_frames, cfg.max_width):
-        regions = pl.sample_regions(frames, pl.PlumbLineConfig(), cfg.max_frames, cfg.max_width)
+    edges = pl.PlumbLineConfig()
+    if regions is None or not regions.serves(edges, cfg.max_frames, cfg.max_width):
+        regions = pl.sample_regions(frames, edges, cfg.max_frames, cfg.max_width)
     scale = regions.scale
     corner_shift = lens.corner_shift if lens is not None and lens.trusted else 0.0
     focals = candidate_focals(regions.shape[1], cfg)
     rng = np.random.default_rng(cfg.seed)
     peaks = []
     for frame_regions in regions.regions:
-        lines, centres, lengths = line_segments(frame_regions, regions.shape, corner_shift, cfg)
+        lines, centres, lengths = line_segments(frame_regions, corner_shift, cfg)
         if len(lines) < 3:
             continue
         triples = rng.integers(0, len(lines), (cfg.triads, 3))
