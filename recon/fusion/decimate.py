@@ -4,7 +4,7 @@ vertices in each cell of a grid merged into their mean, vertex colours averaged 
 Web viewers and phone AR stall on meshes of millions of triangles. A TSDF mesh is already a
 grid surface, so a coarser grid thins it evenly. The clustering is vectorised over the whole
 mesh (Open3D's ``simplify_vertex_clustering`` builds the same mesh one vertex at a time in
-hash maps, ~1.8 s for 1.6 M triangles on one core; this takes a tenth of that).
+hash maps, ~1.8 s for 1.6 M triangles on one core; this takes about a quarter of that).
 why: docs/decisions.md#the-triangle-budget
 """
 
@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 import open3d as o3d
+
+from .volume import canonical_mesh
 
 log = logging.getLogger(__name__)
 
@@ -114,8 +116,6 @@ def within_budget(mesh: o3d.geometry.TriangleMesh, max_triangles: int) -> o3d.ge
         The mesh itself when within budget, else a thinned mesh in canonical order
         (``volume.canonical_mesh``) with vertex normals, colours clipped to [0, 1].
     """
-    from .volume import canonical_mesh
-
     if max_triangles <= 0 or len(mesh.triangles) <= max_triangles:
         return mesh
     cell = mean_edge_length(mesh) * math.sqrt(len(mesh.triangles) / max_triangles)

@@ -1,8 +1,8 @@
 """The front end's trajectory filler (DROID-SLAM's ``trajectory_filler``): once the
 keyframes are final, every other frame is aligned, motion only, against the keyframes
 before and after it (and the one tracking aligned it to, whose flow tracking parked, or
-else is made again: the state keeps no flow per frame); a frame without reliable flow to either gets the geodesic
-between them and is marked "interpolated".
+else is made again: the state keeps no flow per frame); a frame without reliable flow to
+either gets the geodesic between them and is marked "interpolated".
 
 ``align_to_keyframes`` is shared with the SfM fallback, which registers the frames COLMAP
 did not take the same way.
