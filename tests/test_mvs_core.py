@@ -17,6 +17,7 @@ from mvs_core import (
     select_winner,
     sweep_cost,
 )
+from mvs_core.sweep import mean_of_smallest
 
 from helpers import look_at, render_wall
 
@@ -85,6 +86,17 @@ def test_sweep_finds_the_wall_from_a_wrong_start():
     assert float(rel.median()) < 0.005, float(rel.median())
     assert not bool(at_edge[inner].any())
     assert float(best[inner].median()) < 0.1 and float(gap[inner].median()) > 0.02
+
+
+def test_the_mean_of_the_smallest_costs_is_topks_to_the_bit():
+    torch.manual_seed(0)
+    cost = torch.rand(6, 4, 30, 40) * 2.0
+    cost[:, :, :5] = 1.0  # sources that do not see a pixel all score 1: ties
+    cost[2, 1] = cost[4, 1]
+    for keep in range(1, 7):
+        expected = cost.topk(keep, dim=0, largest=False).values.mean(0)
+        assert torch.equal(mean_of_smallest(cost, keep), expected), keep
+    assert torch.equal(mean_of_smallest(cost, 1), cost.amin(0))
 
 
 def test_consistency_counts_views_that_agree():
