@@ -3,6 +3,10 @@ default layout (viewer.blueprint) as built and as saved in the .rrd."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -139,6 +143,19 @@ def test_off_mode_is_noop(tmp_path):
     logger.close()
     assert not path.exists()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_asking_for_the_default_mode_does_not_import_rerun():
+    """A run without a viewer never needs the Rerun SDK (half a second of imports)."""
+    code = ("import sys, viewer\n"
+            "from recon.commands.cli_config import default_rerun_mode\n"
+            "viewer.default_mode(), default_rerun_mode()\n"
+            "assert 'rerun' not in sys.modules, 'rerun imported'\n"
+            "viewer.RerunLogger\n"
+            "assert 'rerun' in sys.modules\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 def test_default_mode(monkeypatch):

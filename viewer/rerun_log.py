@@ -12,7 +12,6 @@ point is logged as ``cx + 0.5, cy + 0.5``, Rerun's pixel centres. Entity paths:
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -49,6 +48,7 @@ from .entities import (
     TRACKING,
     TRAJECTORY,
 )
+from .modes import default_mode
 
 MODES = ("spawn", "save", "serve", "off")
 
@@ -68,13 +68,6 @@ _NOT_CHARTED = ("valid_fraction",)
 def trajectory_piece(index: int) -> str:
     """Entity path of the trajectory piece that holds frame ``index``."""
     return f"{TRAJECTORY}/{int(index) // TRAJECTORY_PIECE:05d}"
-
-
-def default_mode() -> str:
-    """"spawn" when a display is available (DISPLAY or WAYLAND_DISPLAY set), else "off"."""
-    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
-        return "spawn"
-    return "off"
 
 
 def _log_transform(rec: rr.RecordingStream, pose: np.ndarray) -> None:
