@@ -137,27 +137,36 @@ def manhattan_support(lines: np.ndarray, centres: np.ndarray, lengths: np.ndarra
     cross_rows = np.stack([direction[:, 1], -direction[:, 0], cy * direction[:, 0] - cx * direction[:, 1]])  # (3, S)
     norm_rows = np.stack([np.ones_like(cx), cx, cy, cx**2 + cy**2])  # (4, S)
     inv_tol2 = 1.0 / math.sin(math.radians(tolerance_deg)) ** 2
+    # The triads' directions for every focal length at once (small arrays; the same numbers
+    # as one focal length at a time). The plane through the camera centre and a segment has
+    # normal K^T l.
+    f = focals[:, None, None]
+    n = np.concatenate([lines[None, :, :2] * f, np.broadcast_to(lines[None, :, 2:], (len(focals), len(lines), 1))], 2)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    all_d1, ok1 = _unit(np.cross(n[:, triples[:, 0]], n[:, triples[:, 1]]))
+    all_d2, ok2 = _unit(np.cross(all_d1, n[:, triples[:, 2]]))
+    all_d3 = np.cross(all_d1, all_d2)
+    # Segments on one line (or on one plane through the camera) propose no direction.
+    proposes = ok1 & ok2
     support = np.zeros(len(focals))
-    for k, f in enumerate(focals):
-        # The plane through the camera centre and a segment has normal K^T l.
-        n = np.concatenate([lines[:, :2] * f, lines[:, 2:]], 1)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        d1, ok1 = _unit(np.cross(n[triples[:, 0]], n[triples[:, 1]]))
-        d2, ok2 = _unit(np.cross(d1, n[triples[:, 2]]))
-        d3 = np.cross(d1, d2)
-        # Segments on one line (or on one plane through the camera) propose no direction.
-        proposes = ok1 & ok2
+    for k, fk in enumerate(focals):
+        # The (T, S) votes one focal length at a time, in place: they stay in cache.
         closeness = None
-        for d in (d1, d2, d3):
-            cross = (d * [f, f, 1.0]) @ cross_rows  # (T, S)
+        for d in (all_d1[k], all_d2[k], all_d3[k]):
+            cross = (d * [fk, fk, 1.0]) @ cross_rows  # (T, S)
             dz = d[:, 2]
-            norm2 = np.stack([f * f * (d[:, 0] ** 2 + d[:, 1] ** 2), -2.0 * f * dz * d[:, 0], -2.0 * f * dz * d[:, 1],
-                              dz * dz], 1) @ norm_rows
+            norm2 = np.stack([fk * fk * (d[:, 0] ** 2 + d[:, 1] ** 2), -2.0 * fk * dz * d[:, 0],
+                              -2.0 * fk * dz * d[:, 1], dz * dz], 1) @ norm_rows
             # A soft vote (1 on the point, 0 at the tolerance): a hard one is flat over a range
             # of focal lengths, and its argmax would take the range's first end.
-            vote = 1.0 - cross * cross / np.maximum(norm2, 1e-24) * inv_tol2
-            closeness = np.maximum(vote, 0.0) if closeness is None else np.maximum(closeness, vote)
-        support[k] = ((closeness @ lengths) * proposes).max()
+            # vote = 1 - cross^2 / max(norm2, 1e-24) / sin^2(tolerance)
+            np.multiply(cross, cross, out=cross)
+            np.divide(cross, np.maximum(norm2, 1e-24, out=norm2), out=cross)
+            np.multiply(cross, inv_tol2, out=cross)
+            vote = np.subtract(1.0, cross, out=cross)
+            closeness = np.maximum(vote, 0.0, out=vote) if closeness is None else np.maximum(closeness, vote,
+                                                                                              out=closeness)
+        support[k] = ((closeness @ lengths) * proposes[k]).max()
     return support
 
 
