@@ -23,8 +23,8 @@ PACKAGES = ("recon", "medea_core", "mvs_core", "viewer")
 # the methods and readers, which share recon/geometry). A module falls to the layer of its
 # longest named prefix.
 LAYERS = (
-    ("ground", ("recon.errors", "recon.choices", "recon.options", "recon.memory", "recon", "medea_core", "mvs_core",
-                "viewer")),
+    ("ground", ("recon.errors", "recon.choices", "recon.options", "recon.memory", "recon.threads", "recon",
+                "medea_core", "mvs_core", "viewer")),
     ("geometry", ("recon.geometry",)),
     ("methods and readers", ("recon.poses", "recon.io", "recon.fusion", "recon.priors", "recon.eval",
                              "recon.synthetic")),

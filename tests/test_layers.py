@@ -48,7 +48,8 @@ def test_the_layers_are_real_and_the_top_level_is_small():
     for k, (name, _) in enumerate(LAYERS):
         assert any(layer_of(m) == k for m in modules), name
     top = sorted(p.name for p in (ROOT / "recon").glob("*.py"))
-    assert top == ["__init__.py", "__main__.py", "choices.py", "errors.py", "memory.py", "options.py", "pipeline.py"]
+    assert top == ["__init__.py", "__main__.py", "choices.py", "errors.py", "memory.py", "options.py", "pipeline.py",
+                   "threads.py"]
 
 
 def test_the_pose_packages_import_only_their_own_level_and_below():

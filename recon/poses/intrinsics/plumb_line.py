@@ -20,6 +20,7 @@ import torch
 
 from recon.geometry import projective as pj
 from recon.poses.result import evenly_apart
+from recon.threads import map_on_cores
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,9 @@ def sample_regions(frames, cfg: PlumbLineConfig, max_frames: int, max_width: int
     """``edge_regions`` (cfg's edge settings) of the frames (list of (H, W, 3) uint8 RGB)
     ``sample_grays`` picks for max_frames and max_width."""
     grays, scale = sample_grays(frames, max_frames, max_width)
-    return SampledRegions(tuple(edge_regions(g, cfg) for g in grays), scale, cfg, max_frames, max_width)
+    # Mostly OpenCV and numpy calls that release the GIL: the frames on every core.
+    regions = tuple(map_on_cores(lambda gray: edge_regions(gray, cfg), grays))
+    return SampledRegions(regions, scale, cfg, max_frames, max_width)
 
 
 def line_rms(points: torch.Tensor, ids: torch.Tensor, centre: tuple[float, float], half_diagonal: float,

@@ -13,12 +13,12 @@ More: docs/poses.md#the-homographies-of-a-turning-camera
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+
+from recon.threads import map_on_cores
 
 
 @dataclass(frozen=True)
@@ -143,9 +143,7 @@ def estimate_focal_rotation(frames, cfg: RotationFocalConfig | None = None) -> R
     height, width = frames[0].shape[:2]
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0], np.float32)
     # SIFT releases the GIL: the frames' features on every core (each frame's are its own).
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, len(frames)))) as pool:
-        features = list(pool.map(lambda f: sift_features(cv2.cvtColor(np.asarray(f), cv2.COLOR_RGB2GRAY), cfg),
-                                 frames))
+    features = map_on_cores(lambda f: sift_features(cv2.cvtColor(np.asarray(f), cv2.COLOR_RGB2GRAY), cfg), frames)
     focals = width * np.exp(np.linspace(math.log(cfg.focal_range[0]), math.log(cfg.focal_range[1]), cfg.candidates))
     counted, curves = 0, []
     for i, j in frame_pairs(len(frames), cfg.gaps):
