@@ -192,7 +192,7 @@ def vote_up(guess: np.ndarray, normals: np.ndarray, search_deg: float = SEARCH_D
 
     Args:
         guess: (3,) unit up.
-        normals: (K, 3) unit normals, sign arbitrary.
+        normals: (K, 3) unit normals, sign arbitrary, K >= 1.
         search_deg: candidates lie within this many degrees of `guess`.
 
     Returns:
@@ -201,9 +201,15 @@ def vote_up(guess: np.ndarray, normals: np.ndarray, search_deg: float = SEARCH_D
     candidates = directions_around(guess, search_deg, VOTE_STEP_DEG)
     along, across = np.cos(np.radians(VOTE_CONE_DEG)), np.sin(np.radians(VOTE_CONE_DEG))
     score = np.empty(len(candidates))
-    for start in range(0, len(candidates), 256):  # (256, K) at a time
-        cosine = np.abs(candidates[start : start + 256] @ normals.T)
-        score[start : start + 256] = ((cosine >= along) | (cosine <= across)).mean(axis=1)
+    # (16, K) at a time, in place: the block stays in cache. The count over K is the share's
+    # numerator, exactly as the mean of the booleans would sum it.
+    normals_t = np.ascontiguousarray(normals.T)
+    for start in range(0, len(candidates), 16):
+        cosine = candidates[start : start + 16] @ normals_t
+        np.abs(cosine, out=cosine)
+        votes = cosine >= along
+        votes |= cosine <= across
+        score[start : start + 16] = np.count_nonzero(votes, axis=1) / len(normals)
     away = np.degrees(np.arccos(np.clip(candidates @ _unit(guess), -1.0, 1.0)))
     best = int(np.argmax(score - VOTE_DEG_COST * away))
     return candidates[best], float(score[best])
