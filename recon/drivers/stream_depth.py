@@ -25,6 +25,7 @@ from ..errors import ReconInputError
 from ..geometry.lens import worth_undistorting
 from ..io.frame_store import FrameStore
 from ..io.output_folder import OutputFolder
+from ..threads import map_on_cores
 from .segments import untrusted_scale
 from .stream_plan import anchor_factor, anchor_pixels, plan_windows
 from .stream_track import TrackedVideo
@@ -129,10 +130,11 @@ def depth_windows(config: PipelineConfig, video: TrackedVideo, plan: PosePlan, s
         with clock.stage("fusion"):
             if volume is None:
                 volume = _open_volume(video, final, adjusted, seq, options)
+        with clock.stage("export"):  # PNG encoding releases the GIL: the window's frames on every core
+            map_on_cores(lambda k: write_depth_frame(out, seq.names[k], final[k - first], config.depth_npy),
+                         range(window.shared, len(pos)))
         for k in range(window.shared, len(pos)):
             depth_k = final[k - first]
-            with clock.stage("export"):
-                write_depth_frame(out, seq.names[k], depth_k, config.depth_npy)
             with clock.stage("fusion"):
                 weight = None if confidence is None else confidence_weight(
                     confidence[k - first], options.min_confidence, options.confidence_weights)
