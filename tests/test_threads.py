@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from recon.threads import map_on_cores
+from recon.threads import map_on_cores, prefetched
 
 
 def test_results_come_back_in_the_items_order_and_equal_the_serial_calls():
@@ -37,3 +37,49 @@ def test_an_error_in_a_call_reaches_the_caller():
 
     with pytest.raises(ValueError, match="item 3"):
         map_on_cores(fail, range(5))
+
+
+def test_prefetched_items_come_in_order_and_are_made_on_another_thread():
+    made_on = []
+
+    def frames():
+        for k in range(20):
+            made_on.append(threading.current_thread().name)
+            yield k
+
+    assert list(prefetched(frames(), ahead=3)) == list(range(20))
+    assert set(made_on) == {"recon-prefetch"}
+
+
+def test_an_error_while_prefetching_is_raised_at_its_item():
+    def frames():
+        yield 0
+        yield 1
+        raise ValueError("frame 2 is corrupt")
+
+    got = []
+    with pytest.raises(ValueError, match="frame 2 is corrupt"):
+        for item in prefetched(frames()):
+            got.append(item)
+    assert got == [0, 1]
+
+
+def test_leaving_a_prefetched_loop_early_stops_the_thread_and_closes_the_source():
+    closed = threading.Event()
+
+    def frames():
+        try:
+            k = 0
+            while True:
+                yield k
+                k += 1
+        finally:
+            closed.set()
+
+    before = threading.active_count()
+    for item in prefetched(frames(), ahead=2):
+        if item == 5:
+            break
+    # The generator is closed once the loop lets go of it (CPython: at once).
+    assert closed.wait(timeout=5), "the source was not closed"
+    assert threading.active_count() == before

@@ -36,6 +36,7 @@ from ..io.frame_store import FrameStore
 from ..io.pose_formats.matching import frame_names, match_pose_file
 from ..io.source import FrameSource
 from ..priors.base import PriorOutput, concat_outputs
+from ..threads import prefetched
 from .segments import estimator_options
 from .stream_plan import MotionSelector, depth_gap, parse_depth_frames, select_later
 
@@ -371,8 +372,10 @@ def _frame_namer(source: FrameSource) -> Callable[[np.ndarray, np.ndarray], list
 
 
 def _batches(source: FrameSource, clock: StageClock) -> Iterator[Sequence]:
-    """The selected frames, PRIOR_BATCH at a time, as Sequences (decode time on the clock)."""
-    frames = iter(source)
+    """The selected frames, PRIOR_BATCH at a time, as Sequences (the time spent waiting for
+    them on the clock's decode). The next batch is decoded on a thread of its own while the
+    caller works on this one."""
+    frames = prefetched(source, ahead=PRIOR_BATCH)
     while True:
         with clock.stage("decode"):
             chunk = [f for _, f in zip(range(PRIOR_BATCH), frames)]
