@@ -60,8 +60,10 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
 
 
 def write_json(name: str, payload: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"{name}.json"
+    """benchmarks/results/<name>.json, or `name` itself where it is a path to a .json file
+    (a path given for a name once cost a whole validation run: its folder did not exist)."""
+    path = Path(name) if name.endswith(".json") or "/" in name else RESULTS / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(payload, indent=2, default=float))
     tmp.replace(path)
