@@ -55,6 +55,11 @@ class PlumbLineConfig:
     max_frames: int = 40
     max_width: int = 640
 
+    @property
+    def edge_settings(self) -> tuple[float, float, float]:
+        """The settings :func:`edge_regions` reads (blur_sigma, canny_low, canny_high)."""
+        return self.blur_sigma, self.canny_low, self.canny_high
+
 
 @dataclass
 class LensEstimate:
@@ -123,11 +128,8 @@ class SampledRegions:
 
     def serves(self, edges: PlumbLineConfig, max_frames: int, max_width: int) -> bool:
         """Whether these are the regions an estimator with these edge and frame settings finds."""
-        def edge_settings(cfg: PlumbLineConfig) -> tuple:
-            return cfg.blur_sigma, cfg.canny_low, cfg.canny_high
-
-        return (edge_settings(self.edges), self.max_frames, self.max_width) == (edge_settings(edges), max_frames,
-                                                                               max_width)
+        return (self.edges.edge_settings, self.max_frames, self.max_width) == (edges.edge_settings, max_frames,
+                                                                             max_width)
 
 
 def edge_regions(gray: np.ndarray, cfg: PlumbLineConfig) -> EdgeRegions:
